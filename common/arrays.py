@@ -1,0 +1,138 @@
+"""numpy arrays on the wire, and the validators every message uses.
+
+SPEC §7: an array travels as ``{"dtype": "<f8", "shape": [...], "data": <bytes>}``,
+little-endian. Decoding also accepts a plain (nested) list of numbers, which is what
+a hand-written third-party client most often sends; the dtype is then the field's.
+Every array a message holds is a read-only, C-contiguous copy.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+
+from common.errors import MessageError
+
+_WIRE_DTYPES = {"<f8", "<f4", "<i8", "<i4", "|u1", "<u1", "|b1"}
+
+
+def encode_array(array: np.ndarray, dtype: str) -> dict[str, Any]:
+    """Encode ``array`` as the SPEC §7 map with the little-endian ``dtype`` given."""
+    a = np.ascontiguousarray(array, dtype=np.dtype(dtype))
+    return {"dtype": dtype, "shape": list(a.shape), "data": a.tobytes()}
+
+
+def _describe(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def decode_array(
+    raw: Any, *, message: str, field: str, dtype: str, shape: Sequence[int | None]
+) -> np.ndarray:
+    """Decode and validate one array field.
+
+    ``shape`` entries of ``None`` accept any length along that axis. Float arrays must be
+    finite. Raises :class:`MessageError` naming the field on any mismatch.
+    """
+    want = np.dtype(dtype)
+    if isinstance(raw, dict):
+        try:
+            wire_dtype = raw["dtype"]
+            wire_shape = raw["shape"]
+            data = raw["data"]
+        except KeyError as exc:
+            raise MessageError(message, field, "array map with dtype, shape, data",
+                               f"missing {exc.args[0]!r}") from None
+        if wire_dtype not in _WIRE_DTYPES:
+            raise MessageError(message, field, "little-endian dtype such as '<f8'",
+                               _describe(wire_dtype))
+        if not isinstance(wire_shape, (list, tuple)) or not all(
+            isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in wire_shape
+        ):
+            raise MessageError(message, field, "shape as a list of non-negative ints",
+                               _describe(wire_shape))
+        if not isinstance(data, (bytes, bytearray, memoryview)):
+            raise MessageError(message, field, "data as bytes", type(data).__name__)
+        wire = np.dtype(wire_dtype)
+        count = int(np.prod(wire_shape)) if wire_shape else 1
+        if len(data) != count * wire.itemsize:
+            raise MessageError(message, field,
+                               f"{count * wire.itemsize} data bytes for shape {list(wire_shape)}",
+                               f"{len(data)} bytes")
+        array = np.frombuffer(bytes(data), dtype=wire).reshape(wire_shape)
+    elif isinstance(raw, (list, tuple)):
+        try:
+            array = np.asarray(raw)
+        except ValueError:
+            raise MessageError(message, field, "a rectangular list of numbers",
+                               "a ragged list") from None
+        if array.size and array.dtype.kind not in "biuf":
+            raise MessageError(message, field, "numbers", f"elements of kind {array.dtype}")
+    else:
+        raise MessageError(message, field, "an array map or list", type(raw).__name__)
+
+    if want.kind in "iu" and array.dtype.kind == "f":
+        if array.size and not np.all(np.isfinite(array) & (array == np.round(array))):
+            raise MessageError(message, field, "integers", "non-integral values")
+    if want.kind == "b" and array.dtype.kind not in "bui":
+        raise MessageError(message, field, "booleans", str(array.dtype))
+    array = np.array(array, dtype=want, order="C")  # own the memory: frombuffer is read-only
+
+    if len(shape) != array.ndim or any(
+        s is not None and s != d for s, d in zip(shape, array.shape, strict=False)
+    ):
+        shown = ["n" if s is None else s for s in shape]
+        raise MessageError(message, field, f"shape {shown}", str(list(array.shape)))
+    if want.kind == "f" and not np.all(np.isfinite(array)):
+        raise MessageError(message, field, "finite values", "NaN or infinity")
+    array.setflags(write=False)
+    return array
+
+
+def frozen_array(value: Any, dtype: str | np.dtype) -> np.ndarray:
+    """A read-only C-contiguous copy, for message construction from Python values."""
+    array = np.array(value, dtype=dtype, order="C")
+    array.setflags(write=False)
+    return array
+
+
+def check_finite(message: str, field: str, value: float) -> float:
+    """Validate a scalar float field."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise MessageError(message, field, "a number", type(value).__name__)
+    number = float(value)
+    if not np.isfinite(number):
+        raise MessageError(message, field, "a finite number", repr(number))
+    return number
+
+
+def check_int(message: str, field: str, value: Any) -> int:
+    """Validate an integer scalar field."""
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise MessageError(message, field, "an integer", type(value).__name__)
+    return int(value)
+
+
+def check_str(message: str, field: str, value: Any, *, choices: Sequence[str] | None = None) -> str:
+    """Validate a string field, optionally one of ``choices``."""
+    if not isinstance(value, str):
+        raise MessageError(message, field, "a string", type(value).__name__)
+    if choices is not None and value not in choices:
+        raise MessageError(message, field, f"one of {list(choices)}", repr(value))
+    return value
+
+
+def check_symmetric(message: str, field: str, matrix: np.ndarray, *, rtol: float = 1e-6) -> None:
+    """A covariance must be square and symmetric to ``rtol`` of its largest entry."""
+    if matrix.ndim != 2 or matrix.shape[0] != matrix.shape[1]:
+        raise MessageError(message, field, "a square matrix", str(list(matrix.shape)))
+    if matrix.size == 0:
+        return
+    scale = float(np.max(np.abs(matrix)))
+    asym = float(np.max(np.abs(matrix - matrix.T)))
+    if asym > rtol * max(scale, 1e-300):
+        raise MessageError(message, field, f"symmetric within {rtol:g} relative",
+                           f"asymmetry {asym:.3g} at scale {scale:.3g}")

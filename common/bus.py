@@ -1,0 +1,310 @@
+"""The small bus interface every service talks to, over Zenoh or in-process.
+
+Services never touch ``zenoh`` directly: they take a :class:`Bus`. :class:`ZenohBus` is the
+real transport; :class:`InProcessBus` exists only for pure unit tests of a service's logic
+(integration tests always use real Zenoh sessions on loopback).
+
+Delivery kinds (STYLE: latest-wins for frames, a queryable for the latest state, reliable
+in-order delivery for estimator input):
+
+* ``publisher(key)`` is reliable and blocks under congestion (nothing lost);
+  ``publisher(key, latest_wins=True)`` drops under congestion (camera frames).
+* ``channel(key)`` is one ordered FIFO queue for everything matching ``key``: events are
+  received in publication order by whoever calls ``recv`` (no racing callbacks);
+  ``channel(key, latest_wins=True)`` keeps only the newest sample.
+* ``serve_latest(key, provider)`` answers ``get`` with whatever ``provider()`` returns now.
+"""
+
+from __future__ import annotations
+
+import atexit
+import logging
+import queue
+import threading
+import time
+import weakref
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any, Protocol
+
+log = logging.getLogger(__name__)
+
+Callback = Callable[[str, bytes], None]
+
+
+@dataclass(frozen=True)
+class Sample:
+    """One received payload and the key it was published on."""
+
+    key: str
+    payload: bytes
+
+
+class Publisher(Protocol):
+    def put(self, payload: bytes) -> None: ...
+
+
+class Channel(Protocol):
+    def recv(self, timeout: float | None = None) -> Sample | None:
+        """Next sample, or None after ``timeout`` seconds (or when closed)."""
+        ...
+
+    def close(self) -> None: ...
+
+
+class Bus(Protocol):
+    """What a service needs from the transport."""
+
+    def publisher(self, key: str, *, latest_wins: bool = False) -> Publisher: ...
+
+    def subscribe(self, key: str, callback: Callback) -> Any: ...
+
+    def channel(self, key: str, *, latest_wins: bool = False, capacity: int = 4096) -> Channel: ...
+
+    def serve_latest(self, key: str, provider: Callable[[], bytes | None]) -> Any: ...
+
+    def get(self, key: str, *, timeout: float = 2.0) -> list[Sample]: ...
+
+    def declare_alive(self, key: str) -> Any: ...
+
+    def alive(self, key: str, *, timeout: float = 2.0) -> list[str]: ...
+
+    def close(self) -> None: ...
+
+
+# ---------------------------------------------------------------------------------
+# Zenoh
+# ---------------------------------------------------------------------------------
+
+
+class _ZenohChannel:
+    def __init__(self, subscriber: Any) -> None:
+        self._sub = subscriber
+        self._closed = False
+
+    def recv(self, timeout: float | None = None) -> Sample | None:
+        # zenoh handlers have try_recv() and a blocking recv(); poll so close() and
+        # timeouts work without a thread stuck inside the library.
+        deadline = None if timeout is None else time.monotonic() + timeout
+        delay = 0.0002
+        while not self._closed:
+            try:
+                s = self._sub.try_recv()
+            except Exception:  # the channel was closed under us
+                return None
+            if s is not None:
+                return Sample(str(s.key_expr), s.payload.to_bytes())
+            if deadline is not None and time.monotonic() >= deadline:
+                return None
+            time.sleep(delay)
+            delay = min(delay * 2, 0.005)
+        return None
+
+    def close(self) -> None:
+        if not self._closed:
+            self._closed = True
+            try:
+                self._sub.undeclare()
+            except Exception:  # already gone with the session
+                pass
+
+
+class _ZenohPublisher:
+    def __init__(self, publisher: Any) -> None:
+        self._pub = publisher
+
+    def put(self, payload: bytes) -> None:
+        self._pub.put(payload)
+
+
+class ZenohBus:
+    """A :class:`Bus` on one Zenoh session; closes everything it declared on ``close``."""
+
+    def __init__(self, session: Any) -> None:
+        import zenoh
+
+        self._zenoh = zenoh
+        self.session = session
+        self._entities: list[Any] = []
+        self._lock = threading.Lock()
+        self._closed = False
+        ref = weakref.ref(self)
+        atexit.register(lambda: (b := ref()) is not None and b.close())
+
+    def _keep(self, entity: Any) -> Any:
+        with self._lock:
+            self._entities.append(entity)
+        return entity
+
+    def publisher(self, key: str, *, latest_wins: bool = False) -> Publisher:
+        z = self._zenoh
+        if latest_wins:
+            pub = self.session.declare_publisher(
+                key, congestion_control=z.CongestionControl.DROP,
+                reliability=z.Reliability.BEST_EFFORT, express=True)
+        else:
+            pub = self.session.declare_publisher(
+                key, congestion_control=z.CongestionControl.BLOCK,
+                reliability=z.Reliability.RELIABLE)
+        self._keep(pub)
+        return _ZenohPublisher(pub)
+
+    def subscribe(self, key: str, callback: Callback) -> Any:
+        def on_sample(sample: Any) -> None:
+            try:
+                callback(str(sample.key_expr), sample.payload.to_bytes())
+            except Exception:  # never let a callback kill zenoh's thread silently
+                log.exception("subscriber callback for %s failed", key)
+
+        return self._keep(self.session.declare_subscriber(key, on_sample))
+
+    def channel(self, key: str, *, latest_wins: bool = False, capacity: int = 4096) -> Channel:
+        handlers = self._zenoh.handlers
+        handler = handlers.RingChannel(1) if latest_wins else handlers.FifoChannel(capacity)
+        sub = self.session.declare_subscriber(key, handler)
+        ch = _ZenohChannel(sub)
+        self._keep(ch)
+        return ch
+
+    def serve_latest(self, key: str, provider: Callable[[], bytes | None]) -> Any:
+        def on_query(query: Any) -> None:
+            try:
+                payload = provider()
+                if payload is not None:
+                    query.reply(key, payload)
+            except Exception:
+                log.exception("queryable %s failed", key)
+
+        return self._keep(self.session.declare_queryable(key, on_query))
+
+    def get(self, key: str, *, timeout: float = 2.0) -> list[Sample]:
+        out = []
+        for reply in self.session.get(key, timeout=timeout):
+            if reply.ok is not None:
+                out.append(Sample(str(reply.ok.key_expr), reply.ok.payload.to_bytes()))
+        return out
+
+    def declare_alive(self, key: str) -> Any:
+        return self._keep(self.session.liveliness().declare_token(key))
+
+    def alive(self, key: str, *, timeout: float = 2.0) -> list[str]:
+        return sorted({str(r.ok.key_expr) for r in self.session.liveliness().get(
+            key, timeout=timeout) if r.ok is not None})
+
+    def close(self) -> None:
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            entities, self._entities = self._entities, []
+        for entity in reversed(entities):
+            try:
+                if isinstance(entity, _ZenohChannel):
+                    entity.close()
+                else:
+                    entity.undeclare()
+            except Exception:  # session may already be closing
+                pass
+        try:
+            self.session.close()
+        except Exception:
+            pass
+
+    def __enter__(self) -> ZenohBus:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+# ---------------------------------------------------------------------------------
+# In-process (unit tests of service logic only)
+# ---------------------------------------------------------------------------------
+
+
+def _intersects(a: str, b: str) -> bool:
+    import zenoh
+
+    return bool(zenoh.KeyExpr(a).intersects(zenoh.KeyExpr(b)))
+
+
+class _LocalChannel:
+    def __init__(self, latest_wins: bool, capacity: int) -> None:
+        self._q: queue.Queue[Sample] = queue.Queue(maxsize=1 if latest_wins else capacity)
+        self._latest_wins = latest_wins
+        self.closed = False
+
+    def push(self, sample: Sample) -> None:
+        if self._latest_wins:
+            try:
+                self._q.get_nowait()
+            except queue.Empty:
+                pass
+        self._q.put(sample)
+
+    def recv(self, timeout: float | None = None) -> Sample | None:
+        try:
+            return self._q.get(timeout=timeout)
+        except queue.Empty:
+            return None
+
+    def close(self) -> None:
+        self.closed = True
+
+
+class InProcessBus:
+    """A synchronous bus inside one process: ``put`` delivers before it returns."""
+
+    def __init__(self) -> None:
+        self._subs: list[tuple[str, Callable[[Sample], None]]] = []
+        self._queryables: list[tuple[str, Callable[[], bytes | None]]] = []
+        self._alive: set[str] = set()
+
+    def publisher(self, key: str, *, latest_wins: bool = False) -> Publisher:
+        bus = self
+
+        class _Pub:
+            def put(self, payload: bytes) -> None:
+                bus.put(key, payload)
+
+        return _Pub()
+
+    def put(self, key: str, payload: bytes) -> None:
+        for pattern, deliver in list(self._subs):
+            if _intersects(pattern, key):
+                deliver(Sample(key, bytes(payload)))
+
+    def subscribe(self, key: str, callback: Callback) -> Any:
+        entry = (key, lambda s: callback(s.key, s.payload))
+        self._subs.append(entry)
+        return entry
+
+    def channel(self, key: str, *, latest_wins: bool = False, capacity: int = 4096) -> Channel:
+        ch = _LocalChannel(latest_wins, capacity)
+        self._subs.append((key, ch.push))
+        return ch
+
+    def serve_latest(self, key: str, provider: Callable[[], bytes | None]) -> Any:
+        entry = (key, provider)
+        self._queryables.append(entry)
+        return entry
+
+    def get(self, key: str, *, timeout: float = 2.0) -> list[Sample]:
+        out = []
+        for pattern, provider in self._queryables:
+            if _intersects(pattern, key):
+                payload = provider()
+                if payload is not None:
+                    out.append(Sample(pattern, payload))
+        return out
+
+    def declare_alive(self, key: str) -> Any:
+        self._alive.add(key)
+        return key
+
+    def alive(self, key: str, *, timeout: float = 2.0) -> list[str]:
+        return sorted(k for k in self._alive if _intersects(key, k))
+
+    def close(self) -> None:
+        self._subs.clear()
+        self._queryables.clear()

@@ -1,0 +1,75 @@
+"""Small geometry helpers shared by every service: angles, rigid transforms, P_d."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+
+def wrap_angle(angle: float | np.ndarray) -> float | np.ndarray:
+    """Wrap radians to [-π, π) (SPEC §4)."""
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
+
+
+def rot_z(theta: float) -> np.ndarray:
+    """3x3 rotation about z by ``theta`` radians."""
+    c, s = math.cos(theta), math.sin(theta)
+    return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+
+def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """4x4 homogeneous transform from a rotation and a translation."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(t, dtype=float).reshape(3)
+    return T
+
+
+def invert_T(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4x4 transform (transpose the rotation, no general inverse)."""
+    R = T[:3, :3]
+    return make_T(R.T, -R.T @ T[:3, 3])
+
+
+def T_from_pose2(pose: np.ndarray, *, z: float = 0.0) -> np.ndarray:
+    """T_map_from_robot for a planar pose (x, y, θ) at height ``z``."""
+    return make_T(rot_z(float(pose[2])), np.array([pose[0], pose[1], z]))
+
+
+def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply a 4x4 transform to an (N, 3) array of points."""
+    pts = np.asarray(points, dtype=float).reshape(-1, 3)
+    return pts @ T[:3, :3].T + T[:3, 3]
+
+
+def rotation_angle_deg(R: np.ndarray) -> float:
+    """Angle of a rotation matrix in degrees (for registration error reports)."""
+    c = (np.trace(R) - 1.0) / 2.0
+    return math.degrees(math.acos(max(-1.0, min(1.0, c))))
+
+
+def relative_covariance(P: np.ndarray, i: int, j: int) -> np.ndarray:
+    """P_d = P_ii + P_jj − P_ij − P_ijᵀ for landmarks at state indices i, j (SPEC §5).
+
+    ``i`` and ``j`` are landmark positions in the state (0-based), so landmark k occupies
+    rows 3 + 2k and 3 + 2k + 1.
+    """
+    a, b = 3 + 2 * i, 3 + 2 * j
+    Pii = P[a:a + 2, a:a + 2]
+    Pjj = P[b:b + 2, b:b + 2]
+    Pij = P[a:a + 2, b:b + 2]
+    return Pii + Pjj - Pij - Pij.T
+
+
+def all_relative_covariances(P: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """P_d for every pair i < j of the first ``n`` landmarks, vectorised.
+
+    Returns ``(I, J, Pd)`` with ``Pd`` of shape (n(n−1)/2, 2, 2).
+    """
+    I, J = np.triu_indices(n, k=1)
+    M = P[3:3 + 2 * n, 3:3 + 2 * n].reshape(n, 2, n, 2).transpose(0, 2, 1, 3)  # (n, n, 2, 2)
+    diag = M[np.arange(n), np.arange(n)]  # (n, 2, 2)
+    Pij = M[I, J]
+    Pd = diag[I] + diag[J] - Pij - Pij.transpose(0, 2, 1)
+    return I, J, Pd

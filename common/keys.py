@@ -1,0 +1,110 @@
+"""Every Zenoh key expression slamlens uses is built here (SPEC §7); nowhere else.
+
+Robot and camera names are single key segments: non-empty, without ``/`` or the Zenoh
+wildcard and verbatim characters (``* $ ? #``).
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+from common.errors import ConfigError
+
+DEFAULT_PREFIX = "slamlens"
+_SEGMENT = re.compile(r"^[^/*$?#\s]+$")
+
+
+def check_name(kind: str, name: str) -> str:
+    """Validate a robot or camera name as one key segment."""
+    if not isinstance(name, str) or not _SEGMENT.match(name):
+        raise ConfigError(f"{kind} name {name!r} must be one key segment: non-empty, "
+                          "no '/', '*', '$', '?', '#' or spaces")
+    return name
+
+
+def check_prefix(prefix: str) -> str:
+    """Validate a key prefix: one or more segments joined by '/'."""
+    if not isinstance(prefix, str) or not prefix or not all(
+            _SEGMENT.match(p) for p in prefix.split("/")):
+        raise ConfigError(f"prefix {prefix!r} must be segments joined by '/', without wildcards")
+    return prefix
+
+
+@dataclass(frozen=True)
+class Keys:
+    """Key builders under one prefix (``slamlens`` unless configured)."""
+
+    prefix: str = DEFAULT_PREFIX
+
+    def __post_init__(self) -> None:
+        check_prefix(self.prefix)
+
+    # -- robot side ---------------------------------------------------------------
+    def robot(self, robot: str, leaf: str) -> str:
+        return f"{self.prefix}/robot/{check_name('robot', robot)}/{leaf}"
+
+    def odometry(self, robot: str) -> str:
+        return self.robot(robot, "odometry")
+
+    def observations(self, robot: str) -> str:
+        return self.robot(robot, "observations")
+
+    def truth(self, robot: str) -> str:
+        return self.robot(robot, "truth")
+
+    def state(self, robot: str) -> str:
+        return self.robot(robot, "state")
+
+    def health(self, robot: str) -> str:
+        return self.robot(robot, "health")
+
+    def tracked(self, robot: str) -> str:
+        """Camera-measured robot pose (issue 3, fields as Truth)."""
+        return self.robot(robot, "tracked")
+
+    def robot_inputs(self, robot: str) -> str:
+        """One expression covering odometry and observations, for one ordered subscriber."""
+        return self.robot(robot, "*")
+
+    def estimator_alive(self, robot: str) -> str:
+        """Liveliness token of the estimator serving ``robot``."""
+        return self.robot(robot, "alive/estimator")
+
+    def any_estimator_alive(self) -> str:
+        return f"{self.prefix}/robot/*/alive/estimator"
+
+    # -- camera side --------------------------------------------------------------
+    def camera(self, camera: str, leaf: str) -> str:
+        return f"{self.prefix}/camera/{check_name('camera', camera)}/{leaf}"
+
+    def frame(self, camera: str) -> str:
+        return self.camera(camera, "frame")
+
+    def registration(self, camera: str, robot: str) -> str:
+        return self.camera(camera, f"registration/{check_name('robot', robot)}")
+
+    def camera_pose(self, camera: str) -> str:
+        return self.camera(camera, "pose")
+
+    def camera_control(self, camera: str) -> str:
+        """Requests to the registration service, e.g. re-register (docs/protocol.md)."""
+        return self.camera(camera, "control")
+
+    def camera_alive(self, camera: str) -> str:
+        return self.camera(camera, "alive/registration")
+
+    def any_camera_alive(self) -> str:
+        return f"{self.prefix}/camera/*/alive/registration"
+
+    # -- parsing ------------------------------------------------------------------
+    def leaf_of(self, key: str) -> str:
+        """The last segment of a key (``odometry``, ``observations`` …)."""
+        return key.rsplit("/", 1)[-1]
+
+    def robot_of(self, key: str) -> str | None:
+        parts = key.split("/")
+        n = len(self.prefix.split("/"))
+        if len(parts) > n + 1 and parts[n] == "robot":
+            return parts[n + 1]
+        return None

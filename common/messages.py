@@ -1,0 +1,438 @@
+"""The messages of SPEC §7: frozen dataclasses with msgpack encoding and validation.
+
+Every message is a msgpack map with ``"schema": 1``. Arrays travel as
+``{"dtype", "shape", "data"}`` maps (see :mod:`common.arrays`). Decoders ignore unknown
+fields; anything malformed raises :class:`~common.errors.MessageError` naming the field,
+what was expected and what arrived. Arrays held by a message are read-only copies, and
+equality compares array contents (a plain dataclass ``__eq__`` would not).
+
+Decisions where SPEC §7 is silent (also in ``docs/protocol.md``):
+
+* ``SlamState.covariance`` is sent flat, shape ``[(3+2n)²]`` as SPEC writes it; decoders
+  accept it flat or as ``[3+2n, 3+2n]``. In memory it is always the square matrix.
+* The observed and new ids of a state are the fields ``observed_ids`` and ``new_ids``.
+* A ``SlamState`` may carry the innovations of its update (``innovation_ids``,
+  ``innovations`` [k,2], ``innovation_covariances`` [k,2,2]) so a monitor can test NIS.
+* A ``Health`` violation is ``{kind, ids, step, growth | statistic, bound, phase, detail}``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Self
+
+import msgpack
+import numpy as np
+
+from common.arrays import (
+    check_finite,
+    check_int,
+    check_str,
+    check_symmetric,
+    decode_array,
+    encode_array,
+    frozen_array,
+)
+from common.errors import MessageError
+
+SCHEMA = 1
+STEPS = ("init", "predict", "update")
+VIOLATION_KINDS = ("pair", "feature", "symmetry", "psd", "correlation", "nees", "nis")
+
+_F8: dict[str, Any] = {"kind": "array", "dtype": "<f8"}
+_I8: dict[str, Any] = {"kind": "array", "dtype": "<i8"}
+
+
+def _arr(dtype: dict[str, Any], shape: tuple[int | None, ...], doc: str,
+         optional: bool = False) -> Any:
+    meta = {**dtype, "shape": shape, "doc": doc}
+    if optional:
+        return field(default=None, metadata=meta)
+    return field(metadata=meta)
+
+
+def _scalar(kind: str, doc: str, **kw: Any) -> Any:
+    return field(metadata={"kind": kind, "doc": doc}, **kw)
+
+
+class Message:
+    """Base of every message: validation, freezing, msgpack, value equality."""
+
+    TYPE: ClassVar[str] = "Message"
+
+    # -- construction -------------------------------------------------------------
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):  # type: ignore[arg-type]
+            meta = f.metadata
+            value = getattr(self, f.name)
+            kind = meta.get("kind")
+            if kind == "array":
+                if value is None:
+                    continue
+                if isinstance(value, np.ndarray) and not value.flags.writeable \
+                        and value.dtype == np.dtype(meta["dtype"]):
+                    array = value
+                else:
+                    array = frozen_array(value, meta["dtype"])
+                if meta["dtype"] == "<f8" and not np.all(np.isfinite(array)):
+                    raise MessageError(self.TYPE, f.name, "finite values", "NaN or infinity")
+                object.__setattr__(self, f.name, array)
+            elif kind == "float":
+                object.__setattr__(self, f.name, check_finite(self.TYPE, f.name, value))
+            elif kind == "int":
+                object.__setattr__(self, f.name, check_int(self.TYPE, f.name, value))
+            elif kind == "str":
+                check_str(self.TYPE, f.name, value, choices=meta.get("choices"))
+            elif kind == "bool":
+                if not isinstance(value, bool):
+                    raise MessageError(self.TYPE, f.name, "a boolean", type(value).__name__)
+            elif kind == "bytes":
+                if not isinstance(value, (bytes, bytearray, memoryview)):
+                    raise MessageError(self.TYPE, f.name, "bytes", type(value).__name__)
+                object.__setattr__(self, f.name, bytes(value))
+        self._check()
+
+    def _check(self) -> None:
+        """Cross-field checks (shapes consistent with counts and so on)."""
+
+    # -- equality -----------------------------------------------------------------
+    def __eq__(self, other: object) -> bool:
+        if type(other) is not type(self):
+            return NotImplemented
+        for f in dataclasses.fields(self):  # type: ignore[arg-type]
+            a, b = getattr(self, f.name), getattr(other, f.name)
+            if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+                if a is None or b is None or a.shape != b.shape or not np.array_equal(a, b):
+                    return False
+            elif a != b:
+                return False
+        return True
+
+    __hash__ = None  # type: ignore[assignment]
+
+    # -- wire format --------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"schema": SCHEMA}
+        for f in dataclasses.fields(self):  # type: ignore[arg-type]
+            value = getattr(self, f.name)
+            if f.metadata.get("kind") == "array":
+                if value is None:
+                    continue
+                out[f.name] = encode_array(value, f.metadata["dtype"])
+            elif f.metadata.get("kind") == "violations":
+                out[f.name] = [v.to_dict() for v in value]
+            elif f.metadata.get("kind") == "stats":
+                out[f.name] = dict(value)
+            else:
+                out[f.name] = value
+        return self._wire_overrides(out)
+
+    def _wire_overrides(self, out: dict[str, Any]) -> dict[str, Any]:
+        return out
+
+    def to_bytes(self) -> bytes:
+        return msgpack.packb(self.to_dict(), use_bin_type=True)
+
+    @classmethod
+    def from_bytes(cls, payload: bytes | bytearray | memoryview, **options: Any) -> Self:
+        try:
+            raw = msgpack.unpackb(bytes(payload), raw=False, strict_map_key=False)
+        except Exception as exc:  # msgpack raises several unrelated types
+            raise MessageError(cls.TYPE, "<payload>", "a msgpack map",
+                               f"undecodable bytes ({type(exc).__name__})") from None
+        return cls.from_dict(raw, **options)
+
+    @classmethod
+    def from_dict(cls, raw: Any, **options: Any) -> Self:
+        if not isinstance(raw, Mapping):
+            raise MessageError(cls.TYPE, "<payload>", "a msgpack map", type(raw).__name__)
+        schema = raw.get("schema")
+        if schema != SCHEMA:
+            raise MessageError(cls.TYPE, "schema", str(SCHEMA), repr(schema))
+        kwargs: dict[str, Any] = {}
+        for f in dataclasses.fields(cls):  # type: ignore[arg-type]
+            meta = f.metadata
+            if f.name not in raw or raw[f.name] is None:
+                has_default = (f.default is not dataclasses.MISSING
+                               or f.default_factory is not dataclasses.MISSING)
+                if has_default:
+                    continue
+                raise MessageError(cls.TYPE, f.name, "present", "missing")
+            value = raw[f.name]
+            kind = meta.get("kind")
+            if kind == "array":
+                value = decode_array(value, message=cls.TYPE, field=f.name,
+                                     dtype=meta["dtype"], shape=cls._wire_shape(f.name, raw))
+            elif kind == "violations":
+                if not isinstance(value, list):
+                    raise MessageError(cls.TYPE, f.name, "a list", type(value).__name__)
+                value = tuple(Violation.from_dict(v) for v in value)
+            elif kind == "stats":
+                if not isinstance(value, Mapping):
+                    raise MessageError(cls.TYPE, f.name, "a map", type(value).__name__)
+                value = {str(k): check_finite(cls.TYPE, f"{f.name}.{k}", v)
+                         for k, v in value.items()}
+            elif kind == "float" and isinstance(value, int) and not isinstance(value, bool):
+                value = float(value)
+            kwargs[f.name] = value
+        return cls._from_wire(kwargs, **options)
+
+    @classmethod
+    def _wire_shape(cls, name: str, raw: Mapping[str, Any]) -> tuple[int | None, ...]:
+        for f in dataclasses.fields(cls):  # type: ignore[arg-type]
+            if f.name == name:
+                return tuple(f.metadata["shape"])
+        raise KeyError(name)
+
+    @classmethod
+    def _from_wire(cls, kwargs: dict[str, Any], **options: Any) -> Self:
+        return cls(**kwargs)
+
+
+def _count_check(message: str, name: str, array: np.ndarray | None, expected: int,
+                 what: str) -> None:
+    if array is not None and array.shape[0] != expected:
+        raise MessageError(message, name, f"{expected} entries ({what})",
+                           f"{array.shape[0]}")
+
+
+@dataclass(frozen=True, eq=False)
+class Odometry(Message):
+    """Odometry of one time step: forward speed and turn rate held over ``dt``."""
+
+    TYPE: ClassVar[str] = "Odometry"
+    robot: str = _scalar("str", "robot name")
+    stamp: float = _scalar("float", "time of the end of the step, s")
+    dt: float = _scalar("float", "duration of the step, s (≥ 0)")
+    v: float = _scalar("float", "forward speed, m/s")
+    w: float = _scalar("float", "turn rate, rad/s")
+
+    def _check(self) -> None:
+        if self.dt < 0:
+            raise MessageError(self.TYPE, "dt", "≥ 0", repr(self.dt))
+
+
+@dataclass(frozen=True, eq=False)
+class Observations(Message):
+    """One batch of range-bearing observations taken at ``stamp``."""
+
+    TYPE: ClassVar[str] = "Observations"
+    robot: str = _scalar("str", "robot name")
+    stamp: float = _scalar("float", "sensor time, s")
+    ids: np.ndarray = _arr(_I8, (None,), "landmark ids int64[k]; −1 = unknown (estimator associates)")
+    ranges: np.ndarray = _arr(_F8, (None,), "ranges, m, float64[k] (≥ 0)")
+    bearings: np.ndarray = _arr(_F8, (None,), "bearings, rad, float64[k], robot frame")
+
+    def _check(self) -> None:
+        k = self.ids.shape[0]
+        _count_check(self.TYPE, "ranges", self.ranges, k, "one per id")
+        _count_check(self.TYPE, "bearings", self.bearings, k, "one per id")
+        if np.any(self.ranges < 0):
+            raise MessageError(self.TYPE, "ranges", "non-negative ranges", "a negative range")
+        if np.any(self.ids < -1):
+            raise MessageError(self.TYPE, "ids", "ids ≥ −1", str(int(self.ids.min())))
+
+
+@dataclass(frozen=True, eq=False)
+class Truth(Message):
+    """Ground truth: the robot's true pose and the true landmarks, in the map frame."""
+
+    TYPE: ClassVar[str] = "Truth"
+    robot: str = _scalar("str", "robot name")
+    stamp: float = _scalar("float", "time, s")
+    pose: np.ndarray = _arr(_F8, (3,), "true pose (x m, y m, θ rad) in the map frame")
+    landmark_ids: np.ndarray = _arr(_I8, (None,), "landmark ids int64[n]")
+    landmarks: np.ndarray = _arr(_F8, (None, 2), "true landmark positions [n,2], m, map frame")
+
+    def _check(self) -> None:
+        _count_check(self.TYPE, "landmarks", self.landmarks, self.landmark_ids.shape[0],
+                     "one per landmark id")
+
+
+@dataclass(frozen=True, eq=False)
+class SlamState(Message):
+    """The estimator's full state after one event (SPEC §7)."""
+
+    TYPE: ClassVar[str] = "SlamState"
+    robot: str = _scalar("str", "robot name")
+    seq: int = _scalar("int", "state sequence number, +1 per event applied")
+    stamp: float = _scalar("float", "time of the event applied, s")
+    step: str = field(metadata={"kind": "str", "choices": STEPS,
+                                "doc": "what produced this state: init / predict / update"})
+    pose: np.ndarray = _arr(_F8, (3,), "estimated robot pose (x m, y m, θ rad), map frame")
+    landmark_ids: np.ndarray = _arr(_I8, (None,), "landmark ids int64[n], state order")
+    landmarks: np.ndarray = _arr(_F8, (None, 2), "estimated landmarks [n,2], m, map frame")
+    covariance: np.ndarray = _arr(_F8, (None, None),
+                                  "state covariance [(3+2n),(3+2n)] (flat on the wire)")
+    observed_ids: np.ndarray = _arr(_I8, (None,), "ids observed in this event", optional=True)
+    new_ids: np.ndarray = _arr(_I8, (None,), "ids initialised in this event", optional=True)
+    innovation_ids: np.ndarray = _arr(_I8, (None,), "ids of the innovations below",
+                                      optional=True)
+    innovations: np.ndarray = _arr(_F8, (None, 2), "innovations ν [k,2] (m, rad)", optional=True)
+    innovation_covariances: np.ndarray = _arr(_F8, (None, 2, 2), "innovation covariances S",
+                                              optional=True)
+
+    def __post_init__(self) -> None:
+        for name in ("observed_ids", "new_ids"):
+            if getattr(self, name) is None:
+                object.__setattr__(self, name, frozen_array(np.zeros(0), "<i8"))
+        super().__post_init__()
+
+    @property
+    def n(self) -> int:
+        """Number of landmarks."""
+        return int(self.landmark_ids.shape[0])
+
+    def _check(self) -> None:
+        n = self.n
+        _count_check(self.TYPE, "landmarks", self.landmarks, n, "one per landmark id")
+        N = 3 + 2 * n
+        if self.covariance.shape != (N, N):
+            raise MessageError(self.TYPE, "covariance", f"[{N}, {N}] for n = {n}",
+                               str(list(self.covariance.shape)))
+        if len(np.unique(self.landmark_ids)) != n:
+            raise MessageError(self.TYPE, "landmark_ids", "distinct ids", "duplicates")
+        if self.innovations is not None or self.innovation_covariances is not None:
+            k = 0 if self.innovation_ids is None else self.innovation_ids.shape[0]
+            _count_check(self.TYPE, "innovations", self.innovations, k, "one per innovation id")
+            _count_check(self.TYPE, "innovation_covariances", self.innovation_covariances, k,
+                         "one per innovation id")
+
+    def _wire_overrides(self, out: dict[str, Any]) -> dict[str, Any]:
+        out["covariance"] = encode_array(self.covariance.reshape(-1), "<f8")
+        return out
+
+    @classmethod
+    def _wire_shape(cls, name: str, raw: Mapping[str, Any]) -> tuple[int | None, ...]:
+        if name == "covariance":
+            cov = raw.get("covariance")
+            shape = cov.get("shape") if isinstance(cov, Mapping) else None
+            if isinstance(shape, list) and len(shape) == 1:
+                return (None,)
+        return super()._wire_shape(name, raw)
+
+    @classmethod
+    def _from_wire(cls, kwargs: dict[str, Any], **options: Any) -> Self:
+        cov = kwargs["covariance"]
+        if cov.ndim == 1:
+            N = math.isqrt(cov.shape[0])
+            if N * N != cov.shape[0]:
+                raise MessageError(cls.TYPE, "covariance", "(3+2n)² entries",
+                                   f"{cov.shape[0]} (not a square)")
+            kwargs["covariance"] = cov.reshape(N, N)
+        state = cls(**kwargs)
+        if options.get("check_symmetry", True):
+            check_symmetric(cls.TYPE, "covariance", state.covariance,
+                            rtol=options.get("symmetry_rtol", 1e-6))
+        return state
+
+
+@dataclass(frozen=True)
+class Violation:
+    """One broken expectation found by the monitor (an entry of ``Health.violations``)."""
+
+    kind: str  #: one of VIOLATION_KINDS
+    ids: tuple[int, ...]  #: feature ids involved (a pair, one feature, or none)
+    step: int  #: seq of the state where it was seen
+    value: float  #: growth (covariance kinds) or the test statistic (nees, nis)
+    bound: float | None = None  #: tolerance or χ² bound it was held against
+    phase: str = ""  #: "predict" / "update" when the step type matters
+    detail: str = ""  #: one human sentence
+
+    _STAT_KINDS: ClassVar[tuple[str, ...]] = ("nees", "nis")
+
+    def to_dict(self) -> dict[str, Any]:
+        key = "statistic" if self.kind in self._STAT_KINDS else "growth"
+        out: dict[str, Any] = {"kind": self.kind, "ids": list(self.ids), "step": self.step,
+                               key: self.value}
+        if self.bound is not None:
+            out["bound"] = self.bound
+        if self.phase:
+            out["phase"] = self.phase
+        if self.detail:
+            out["detail"] = self.detail
+        return out
+
+    @classmethod
+    def from_dict(cls, raw: Any) -> Violation:
+        m = "Health.violation"
+        if not isinstance(raw, Mapping):
+            raise MessageError(m, "<entry>", "a map", type(raw).__name__)
+        kind = check_str(m, "kind", raw.get("kind"), choices=VIOLATION_KINDS)
+        ids_raw = raw.get("ids", [])
+        if not isinstance(ids_raw, list):
+            raise MessageError(m, "ids", "a list of ints", type(ids_raw).__name__)
+        ids = tuple(check_int(m, "ids", i) for i in ids_raw)
+        key = "statistic" if kind in cls._STAT_KINDS else "growth"
+        value = check_finite(m, key, raw.get(key, raw.get("growth", raw.get("statistic"))))
+        bound = raw.get("bound")
+        return cls(kind=kind, ids=ids, step=check_int(m, "step", raw.get("step")), value=value,
+                   bound=None if bound is None else check_finite(m, "bound", bound),
+                   phase=str(raw.get("phase", "")), detail=str(raw.get("detail", "")))
+
+
+@dataclass(frozen=True, eq=False)
+class Health(Message):
+    """The monitor's verdict on one state (SPEC §5, §7)."""
+
+    TYPE: ClassVar[str] = "Health"
+    robot: str = _scalar("str", "robot name")
+    seq: int = _scalar("int", "seq of the state checked")
+    stamp: float = _scalar("float", "stamp of the state checked, s")
+    ok: bool = _scalar("bool", "no violation in this state")
+    suspects: np.ndarray = _arr(_I8, (None,), "feature ids blamed, int64[]")
+    violations: tuple[Violation, ...] = field(
+        default=(), metadata={"kind": "violations", "doc": "violations found in this state"})
+    statistics: dict[str, float] = field(
+        default_factory=dict, metadata={"kind": "stats",
+                                        "doc": "named statistics: nees_pose, nis, bounds…"})
+
+
+@dataclass(frozen=True, eq=False)
+class CameraFrame(Message):
+    """One encoded camera image."""
+
+    TYPE: ClassVar[str] = "CameraFrame"
+    camera: str = _scalar("str", "camera name")
+    seq: int = _scalar("int", "frame number")
+    stamp: float = _scalar("float", "capture time, s")
+    encoding: str = field(metadata={"kind": "str", "choices": ("jpeg",), "doc": "image codec"})
+    width: int = _scalar("int", "pixels")
+    height: int = _scalar("int", "pixels")
+    data: bytes = _scalar("bytes", "the encoded image")
+
+
+@dataclass(frozen=True, eq=False)
+class Registration(Message):
+    """Where the map frame sits in a camera, with that camera's intrinsics."""
+
+    TYPE: ClassVar[str] = "Registration"
+    camera: str = _scalar("str", "camera name")
+    robot: str = _scalar("str", "robot name")
+    stamp: float = _scalar("float", "time of the frame it was computed from, s")
+    K: np.ndarray = _arr(_F8, (3, 3), "camera matrix, pixels")
+    dist: np.ndarray = _arr(_F8, (None,), "OpenCV distortion coefficients")
+    width: int = _scalar("int", "image width, pixels")
+    height: int = _scalar("int", "image height, pixels")
+    T_camera_from_map: np.ndarray = _arr(_F8, (4, 4), "map frame → camera frame, m")
+    reprojection_error_px: float = _scalar("float", "RMS reprojection error of the marker, px")
+    status: str = field(default="registered", metadata={
+        "kind": "str", "doc": "registered / tracking / marker not found …"})
+
+
+@dataclass(frozen=True, eq=False)
+class CameraPose(Message):
+    """Pose of a moving camera in the world (tracker or fiducial board)."""
+
+    TYPE: ClassVar[str] = "CameraPose"
+    camera: str = _scalar("str", "camera name")
+    stamp: float = _scalar("float", "time, s")
+    T_world_from_camera: np.ndarray = _arr(_F8, (4, 4), "camera frame → world frame, m")
+
+
+MESSAGE_TYPES: tuple[type[Message], ...] = (
+    Odometry, Observations, Truth, SlamState, Health, CameraFrame, Registration, CameraPose,
+)
