@@ -32,6 +32,23 @@ log = logging.getLogger(__name__)
 Callback = Callable[[str, bytes], None]
 
 
+def _at_shutdown(fn: Callable[[], object]) -> None:
+    """Run ``fn`` at interpreter exit *before* non-daemon threads are joined.
+
+    zenoh-python runs callback subscribers on a non-daemon Python thread, so a session
+    left open makes the interpreter wait forever at exit; plain ``atexit`` runs too late
+    (after that join). ``threading._register_atexit`` runs first; fall back to atexit.
+    """
+    register = getattr(threading, "_register_atexit", None)
+    try:
+        if register is not None:
+            register(fn)
+            return
+    except RuntimeError:  # already shutting down
+        pass
+    atexit.register(fn)
+
+
 @dataclass(frozen=True)
 class Sample:
     """One received payload and the key it was published on."""
@@ -129,7 +146,7 @@ class ZenohBus:
         self._lock = threading.Lock()
         self._closed = False
         ref = weakref.ref(self)
-        atexit.register(lambda: (b := ref()) is not None and b.close())
+        _at_shutdown(lambda: (b := ref()) is not None and b.close())
 
     def _keep(self, entity: Any) -> Any:
         with self._lock:

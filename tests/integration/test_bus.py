@@ -1,0 +1,83 @@
+"""The bus over real Zenoh on loopback: ordering, latest-wins, get, liveliness, shutdown."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import time
+
+from common.session import BusSettings, build_config
+
+
+def _wait(predicate, timeout: float = 5.0) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return predicate()
+
+
+def test_fifo_channel_keeps_publication_order_across_keys(make_client) -> None:
+    a, b = make_client(), make_client()
+    ch = b.channel("t/robot/r/*")
+    time.sleep(0.3)
+    odo, obs = a.publisher("t/robot/r/odometry"), a.publisher("t/robot/r/observations")
+    for i in range(500):
+        (odo if i % 3 else obs).put(str(i).encode())
+    got = []
+    while len(got) < 500:
+        s = ch.recv(timeout=5.0)
+        assert s is not None, f"only {len(got)} of 500 arrived"
+        got.append(int(s.payload))
+        assert s.key.endswith("odometry" if got[-1] % 3 else "observations")
+    assert got == list(range(500))
+
+
+def test_latest_wins_channel_drops_backlog(make_client) -> None:
+    a, b = make_client(), make_client()
+    ch = b.channel("t/frame", latest_wins=True)
+    time.sleep(0.3)
+    pub = a.publisher("t/frame", latest_wins=True)
+    for i in range(200):
+        pub.put(str(i).encode())
+    time.sleep(0.5)
+    first = ch.recv(timeout=2.0)
+    assert first is not None and int(first.payload) == 199
+    assert ch.recv(timeout=0.2) is None
+
+
+def test_get_and_liveliness(make_client) -> None:
+    a, b = make_client(), make_client()
+    latest = {"v": b"one"}
+    a.serve_latest("t/robot/r/state", lambda: latest["v"])
+    a.declare_alive("t/robot/r/alive/estimator")
+    time.sleep(0.3)
+    assert [s.payload for s in b.get("t/robot/r/state")] == [b"one"]
+    latest["v"] = b"two"
+    assert [s.payload for s in b.get("t/robot/r/state")] == [b"two"]
+    assert b.alive("t/robot/*/alive/estimator") == ["t/robot/r/alive/estimator"]
+    a.close()
+    assert _wait(lambda: b.alive("t/robot/*/alive/estimator", timeout=0.5) == [])
+
+
+def test_unclosed_session_does_not_hang_interpreter(router_endpoint: str) -> None:
+    """A process that forgets to close its bus still exits (atexit closes it)."""
+    code = (
+        "from common.session import BusSettings, open_bus\n"
+        f"bus = open_bus(BusSettings(connect=({router_endpoint!r},)))\n"
+        "bus.subscribe('t/x', lambda k, p: None)\n"
+        "ch = bus.channel('t/y')\n"
+        "print('ok')\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=30)
+    assert out.returncode == 0 and out.stdout.strip() == "ok", out.stderr
+
+
+def test_explicit_endpoints_turn_multicast_off() -> None:
+    conf = build_config(BusSettings(connect=("tcp/127.0.0.1:7447",)))
+    assert conf.get_json("scouting/multicast/enabled") == "false"
+    assert conf.get_json("mode") == '"client"'
+    conf = build_config(BusSettings(listen=("tcp/127.0.0.1:7448",)))
+    assert conf.get_json("mode") == '"peer"'
+    assert conf.get_json("listen/endpoints") == '["tcp/127.0.0.1:7448"]'
