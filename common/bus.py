@@ -11,7 +11,9 @@ in-order delivery for estimator input):
   ``publisher(key, latest_wins=True)`` drops under congestion (camera frames).
 * ``channel(key)`` is one ordered FIFO queue for everything matching ``key``: events are
   received in publication order by whoever calls ``recv`` (no racing callbacks);
-  ``channel(key, latest_wins=True)`` keeps only the newest sample.
+  ``channel(key, latest_wins=True)`` keeps only the newest sample, and
+  ``channel(key, drop_oldest=True)`` keeps the newest ``capacity`` samples (a consumer
+  that tolerates gaps never slows the publisher).
 * ``serve_latest(key, provider)`` answers ``get`` with whatever ``provider()`` returns now.
 """
 
@@ -76,7 +78,8 @@ class Bus(Protocol):
 
     def subscribe(self, key: str, callback: Callback) -> Any: ...
 
-    def channel(self, key: str, *, latest_wins: bool = False, capacity: int = 4096) -> Channel: ...
+    def channel(self, key: str, *, latest_wins: bool = False, capacity: int = 4096,
+                drop_oldest: bool = False) -> Channel: ...
 
     def serve_latest(self, key: str, provider: Callable[[], bytes | None]) -> Any: ...
 
@@ -175,9 +178,15 @@ class ZenohBus:
 
         return self._keep(self.session.declare_subscriber(key, on_sample))
 
-    def channel(self, key: str, *, latest_wins: bool = False, capacity: int = 4096) -> Channel:
+    def channel(self, key: str, *, latest_wins: bool = False, capacity: int = 4096,
+                drop_oldest: bool = False) -> Channel:
         handlers = self._zenoh.handlers
-        handler = handlers.RingChannel(1) if latest_wins else handlers.FifoChannel(capacity)
+        if latest_wins:
+            handler = handlers.RingChannel(1)
+        elif drop_oldest:
+            handler = handlers.RingChannel(capacity)
+        else:  # a full FIFO blocks the sender: backpressure, nothing lost
+            handler = handlers.FifoChannel(capacity)
         sub = self.session.declare_subscriber(key, handler)
         ch = _ZenohChannel(sub)
         self._keep(ch)
@@ -246,13 +255,13 @@ def _intersects(a: str, b: str) -> bool:
 
 
 class _LocalChannel:
-    def __init__(self, latest_wins: bool, capacity: int) -> None:
-        self._q: queue.Queue[Sample] = queue.Queue(maxsize=1 if latest_wins else capacity)
-        self._latest_wins = latest_wins
+    def __init__(self, capacity: int, drop_oldest: bool) -> None:
+        self._q: queue.Queue[Sample] = queue.Queue(maxsize=capacity)
+        self._drop_oldest = drop_oldest
         self.closed = False
 
     def push(self, sample: Sample) -> None:
-        if self._latest_wins:
+        if self._drop_oldest and self._q.full():
             try:
                 self._q.get_nowait()
             except queue.Empty:
@@ -296,8 +305,9 @@ class InProcessBus:
         self._subs.append(entry)
         return entry
 
-    def channel(self, key: str, *, latest_wins: bool = False, capacity: int = 4096) -> Channel:
-        ch = _LocalChannel(latest_wins, capacity)
+    def channel(self, key: str, *, latest_wins: bool = False, capacity: int = 4096,
+                drop_oldest: bool = False) -> Channel:
+        ch = _LocalChannel(1 if latest_wins else capacity, latest_wins or drop_oldest)
         self._subs.append((key, ch.push))
         return ch
 

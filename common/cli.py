@@ -27,7 +27,8 @@ def add_common_flags(parser: argparse.ArgumentParser, *, config: bool = True) ->
                    help="Zenoh endpoint to connect to (repeatable); default tcp/127.0.0.1:7447")
     g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
                    help="Zenoh endpoint to listen on (repeatable)")
-    g.add_argument("--zenoh-config", metavar="FILE", help="Zenoh JSON5 config file (flags override it)")
+    g.add_argument("--zenoh-config", metavar="FILE",
+                   help="Zenoh JSON5 config file (flags override it)")
     g.add_argument("--prefix", default=DEFAULT_PREFIX, help="key prefix (default: slamlens)")
     if config:
         parser.add_argument("--config", metavar="FILE",

@@ -67,9 +67,25 @@ def all_relative_covariances(P: np.ndarray, n: int) -> tuple[np.ndarray, np.ndar
 
     Returns ``(I, J, Pd)`` with ``Pd`` of shape (n(n−1)/2, 2, 2).
     """
-    I, J = np.triu_indices(n, k=1)
+    first, second = np.triu_indices(n, k=1)
     M = P[3:3 + 2 * n, 3:3 + 2 * n].reshape(n, 2, n, 2).transpose(0, 2, 1, 3)  # (n, n, 2, 2)
     diag = M[np.arange(n), np.arange(n)]  # (n, 2, 2)
-    Pij = M[I, J]
-    Pd = diag[I] + diag[J] - Pij - Pij.transpose(0, 2, 1)
-    return I, J, Pd
+    Pij = M[first, second]
+    Pd = diag[first] + diag[second] - Pij - Pij.transpose(0, 2, 1)
+    return first, second, Pd
+
+
+def eig2x2_max(Pd: np.ndarray) -> np.ndarray:
+    """Largest eigenvalue of each symmetric 2x2 matrix in ``Pd`` (…, 2, 2), closed form."""
+    a, b, d = Pd[..., 0, 0], 0.5 * (Pd[..., 0, 1] + Pd[..., 1, 0]), Pd[..., 1, 1]
+    half_tr = 0.5 * (a + d)
+    return half_tr + np.sqrt(np.maximum(0.25 * (a - d) ** 2 + b * b, 0.0))
+
+
+def pd_size_m(Pd: np.ndarray) -> np.ndarray:
+    """Size of a relative covariance: the 1-σ major semi-axis, √λ_max, in metres.
+
+    One scalar per pair used wherever slamlens ranks or summarises P_d (demo summary,
+    min/max picks): it is in metres, and it grows whenever P_d grows along its major axis.
+    """
+    return np.sqrt(np.maximum(eig2x2_max(Pd), 0.0))

@@ -222,7 +222,8 @@ class Observations(Message):
     TYPE: ClassVar[str] = "Observations"
     robot: str = _scalar("str", "robot name")
     stamp: float = _scalar("float", "sensor time, s")
-    ids: np.ndarray = _arr(_I8, (None,), "landmark ids int64[k]; −1 = unknown (estimator associates)")
+    ids: np.ndarray = _arr(_I8, (None,),
+                           "landmark ids int64[k]; −1 = unknown (the estimator associates)")
     ranges: np.ndarray = _arr(_F8, (None,), "ranges, m, float64[k] (≥ 0)")
     bearings: np.ndarray = _arr(_F8, (None,), "bearings, rad, float64[k], robot frame")
 
