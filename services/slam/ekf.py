@@ -1,0 +1,404 @@
+"""EKF-SLAM numerical core: the SPEC §4 models, their Jacobians, and in-place kernels.
+
+The state is ``x = [x, y, θ, m1x, m1y, …]`` (N = 3 + 2n). Its covariance lives in a
+preallocated square buffer ``L`` of which only the **lower triangle** of the leading N×N
+block is meaningful (``L[i, j]`` for ``j ≤ i``); the strict upper triangle is scratch and is
+never read. Why:
+
+* the update's rank-2 downdate ``P −= W S⁻¹ Wᵀ`` then costs half a pass over the matrix
+  (BLAS ``dsyrk`` on one triangle) instead of a full one, and
+* P is symmetric by construction: one number per pair (i, j), so no symmetrising pass and
+  no drift between the two triangles.
+
+:func:`symmetric` materialises the full matrix when someone needs it (publishing a state).
+
+The kernels (:func:`predict`, :func:`update`, :func:`initialise`) mutate ``x`` and ``L`` in
+place: the covariance *is* the estimator's memory and a copy would cost a full pass. They
+validate everything that can fail (a degenerate innovation covariance, a landmark on top of
+the robot) before writing anything, so a refused call leaves the state as it was.
+Dense (3+2n)² Jacobians are never built (SPEC §4 "Cost").
+"""
+
+from __future__ import annotations
+
+import ctypes
+import functools
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from common.geometry import wrap_angle
+
+_TWO_PI = 2.0 * math.pi
+
+
+class SingularInnovationError(ValueError):
+    """The innovation covariance S is not positive definite (or h is undefined)."""
+
+
+def _wrap(angle: float) -> float:
+    # Scalar twin of common.geometry.wrap_angle (same formula, no numpy dispatch).
+    return (angle + math.pi) % _TWO_PI - math.pi
+
+
+# ---------------------------------------------------------------------------------------
+# the models of SPEC §4 (pure functions of small arrays; used by tests and association)
+# ---------------------------------------------------------------------------------------
+
+
+def motion(pose: np.ndarray, *, v: float, w: float, dt: float) -> np.ndarray:
+    """First-order velocity model: the pose after driving (v m/s, w rad/s) for dt s."""
+    x, y, theta = (float(p) for p in pose)
+    return np.array([x + v * dt * math.cos(theta), y + v * dt * math.sin(theta),
+                     _wrap(theta + w * dt)])
+
+
+def motion_jacobians(pose: np.ndarray, *, v: float, w: float,
+                     dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """(Fx 3×3, Fu 3×2) of :func:`motion` with respect to the pose and to (v, w)."""
+    c, s = math.cos(float(pose[2])), math.sin(float(pose[2]))
+    Fx = np.array([[1.0, 0.0, -v * dt * s], [0.0, 1.0, v * dt * c], [0.0, 0.0, 1.0]])
+    Fu = np.array([[dt * c, 0.0], [dt * s, 0.0], [0.0, dt]])
+    return Fx, Fu
+
+
+def observe(pose: np.ndarray, landmark_xy: np.ndarray) -> np.ndarray:
+    """h = (range m, bearing rad) of a landmark seen from ``pose``; bearing wrapped."""
+    dx, dy = float(landmark_xy[0] - pose[0]), float(landmark_xy[1] - pose[1])
+    return np.array([math.hypot(dx, dy), _wrap(math.atan2(dy, dx) - float(pose[2]))])
+
+
+def observation_jacobians(pose: np.ndarray,
+                          landmark_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(Hv 2×3, Hm 2×2) of :func:`observe` with respect to the pose and the landmark."""
+    dx, dy = float(landmark_xy[0] - pose[0]), float(landmark_xy[1] - pose[1])
+    q = dx * dx + dy * dy
+    r = math.sqrt(q)
+    Hv = np.array([[-dx / r, -dy / r, 0.0], [dy / q, -dx / q, -1.0]])
+    Hm = np.array([[dx / r, dy / r], [-dy / q, dx / q]])
+    return Hv, Hm
+
+
+def inverse_observation(pose: np.ndarray, *, range_m: float, bearing: float) -> np.ndarray:
+    """Landmark position (m, map frame) from a range-bearing observation taken at ``pose``."""
+    alpha = float(pose[2]) + bearing
+    return np.array([float(pose[0]) + range_m * math.cos(alpha),
+                     float(pose[1]) + range_m * math.sin(alpha)])
+
+
+def inverse_observation_jacobians(pose: np.ndarray, *, range_m: float,
+                                  bearing: float) -> tuple[np.ndarray, np.ndarray]:
+    """(Gv 2×3, Gz 2×2) of :func:`inverse_observation` w.r.t. the pose and (range, bearing)."""
+    alpha = float(pose[2]) + bearing
+    c, s = math.cos(alpha), math.sin(alpha)
+    Gv = np.array([[1.0, 0.0, -range_m * s], [0.0, 1.0, range_m * c]])
+    Gz = np.array([[c, -range_m * s], [s, range_m * c]])
+    return Gv, Gz
+
+
+# ---------------------------------------------------------------------------------------
+# lower-triangle storage
+# ---------------------------------------------------------------------------------------
+
+
+_SYM_BLOCK = 128  # a 128×128 tile (128 KB) stays in L2 while it is transposed
+
+
+@functools.cache
+def _lower_mask(size: int) -> np.ndarray:
+    return np.tri(size, dtype=bool)
+
+
+def symmetric(L: np.ndarray, N: int) -> np.ndarray:
+    """A new full symmetric N×N matrix from the lower triangle of ``L[:N, :N]``.
+
+    Copies the block, then fills the upper triangle tile-row by tile-row from the lower
+    one (transposed copies of cache-sized tiles: ~2 passes, 4× faster than fancy indexing).
+    """
+    out = np.array(L[:N, :N])
+    B = _SYM_BLOCK
+    for s in range(0, N, B):
+        e = min(N, s + B)
+        out[s:e, e:] = out[e:, s:e].T
+        tile = out[s:e, s:e]
+        tile[...] = np.where(_lower_mask(e - s), tile, tile.T)
+    return out
+
+
+def lower_from_symmetric(P: np.ndarray, *, capacity: int | None = None) -> np.ndarray:
+    """Storage buffer (capacity × capacity) holding the symmetric ``P`` (for tests, resets)."""
+    N = P.shape[0]
+    cap = N if capacity is None else max(capacity, N)
+    L = np.zeros((cap, cap))
+    L[:N, :N] = P
+    return L
+
+
+@dataclass
+class Workspace:
+    """Scratch rows reused by every kernel call, so a call allocates (almost) nothing.
+
+    ``cols`` holds five columns of the symmetric P as rows (robot x, y, θ and the two of
+    one landmark); ``wt`` holds W ᵀ = (P Hᵀ)ᵀ; ``vt`` holds Vᵀ = (W L_S⁻ᵀ)ᵀ.
+    """
+
+    cols: np.ndarray  # (5, capacity)
+    wt: np.ndarray  # (2, capacity)
+    vt: np.ndarray  # (2, capacity)
+    h5: np.ndarray  # (2, 5) the non-zero columns of H
+
+    @classmethod
+    def for_capacity(cls, capacity: int) -> Workspace:
+        return cls(cols=np.zeros((5, capacity)), wt=np.zeros((2, capacity)),
+                   vt=np.zeros((2, capacity)), h5=np.zeros((2, 5)))
+
+    @property
+    def capacity(self) -> int:
+        return int(self.cols.shape[1])
+
+
+def _robot_columns(L: np.ndarray, N: int, out: np.ndarray) -> None:
+    """out[0:3, :N] = the robot rows of the symmetric P (= its robot columns)."""
+    out[0:3, 3:N] = L[3:N, 0:3].T  # strided gather of 3 values per row: O(N)
+    p00, p10, p11 = L[0, 0], L[1, 0], L[1, 1]
+    p20, p21, p22 = L[2, 0], L[2, 1], L[2, 2]
+    out[0, 0:3] = (p00, p10, p20)
+    out[1, 0:3] = (p10, p11, p21)
+    out[2, 0:3] = (p20, p21, p22)
+
+
+def _landmark_columns(L: np.ndarray, N: int, a: int, out: np.ndarray) -> None:
+    """out[0:2, :N] = rows a, a+1 of the symmetric P."""
+    out[:, 0:a] = L[a:a + 2, 0:a]  # contiguous row prefixes
+    out[:, a:N] = L[a:N, a:a + 2].T  # column below the diagonal, strided
+    out[1, a] = L[a + 1, a]  # the line above read L[a, a+1], in the unused upper triangle
+
+
+# ---------------------------------------------------------------------------------------
+# the rank-2 downdate: BLAS dsyrk on the lower triangle, in place
+# ---------------------------------------------------------------------------------------
+
+
+@functools.cache
+def _dsyrk() -> Callable[..., None] | None:
+    """scipy's own BLAS ``dsyrk`` as a ctypes function, or None if it cannot be found.
+
+    scipy.linalg.blas wrappers take no leading dimension and copy any non-contiguous
+    operand, which would defeat in-place work on the view ``L[:N, :N]`` of a larger buffer;
+    the raw BLAS symbol (exported by scipy.linalg.cython_blas as a PyCapsule) takes lda/ldc.
+    """
+    try:
+        from scipy.linalg import cython_blas
+
+        capsule = cython_blas.__pyx_capi__["dsyrk"]
+        get_name = ctypes.pythonapi.PyCapsule_GetName
+        get_name.restype = ctypes.c_char_p
+        get_name.argtypes = [ctypes.py_object]
+        get_pointer = ctypes.pythonapi.PyCapsule_GetPointer
+        get_pointer.restype = ctypes.c_void_p
+        get_pointer.argtypes = [ctypes.py_object, ctypes.c_char_p]
+        address = get_pointer(capsule, get_name(capsule))
+    except (ImportError, AttributeError, KeyError, ValueError):
+        return None
+    if not address:
+        return None
+    vp = ctypes.c_void_p
+    # void dsyrk(char *uplo, char *trans, int *n, int *k, double *alpha, double *a,
+    #            int *lda, double *beta, double *c, int *ldc)
+    proto = ctypes.CFUNCTYPE(None, vp, vp, vp, vp, vp, vp, vp, vp, vp, vp)
+    return proto(address)
+
+
+class _SyrkArgs:
+    """Preallocated ctypes scalars for dsyrk (building them per call costs microseconds)."""
+
+    def __init__(self) -> None:
+        self.uplo = ctypes.c_char(b"U")  # L's lower triangle, seen column-major, is upper
+        self.trans = ctypes.c_char(b"N")
+        self.n = ctypes.c_int(0)
+        self.k = ctypes.c_int(2)
+        self.alpha = ctypes.c_double(-1.0)
+        self.beta = ctypes.c_double(1.0)
+        self.lda = ctypes.c_int(0)
+        self.ldc = ctypes.c_int(0)
+        self.addr = {name: ctypes.addressof(getattr(self, name))
+                     for name in ("uplo", "trans", "n", "k", "alpha", "beta", "lda", "ldc")}
+
+
+_SYRK_ARGS = _SyrkArgs()
+
+
+def downdate_lower(L: np.ndarray, vt: np.ndarray, N: int, *, use_blas: bool = True) -> None:
+    """L[:N, :N] −= V Vᵀ on (at least) the lower triangle, in place; V = vt[:, :N]ᵀ (N×2).
+
+    ``use_blas=False`` forces the numpy fallback (tests compare the two).
+    """
+    fn = _dsyrk() if use_blas else None
+    ok = (fn is not None and L.dtype == np.float64 and vt.dtype == np.float64
+          and L.strides[1] == 8 and vt.strides[1] == 8)
+    if not ok:
+        # Fallback: one full product and subtraction (3 passes, same result on the triangle).
+        block = L[:N, :N]
+        block -= vt[:, :N].T @ vt[:, :N]
+        return
+    a = _SYRK_ARGS
+    a.n.value = N
+    a.lda.value = vt.strides[0] // 8
+    a.ldc.value = L.strides[0] // 8
+    ad = a.addr
+    fn(ad["uplo"], ad["trans"], ad["n"], ad["k"], ad["alpha"], vt.ctypes.data, ad["lda"],
+       ad["beta"], L.ctypes.data, ad["ldc"])
+
+
+# ---------------------------------------------------------------------------------------
+# kernels
+# ---------------------------------------------------------------------------------------
+
+
+def predict(x: np.ndarray, L: np.ndarray, n: int, *, v: float, w: float, dt: float,
+            var_v: float, var_w: float) -> None:
+    """SPEC §4 prediction in place: O(n), only the robot rows/columns of P change.
+
+    ``var_v``, ``var_w`` are the odometry variances σv² (m²/s²), σω² (rad²/s²).
+    """
+    N = 3 + 2 * n
+    theta = float(x[2])
+    c, s = math.cos(theta), math.sin(theta)
+    d = v * dt
+    fa, fb = -d * s, d * c  # Fx = I + fa·e0e2ᵀ + fb·e1e2ᵀ
+    x[0] += d * c
+    x[1] += d * s
+    x[2] = _wrap(theta + w * dt)
+
+    p00, p10, p11 = float(L[0, 0]), float(L[1, 0]), float(L[1, 1])
+    p20, p21, p22 = float(L[2, 0]), float(L[2, 1]), float(L[2, 2])
+    qv, qw = var_v * dt * dt, var_w * dt * dt  # Fu M Fuᵀ = qv·(c, s, 0)(c, s, 0)ᵀ + qw·e2e2ᵀ
+    n20 = p20 + fa * p22
+    n21 = p21 + fb * p22
+    n00 = p00 + fa * p20 + fa * n20 + qv * c * c
+    n10 = p10 + fb * p20 + fa * n21 + qv * c * s
+    n11 = p11 + fb * p21 + fb * n21 + qv * s * s
+    L[0:3, 0:3] = ((n00, n10, n20), (n10, n11, n21), (n20, n21, p22 + qw))
+    if n:
+        # P_mv ← P_mv Fxᵀ: columns x and y gain fa, fb times column θ; one fused op each.
+        pm = L[3:N, 0:3]
+        theta_col = pm[:, 2]
+        pm[:, 0] += fa * theta_col
+        pm[:, 1] += fb * theta_col
+
+
+def update(x: np.ndarray, L: np.ndarray, n: int, j: int, *, z_range: float,
+           z_bearing: float, var_range: float, var_bearing: float,
+           ws: Workspace) -> tuple[float, float, float, float, float]:
+    """SPEC §4 update with one observation of landmark ``j`` (0-based state order), in place.
+
+    Never builds H: it touches 5 columns of P. With W = P Hᵀ (N×2) and S = L_S L_Sᵀ
+    (2×2 Cholesky, closed form), V = W L_S⁻ᵀ gives K S Kᵀ = W S⁻¹ Wᵀ = V Vᵀ and
+    K ν = V (L_S⁻¹ ν): the downdate is a symmetric rank-2 dsyrk on the lower triangle.
+
+    Returns the innovation and its covariance ``(ν_r, ν_φ, S_rr, S_rφ, S_φφ)`` before the
+    update. Raises :class:`SingularInnovationError` without touching the state when
+    the landmark sits on the robot or S is not positive definite.
+    """
+    N = 3 + 2 * n
+    a = 3 + 2 * j
+    x0, x1, theta = float(x[0]), float(x[1]), float(x[2])
+    dx, dy = float(x[a]) - x0, float(x[a + 1]) - x1
+    q = dx * dx + dy * dy
+    if not q > 0.0 or not math.isfinite(q):
+        raise SingularInnovationError(f"landmark {j} is at the robot's position: h undefined")
+    r = math.sqrt(q)
+    nu_r = z_range - r
+    nu_b = _wrap(z_bearing - (math.atan2(dy, dx) - theta))
+    ux, uy, gx, gy = dx / r, dy / r, dx / q, dy / q
+
+    cols = ws.cols
+    _robot_columns(L, N, cols)
+    _landmark_columns(L, N, a, cols[3:5])
+    h5 = ws.h5
+    # H = [Hv | Hm] on columns (x, y, θ, mx, my); Hm = −Hv[:, :2].
+    h5[0, 0], h5[0, 1], h5[0, 2], h5[0, 3], h5[0, 4] = -ux, -uy, 0.0, ux, uy
+    h5[1, 0], h5[1, 1], h5[1, 2], h5[1, 3], h5[1, 4] = gy, -gx, -1.0, -gy, gx
+    wt = ws.wt[:, :N]
+    np.matmul(h5, cols[:, :N], out=wt)  # Wᵀ = H P (2×N)
+
+    w0x, w0y, w0m, w0n = float(wt[0, 0]), float(wt[0, 1]), float(wt[0, a]), float(wt[0, a + 1])
+    w1x, w1y, w1t = float(wt[1, 0]), float(wt[1, 1]), float(wt[1, 2])
+    w1m, w1n = float(wt[1, a]), float(wt[1, a + 1])
+    # S = H (P Hᵀ) + R; the off-diagonal is taken from one side only: S is symmetric exactly.
+    s00 = ux * (w0m - w0x) + uy * (w0n - w0y) + var_range
+    s01 = ux * (w1m - w1x) + uy * (w1n - w1y)
+    s11 = gx * (w1n - w1y) - gy * (w1m - w1x) - w1t + var_bearing
+    if not (s00 > 0.0 and math.isfinite(s00) and math.isfinite(s01) and math.isfinite(s11)):
+        raise SingularInnovationError(f"innovation covariance of landmark {j} is not "
+                                      f"positive definite (S_rr = {s00!r})")
+    l00 = math.sqrt(s00)
+    l10 = s01 / l00
+    schur = s11 - l10 * l10
+    if not schur > 1e-300:
+        raise SingularInnovationError(f"innovation covariance of landmark {j} is not "
+                                      f"positive definite (det S ≤ 0)")
+    l11 = math.sqrt(schur)
+    # L_S⁻¹ = [[i00, 0], [i10, i11]] (closed form, no np.linalg on 2×2)
+    i00, i11 = 1.0 / l00, 1.0 / l11
+    i10 = -l10 * i00 * i11
+
+    vt = ws.vt[:, :N]
+    np.multiply(wt[0], i00, out=vt[0])
+    np.multiply(wt[0], i10, out=vt[1])
+    vt[1] += i11 * wt[1]
+    u0 = i00 * nu_r
+    u1 = i10 * nu_r + i11 * nu_b
+    xs = x[:N]
+    xs += u0 * vt[0]
+    xs += u1 * vt[1]
+    x[2] = _wrap(float(x[2]))
+    downdate_lower(L, ws.vt, N)
+    return nu_r, nu_b, s00, s01, s11
+
+
+def initialise(x: np.ndarray, L: np.ndarray, n: int, *, z_range: float, z_bearing: float,
+               var_range: float, var_bearing: float, ws: Workspace) -> None:
+    """Append landmark n from (range, bearing) in place: rows N, N+1 of L, entries of x.
+
+    The caller guarantees capacity (``L`` and ``x`` at least N + 2 long). Cross terms with
+    the whole state are P_new,x = Gv P_v,x, which are row writes in lower storage: O(n).
+    """
+    N = 3 + 2 * n
+    alpha = float(x[2]) + z_bearing
+    c, s = math.cos(alpha), math.sin(alpha)
+    g02, g12 = -z_range * s, z_range * c  # Gv = [[1, 0, g02], [0, 1, g12]]
+    rob = ws.cols[0:3]
+    _robot_columns(L, N, rob)
+    new = L[N:N + 2, 0:N]
+    np.multiply(rob[2, :N], g02, out=new[0])
+    new[0] += rob[0, :N]
+    np.multiply(rob[2, :N], g12, out=new[1])
+    new[1] += rob[1, :N]
+    # Pmm = (Gv Pvv) Gvᵀ + Gz R Gzᵀ; (Gv Pvv) are the first three entries of the new rows.
+    a0, a2 = float(new[0, 0]), float(new[0, 2])
+    b0, b1, b2 = float(new[1, 0]), float(new[1, 1]), float(new[1, 2])
+    rr, rb = var_range, var_bearing * z_range * z_range  # Gz R Gzᵀ = rr·ccᵀ + rb·ppᵀ
+    m00 = a0 + a2 * g02 + rr * c * c + rb * s * s
+    m10 = b0 + b2 * g02 + rr * c * s - rb * s * c
+    m11 = b1 + b2 * g12 + rr * s * s + rb * c * c
+    L[N:N + 2, N:N + 2] = ((m00, m10), (m10, m11))
+    x[N] = float(x[0]) + z_range * c
+    x[N + 1] = float(x[1]) + z_range * s
+
+
+def check_finite_inputs(**values: float) -> None:
+    """Raise ValueError naming the first non-finite value (NaN/inf would poison P)."""
+    for name, value in values.items():
+        if not math.isfinite(value):
+            raise ValueError(f"{name} must be finite, got {value!r}")
+
+
+__all__ = [
+    "SingularInnovationError", "Workspace", "check_finite_inputs", "downdate_lower",
+    "initialise", "inverse_observation", "inverse_observation_jacobians", "lower_from_symmetric",
+    "motion", "motion_jacobians", "observation_jacobians", "observe", "predict", "symmetric",
+    "update", "wrap_angle",
+]
