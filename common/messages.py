@@ -40,7 +40,8 @@ from common.errors import MessageError
 
 SCHEMA = 1
 STEPS = ("init", "predict", "update")
-VIOLATION_KINDS = ("pair", "feature", "symmetry", "psd", "correlation", "nees", "nis")
+VIOLATION_KINDS = ("pair", "feature", "symmetry", "psd", "correlation", "nees", "nis",
+                   "prediction")
 
 _F8: dict[str, Any] = {"kind": "array", "dtype": "<f8"}
 _I8: dict[str, Any] = {"kind": "array", "dtype": "<i8"}
