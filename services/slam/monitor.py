@@ -1,0 +1,443 @@
+"""The behaviour monitor (SPEC §5): checks every SlamState, returns a Health, names suspects.
+
+``Monitor`` is the thin stateful class around the pure checks of ``monitor_checks``, the
+statistics of ``monitor_stats`` and the pinpointing of ``monitor_blame``. It keeps only what
+the next comparison needs: the last *received* state (the Loewner order is transitive, so a
+stream with gaps is compared across them), recent truths, windows and blame evidence.
+
+Checks per state (docs/monitor.md has the full list and the reasons for each tolerance):
+
+* on the state alone: symmetry, positive semi-definiteness, |correlation| ≤ 1;
+* against the last received state: every common feature's P_ii and every common pair's P_d
+  non-increasing in the Loewner order ("feature", "pair");
+* after a predict that immediately follows the last received state: P_mm unchanged,
+  P_vm = Fx·P_vm, process noise PSD ("prediction", phase "predict");
+* with truth: NEES of pose and features; with innovations: NIS ("nees", "nis"), as windowed
+  tests at a documented significance.
+"""
+
+from __future__ import annotations
+
+import bisect
+import logging
+from collections import Counter, deque
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from common.messages import Health, SlamState, Truth, Violation
+from services.slam import monitor_checks as checks
+from services.slam.monitor_blame import Evidence, blame_weights
+from services.slam.monitor_settings import MonitorSettings
+from services.slam.monitor_stats import (
+    FeatureWindows,
+    WindowTest,
+    feature_nees,
+    pose_nees,
+    quadratic_forms_2x2,
+)
+
+log = logging.getLogger(__name__)
+
+#: Kinds that say the covariance theorems were broken (a fault onset); nees / nis are
+#: statistical and do not make suspects.
+BLAME_KINDS = ("pair", "feature", "prediction")
+_TRUTH_BUFFER = 512  # truths kept for matching (≥ 25 s at 20 Hz)
+_PENDING = 64  # states kept waiting for a late truth
+
+
+@dataclass(frozen=True)
+class MonitorSummary:
+    """What the monitor has seen since its last reset."""
+
+    states: int  #: states checked
+    violations: dict[str, int]  #: count of violations by kind (before the per-state cap)
+    suspects: tuple[int, ...]  #: current suspects (feature ids)
+    onset_seq: int | None  #: seq of the first state with a violation
+    onset_stamp: float | None  #: its stamp, s
+    phase: str  #: "predict" / "update" / "" : where the covariance faults show up most
+    gaps: int  #: states missed (seq jumps)
+    restarts: int  #: times seq went backwards (estimator restarted): baseline reset
+    scores: dict[int, float] = field(default_factory=dict)  #: blame evidence per feature
+
+
+@dataclass
+class _Pending:
+    """A checked state still waiting for its truth (truth may arrive after the state)."""
+
+    seq: int
+    stamp: float
+    pose: np.ndarray
+    Pvv: np.ndarray
+    ids: np.ndarray
+    landmarks: np.ndarray
+    blocks: np.ndarray
+
+
+class Monitor:
+    """Checks each state against the theory and the previous state; see module docstring."""
+
+    def __init__(self, settings: MonitorSettings) -> None:
+        self.settings = settings
+        s = settings
+        self._nis = WindowTest(dof=2, window=s.nis_window, alpha=s.significance, dependent=False)
+        self._nees_pose = WindowTest(dof=3, window=s.nees_window, alpha=s.significance,
+                                     dependent=True)
+        self._nees_features = FeatureWindows(window=s.nees_window, alpha=s.significance)
+        self._evidence = Evidence(half_life=s.evidence_half_life,
+                                  suspect_score=s.suspect_score, suspect_ratio=s.suspect_ratio)
+        self._truth_sigma2 = np.square(np.resize(np.asarray(s.truth_pose_sigma, float), 3))
+        self.reset()
+
+    # -- state ---------------------------------------------------------------------------
+    def reset(self) -> None:
+        """Forget everything: previous state, truths, windows, evidence, counts."""
+        self._prev: SlamState | None = None
+        self._truth_stamps: list[float] = []
+        self._truths: list[Truth] = []
+        self._pending: deque[_Pending] = deque(maxlen=_PENDING)
+        self._late: list[Violation] = []
+        self._nis.reset()
+        self._nees_pose.reset()
+        self._nees_features.reset()
+        self._evidence.reset()
+        self._counts: Counter[str] = Counter()
+        self._phase_counts: Counter[str] = Counter()
+        self._states = 0
+        self._gaps = 0
+        self._restarts = 0
+        self._onset: tuple[int, float] | None = None
+
+    @property
+    def summary(self) -> MonitorSummary:
+        """Counts by kind, current suspects, onset and the fault phase guess."""
+        phase = ""
+        if self._phase_counts:
+            phase = self._phase_counts.most_common(1)[0][0]
+        return MonitorSummary(
+            states=self._states, violations=dict(self._counts),
+            suspects=self._evidence.suspects,
+            onset_seq=None if self._onset is None else self._onset[0],
+            onset_stamp=None if self._onset is None else self._onset[1],
+            phase=phase, gaps=self._gaps, restarts=self._restarts,
+            scores=dict(self._evidence.scores))
+
+    # -- truth ---------------------------------------------------------------------------
+    def add_truth(self, truth: Truth) -> None:
+        """Keep a truth (simulator, dataset or tracked pose) for states of a nearby stamp.
+
+        States already checked that were waiting for this truth get their NEES now; their
+        window results are reported with the next state checked.
+        """
+        k = bisect.bisect_right(self._truth_stamps, truth.stamp)
+        self._truth_stamps.insert(k, truth.stamp)
+        self._truths.insert(k, truth)
+        if len(self._truths) > _TRUTH_BUFFER:
+            del self._truth_stamps[0]
+            del self._truths[0]
+        tol = self.settings.truth_tolerance_s
+        still: deque[_Pending] = deque(maxlen=_PENDING)
+        for p in self._pending:
+            if abs(p.stamp - truth.stamp) <= tol:
+                _, _, late = self._nees(p.pose, p.Pvv, p.ids, p.landmarks, p.blocks, truth,
+                                        seq=p.seq)
+                self._late.extend(late)
+            else:
+                still.append(p)
+        self._pending = still
+
+    def _match_truth(self, stamp: float) -> Truth | None:
+        if not self._truths:
+            return None
+        k = bisect.bisect_left(self._truth_stamps, stamp)
+        best = None
+        for j in (k - 1, k):
+            if 0 <= j < len(self._truths):
+                d = abs(self._truth_stamps[j] - stamp)
+                if d <= self.settings.truth_tolerance_s and (best is None or d < best[0]):
+                    best = (d, j)
+        return None if best is None else self._truths[best[1]]
+
+    # -- the check -----------------------------------------------------------------------
+    def check(self, state: SlamState) -> Health:
+        """Check one state; returns its Health (robot, seq, stamp of the state checked)."""
+        stats: dict[str, float] = {}
+        found: list[Violation] = []
+        prev = self._prev
+        if prev is not None and state.seq <= prev.seq:
+            log.warning("state seq went back from %d to %d: estimator restarted, new baseline",
+                        prev.seq, state.seq)
+            self._restarts += 1
+            prev = None
+        gap = 0 if prev is None else state.seq - prev.seq - 1
+        self._gaps += gap
+        stats["gap"] = float(gap)
+
+        found += self._check_alone(state)
+        pairs = np.zeros((0, 2), dtype=np.int64)
+        direct: list[int] = []
+        if prev is not None:
+            pairs, direct, more = self._check_against(prev, state, stats)
+            found += more
+        found += self._statistics(state, stats)
+        found += self._late
+        self._late = []
+
+        weights = blame_weights(direct=direct, pairs=pairs, prior=self._evidence.scores)
+        self._evidence.step(weights, present=state.landmark_ids)
+        suspects = self._evidence.suspects
+        if self._evidence.scores:
+            stats["suspect_score_max"] = max(self._evidence.scores.values())
+
+        for v in found:
+            self._counts[v.kind] += 1
+            if v.kind in BLAME_KINDS:
+                self._phase_counts[v.phase] += 1
+        if found and self._onset is None:
+            self._onset = (state.seq, state.stamp)
+        self._prev = state
+        self._states += 1
+        return Health(robot=state.robot, seq=state.seq, stamp=state.stamp, ok=not found,
+                      suspects=np.asarray(suspects, dtype=np.int64),
+                      violations=tuple(self._cap(found)), statistics=stats)
+
+    def _cap(self, found: list[Violation]) -> list[Violation]:
+        """At most ``max_violations_per_kind`` per kind, the largest values first."""
+        limit = self.settings.max_violations_per_kind
+        by_kind: dict[str, list[Violation]] = {}
+        for v in found:
+            by_kind.setdefault(v.kind, []).append(v)
+        out: list[Violation] = []
+        for group in by_kind.values():
+            if len(group) > limit:
+                group = sorted(group, key=lambda v: -v.value)[:limit]
+            out += group
+        return out
+
+    # -- checks on one state ---------------------------------------------------------------
+    def _check_alone(self, state: SlamState) -> list[Violation]:
+        s = self.settings
+        P = state.covariance
+        out: list[Violation] = []
+        ids = state.landmark_ids
+        asym = checks.asymmetry(P, rtol=s.rtol_symmetry, atol=s.atol_growth)
+        if asym.count:
+            k = int(np.argmax(asym.value / asym.bound))
+            a, b = asym.index[k]
+            out.append(Violation(
+                kind="symmetry", ids=_owners(ids, a, b), step=state.seq,
+                value=float(asym.value[k]), bound=float(asym.bound[k]), phase=state.step,
+                detail=f"{asym.count} entries with P_ab ≠ P_ba, worst {_name(ids, a)} / "
+                       f"{_name(ids, b)}"))
+        corr = checks.correlation_excess(P, rtol=s.rtol_correlation, atol=s.atol_growth)
+        if corr.count:
+            k = int(np.argmax(corr.value))
+            a, b = corr.index[k]
+            out.append(Violation(
+                kind="correlation", ids=_owners(ids, a, b), step=state.seq,
+                value=float(corr.value[k]), bound=float(corr.bound[k]), phase=state.step,
+                detail=f"{corr.count} entries with |ρ| > 1, worst {_name(ids, a)} / "
+                       f"{_name(ids, b)}"))
+        neg = checks.min_eigenvalue_if_indefinite(P, rtol=s.rtol_psd, atol=s.atol_growth)
+        if neg is not None:
+            lam, tol, vec = neg
+            weight = vec[3:].reshape(-1, 2) ** 2
+            per_feature = weight.sum(axis=1) if weight.size else np.zeros(0)
+            heavy = np.flatnonzero(per_feature >= 0.1 * float(np.sum(vec ** 2)))
+            out.append(Violation(
+                kind="psd", ids=tuple(int(ids[i]) for i in heavy), step=state.seq,
+                value=-lam, bound=tol, phase=state.step,
+                detail=f"covariance not PSD: smallest eigenvalue {lam:.3g}"))
+        return out
+
+    # -- checks against the previous received state --------------------------------------
+    def _check_against(self, prev: SlamState, state: SlamState, stats: dict[str, float]
+                       ) -> tuple[np.ndarray, list[int], list[Violation]]:
+        s = self.settings
+        out: list[Violation] = []
+        direct: list[int] = []
+        pos_prev, pos_cur = checks.common_landmarks(prev.landmark_ids, state.landmark_ids)
+        removed = prev.n - pos_prev.shape[0]
+        if removed:
+            stats["landmarks_removed"] = float(removed)
+        ids = prev.landmark_ids[pos_prev]
+        Pmm_prev = checks.map_block(prev.covariance, pos_prev)
+        Pmm_cur = checks.map_block(state.covariance, pos_cur)
+        pairs = np.zeros((0, 2), dtype=np.int64)
+        # cheap sufficient test: an untouched map block (every predict) cannot grow
+        unchanged = np.array_equal(Pmm_prev, Pmm_cur)
+        feats = pair = None
+        if not unchanged:
+            feats = checks.feature_growth(Pmm_prev, Pmm_cur, rtol=s.rtol_growth,
+                                          atol=s.atol_growth)
+            pair = checks.pair_growth(Pmm_prev, Pmm_cur, rtol=s.rtol_growth,
+                                      atol=s.atol_growth)
+        m = ids.shape[0]
+        stats["pairs_checked"] = float(m * (m - 1) // 2)
+        stats["pairs_growing"] = float(0 if pair is None else pair.count)
+        stats["features_growing"] = float(0 if feats is None else feats.count)
+        growth_max = 0.0
+        if feats is not None and feats.count:
+            growth_max = max(growth_max, float(feats.value.max()))
+            for k in self._top(feats.value):
+                f = int(ids[feats.index[k]])
+                out.append(Violation(
+                    kind="feature", ids=(f,), step=state.seq, value=float(feats.value[k]),
+                    bound=float(feats.bound[k]), phase=state.step,
+                    detail=f"P_ii of feature {f} grew by {feats.value[k]:.3g} m²"))
+            direct += [int(f) for f in ids[feats.index]]
+        if pair is not None and pair.count:
+            growth_max = max(growth_max, float(pair.value.max()))
+            pairs = ids[pair.index]
+            for k in self._top(pair.value):
+                i, j = (int(x) for x in pairs[k])
+                out.append(Violation(
+                    kind="pair", ids=(i, j), step=state.seq, value=float(pair.value[k]),
+                    bound=float(pair.bound[k]), phase=state.step,
+                    detail=f"P_d of features {i}, {j} grew by {pair.value[k]:.3g} m²"))
+        stats["growth_max"] = growth_max
+        if (s.check_prediction and state.step == "predict"
+                and state.seq == prev.seq + 1):
+            more, blamed = self._check_prediction(prev, state, pos_prev, pos_cur, ids)
+            out += more
+            direct += blamed
+        return pairs, direct, out
+
+    def _top(self, values: np.ndarray) -> np.ndarray:
+        limit = self.settings.max_violations_per_kind
+        if values.shape[0] <= limit:
+            return np.arange(values.shape[0])
+        return np.argpartition(-values, limit - 1)[:limit]
+
+    def _check_prediction(self, prev: SlamState, state: SlamState, pos_prev: np.ndarray,
+                          pos_cur: np.ndarray, ids: np.ndarray
+                          ) -> tuple[list[Violation], list[int]]:
+        s = self.settings
+        map_changed, cross_wrong, noise = checks.prediction_residuals(
+            prev.covariance, state.covariance, prev.pose, state.pose, pos_prev, pos_cur,
+            rtol=s.rtol_prediction, atol=s.atol_growth)
+        out: list[Violation] = []
+        blamed: list[int] = []
+        for k in range(map_changed.count):
+            f = int(ids[map_changed.index[k]])
+            blamed.append(f)
+            out.append(Violation(
+                kind="prediction", ids=(f,), step=state.seq, value=float(map_changed.value[k]),
+                bound=float(map_changed.bound[k]), phase="predict",
+                detail=f"P_mm rows of feature {f} changed in a predict (must be untouched)"))
+        for k in range(cross_wrong.count):
+            f = int(ids[cross_wrong.index[k]])
+            blamed.append(f)
+            out.append(Violation(
+                kind="prediction", ids=(f,), step=state.seq, value=float(cross_wrong.value[k]),
+                bound=float(cross_wrong.bound[k]), phase="predict",
+                detail=f"P_v,m of feature {f} ≠ Fx·P_v,m(previous): cross-covariance not "
+                       f"propagated"))
+        if noise is not None:
+            out.append(Violation(
+                kind="prediction", ids=(), step=state.seq, value=-noise, bound=0.0,
+                phase="predict",
+                detail=f"Pvv − Fx·Pvv·Fxᵀ not PSD (λ_min {noise:.3g}): process noise "
+                       f"negative"))
+        return out, blamed
+
+    # -- statistics ----------------------------------------------------------------------
+    def _statistics(self, state: SlamState, stats: dict[str, float]) -> list[Violation]:
+        out: list[Violation] = []
+        if state.innovations is not None and state.innovation_covariances is not None \
+                and state.innovations.shape[0]:
+            nis = quadratic_forms_2x2(state.innovations, state.innovation_covariances)
+            bad_S = np.flatnonzero(~np.isfinite(nis))
+            for k in bad_S:
+                f = int(state.innovation_ids[k]) if state.innovation_ids is not None else -1
+                out.append(Violation(
+                    kind="psd", ids=(f,) if f >= 0 else (), step=state.seq, value=0.0,
+                    phase=state.step, detail=f"innovation covariance S of feature {f} is not "
+                                             f"positive definite"))
+            good = nis[np.isfinite(nis)]
+            if good.size:
+                stats["nis"] = float(good.mean())
+                stats["nis_lo"], stats["nis_hi"] = self._nis.sample_lo, self._nis.sample_hi
+            for r in self._nis.add(good):
+                if r.failed:
+                    out.append(Violation(
+                        kind="nis", ids=(), step=state.seq, value=r.mean, bound=_side(r),
+                        phase="update", detail=f"mean NIS {r.mean:.3g} over {r.samples} "
+                                               f"innovations outside [{r.lo:.3g}, {r.hi:.3g}]"))
+        if self._nis.sliding_mean is not None:
+            stats["nis_window_mean"] = self._nis.sliding_mean
+            stats["nis_window_lo"], stats["nis_window_hi"] = self._nis.lo, self._nis.hi
+
+        n = state.n
+        blocks = state.covariance[3:, 3:].reshape(n, 2, n, 2)[np.arange(n), :, np.arange(n), :]
+        truth = self._match_truth(state.stamp)
+        if truth is None:
+            self._pending.append(_Pending(state.seq, state.stamp, state.pose,
+                                          state.covariance[:3, :3], state.landmark_ids,
+                                          state.landmarks, blocks))
+        else:
+            nees_p, nees_f, more = self._nees(state.pose, state.covariance[:3, :3],
+                                              state.landmark_ids, state.landmarks, blocks,
+                                              truth, seq=state.seq)
+            out += more
+            if nees_p is not None:
+                stats["nees_pose"] = nees_p
+                stats["nees_pose_lo"] = self._nees_pose.sample_lo
+                stats["nees_pose_hi"] = self._nees_pose.sample_hi
+            if nees_f.size:
+                stats["nees_features_mean"] = float(nees_f.mean())
+                stats["nees_features_max"] = float(nees_f.max())
+        if self._nees_pose.sliding_mean is not None:
+            stats["nees_pose_window_mean"] = self._nees_pose.sliding_mean
+            stats["nees_pose_window_lo"] = self._nees_pose.lo
+            stats["nees_pose_window_hi"] = self._nees_pose.hi
+        return out
+
+    def _nees(self, pose: np.ndarray, Pvv: np.ndarray, ids: np.ndarray, landmarks: np.ndarray,
+              blocks: np.ndarray, truth: Truth, *, seq: int
+              ) -> tuple[float | None, np.ndarray, list[Violation]]:
+        s = self.settings
+        out: list[Violation] = []
+        nees_p = pose_nees(pose, Pvv + np.diag(self._truth_sigma2), truth.pose,
+                           condition_max=s.nees_condition_max)
+        if nees_p is not None:
+            for r in self._nees_pose.add([nees_p]):
+                if r.failed:
+                    out.append(Violation(
+                        kind="nees", ids=(), step=seq, value=r.mean, bound=_side(r),
+                        detail=f"mean pose NEES {r.mean:.3g} over {r.samples} states outside "
+                               f"[{r.lo:.3g}, {r.hi:.3g}]"))
+        fids, nees_f = feature_nees(ids, landmarks, blocks, truth.landmark_ids,
+                                    truth.landmarks, condition_max=s.nees_condition_max)
+        for fid, r in self._nees_features.add(fids, nees_f):
+            if r.failed:
+                out.append(Violation(
+                    kind="nees", ids=(fid,), step=seq, value=r.mean, bound=_side(r),
+                    detail=f"mean NEES of feature {fid} {r.mean:.3g} over {r.samples} states "
+                           f"outside [{r.lo:.3g}, {r.hi:.3g}]"))
+        return nees_p, nees_f, out
+
+
+def _side(r: object) -> float:
+    """The band edge a failed window crossed."""
+    mean, lo, hi = r.mean, r.lo, r.hi  # type: ignore[attr-defined]
+    return float(hi if mean > hi else lo)
+
+
+def _name(ids: np.ndarray, index: int) -> str:
+    """Human name of state index ``index``: robot x/y/θ or feature id x/y."""
+    if index < 3:
+        return f"robot {'xyθ'[index]}"
+    k, axis = divmod(index - 3, 2)
+    return f"feature {int(ids[k])} {'xy'[axis]}"
+
+
+def _owners(ids: np.ndarray, *indices: int) -> tuple[int, ...]:
+    """Feature ids owning the state indices given (robot indices own none)."""
+    out: list[int] = []
+    for index in indices:
+        if index >= 3:
+            f = int(ids[(index - 3) // 2])
+            if f not in out:
+                out.append(f)
+    return tuple(out)

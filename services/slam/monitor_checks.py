@@ -1,0 +1,233 @@
+"""Pure, vectorised covariance checks of the behaviour monitor (SPEC §5, paper §2.2).
+
+All functions take plain arrays and return plain arrays; nothing here keeps state. State
+index conventions follow SPEC §4: robot rows 0..2, landmark k at rows 3 + 2k, 3 + 2k + 1.
+
+The Loewner test "A ≽ B" for 2×2 blocks is the sign of the smallest eigenvalue of
+D = A − B, in closed form: λ_min = (a + c)/2 − hypot((a − c)/2, b) for D = [[a, b], [b, c]].
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.linalg import lapack
+
+
+@dataclass(frozen=True)
+class Findings:
+    """Entries that broke a check: indices (landmark positions or state indices), the
+    amount by which each broke it and the tolerance it was held against."""
+
+    index: np.ndarray  #: int [m] or [m, 2]
+    value: np.ndarray  #: float [m]: growth (m²), residual, or excess
+    bound: np.ndarray  #: float [m]: tolerance used
+    checked: int = 0  #: how many entries were tested
+
+    @property
+    def count(self) -> int:
+        return int(self.value.shape[0])
+
+
+def _empty(width: int = 1, checked: int = 0) -> Findings:
+    shape = (0,) if width == 1 else (0, width)
+    return Findings(np.zeros(shape, dtype=np.int64), np.zeros(0), np.zeros(0), checked)
+
+
+def min_eig_2x2(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """Smallest eigenvalue of symmetric [[a, b], [b, c]], elementwise."""
+    return 0.5 * (a + c) - np.hypot(0.5 * (a - c), b)
+
+
+def common_landmarks(prev_ids: np.ndarray, cur_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Positions (in the older and newer state) of the landmarks present in both.
+
+    Fast path for the usual case (landmarks only appended): both are ``arange(n_prev)``.
+    """
+    n_prev = prev_ids.shape[0]
+    if n_prev <= cur_ids.shape[0] and np.array_equal(cur_ids[:n_prev], prev_ids):
+        idx = np.arange(n_prev)
+        return idx, idx
+    _, i_prev, i_cur = np.intersect1d(prev_ids, cur_ids, assume_unique=True,
+                                      return_indices=True)
+    order = np.argsort(i_prev)
+    return i_prev[order], i_cur[order]
+
+
+def map_rows(positions: np.ndarray) -> np.ndarray:
+    """State rows of the landmarks at ``positions``: [3+2k, 3+2k+1, ...]."""
+    return (3 + 2 * positions[:, None] + np.arange(2)[None, :]).reshape(-1)
+
+
+def map_block(P: np.ndarray, positions: np.ndarray) -> np.ndarray:
+    """P_mm restricted to the landmarks at ``positions`` (a view when they are a prefix)."""
+    m = positions.shape[0]
+    if m == 0:
+        return np.zeros((0, 0))
+    if positions[0] == 0 and positions[-1] == m - 1:
+        return P[3:3 + 2 * m, 3:3 + 2 * m]
+    rows = map_rows(positions)
+    return P[np.ix_(rows, rows)]
+
+
+def _block_parts(M: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(xx, yy, xy, yx) n×n views of a 2n×2n map block: xy[i, j] = M[i_x, j_y]."""
+    return M[0::2, 0::2], M[1::2, 1::2], M[0::2, 1::2], M[1::2, 0::2]
+
+
+def feature_growth(Pmm_prev: np.ndarray, Pmm_cur: np.ndarray, *, rtol: float,
+                   atol: float) -> Findings:
+    """Features whose own block P_ii grew: P_ii(prev) − P_ii(cur) not PSD.
+
+    Both inputs are 2m×2m map blocks of the same landmarks in the same order.
+    """
+    m = Pmm_prev.shape[0] // 2
+    if m == 0:
+        return _empty()
+    xx, yy, xy, yx = _block_parts(Pmm_prev - Pmm_cur)
+    a, c, b = np.diagonal(xx), np.diagonal(yy), 0.5 * (np.diagonal(xy) + np.diagonal(yx))
+    lam = min_eig_2x2(a, b, c)
+    d = np.abs(np.diagonal(Pmm_prev))
+    tol = rtol * (d[0::2] + d[1::2]) + atol
+    bad = np.flatnonzero(lam < -tol)
+    return Findings(bad, -lam[bad], tol[bad], m)
+
+
+def pair_growth(Pmm_prev: np.ndarray, Pmm_cur: np.ndarray, *, rtol: float,
+                atol: float) -> Findings:
+    """Pairs (i < j) whose relative covariance P_d grew in the Loewner order.
+
+    D_ij = P_d,ij(prev) − P_d,ij(cur) is linear in P, so it is formed once from
+    Δ = P_prev − P_cur for all pairs as n×n arrays (no per-pair loop, no (m,2,2) gathers).
+    The tolerance of a pair is rtol·(tr P_ii + tr P_jj) + atol with the older blocks: the
+    rounding of P_d = P_ii + P_jj − 2P_ij is relative to those entries, not to P_d.
+    """
+    m = Pmm_prev.shape[0] // 2
+    if m < 2:
+        return _empty(2)
+    xx, yy, xy, yx = _block_parts(Pmm_prev - Pmm_cur)
+    dxx, dyy = np.diagonal(xx), np.diagonal(yy)
+    dxy = 0.5 * (np.diagonal(xy) + np.diagonal(yx))
+    a = dxx[:, None] + dxx[None, :] - 2.0 * xx
+    c = dyy[:, None] + dyy[None, :] - 2.0 * yy
+    b = dxy[:, None] + dxy[None, :] - (xy + yx)
+    lam = min_eig_2x2(a, b, c)
+    d = np.abs(np.diagonal(Pmm_prev))
+    t = d[0::2] + d[1::2]
+    tol = rtol * (t[:, None] + t[None, :]) + atol
+    bad_mask = lam < -tol
+    np.fill_diagonal(bad_mask, False)  # i == j is P_d = 0 by definition
+    rows, cols = np.nonzero(np.triu(bad_mask))
+    checked = m * (m - 1) // 2
+    if rows.size == 0:
+        return _empty(2, checked)
+    return Findings(np.stack([rows, cols], axis=1), -lam[rows, cols], tol[rows, cols], checked)
+
+
+def asymmetry(P: np.ndarray, *, rtol: float, atol: float) -> Findings:
+    """Entries a < b with |P_ab − P_ba| > rtol·sqrt(|P_aa·P_bb|) + atol."""
+    N = P.shape[0]
+    d = np.sqrt(np.abs(np.diagonal(P)))
+    diff = np.abs(P - P.T)
+    tol = rtol * np.outer(d, d) + atol
+    bad = np.triu(diff > tol, k=1)
+    if not bad.any():
+        return _empty(2, N * (N - 1) // 2)
+    A, B = np.nonzero(bad)
+    return Findings(np.stack([A, B], axis=1), diff[A, B], tol[A, B], N * (N - 1) // 2)
+
+
+def correlation_excess(P: np.ndarray, *, rtol: float, atol: float) -> Findings:
+    """Entries a < b with |P_ab| > sqrt(P_aa·P_bb)·(1 + rtol) + atol (|ρ| > 1).
+
+    The value reported is |ρ| − 1 (dimensionless); a negative variance counts as ρ = ∞.
+    """
+    N = P.shape[0]
+    d = np.sqrt(np.maximum(np.diagonal(P), 0.0))
+    scale = np.outer(d, d)
+    absP = np.abs(0.5 * (P + P.T))
+    bad = np.triu(absP > scale * (1.0 + rtol) + atol, k=1)
+    if not bad.any():
+        return _empty(2, N * (N - 1) // 2)
+    A, B = np.nonzero(bad)
+    with np.errstate(divide="ignore"):
+        rho = np.where(scale[A, B] > 0, absP[A, B] / np.maximum(scale[A, B], 1e-300), np.inf)
+    excess = np.minimum(rho - 1.0, 1e300)  # finite for the message
+    return Findings(np.stack([A, B], axis=1), excess, np.full(A.shape, rtol), N * (N - 1) // 2)
+
+
+def min_eigenvalue_if_indefinite(P: np.ndarray, *, rtol: float,
+                                 atol: float) -> tuple[float, float, np.ndarray] | None:
+    """``(λ_min, tolerance, eigenvector)`` if P has λ_min < −tol, else ``None``.
+
+    Cheap test first: a Cholesky factorisation of sym(P) + tol·I succeeds for every P with
+    λ_min ≥ −tol (up to rounding); only when it fails is the full eigvalsh computed.
+    """
+    N = P.shape[0]
+    if N == 0:
+        return None
+    S = 0.5 * (P + P.T)
+    tol = rtol * float(np.max(np.abs(np.diagonal(S)))) + atol
+    S_jit = S + tol * np.eye(N)
+    _, info = lapack.dpotrf(S_jit, lower=True, clean=False, overwrite_a=True)
+    if info == 0:
+        return None
+    w, V = np.linalg.eigh(S)
+    if w[0] >= -tol:
+        return None
+    return float(w[0]), tol, V[:, 0]
+
+
+def prediction_residuals(P_prev: np.ndarray, P_cur: np.ndarray, pose_prev: np.ndarray,
+                         pose_cur: np.ndarray, pos_prev: np.ndarray, pos_cur: np.ndarray, *,
+                         rtol: float, atol: float) -> tuple[Findings, Findings, float | None]:
+    """Check one predict step without knowing the controls.
+
+    For any odometry model whose displacement turns with the heading (SPEC §4's first-order
+    model, the midpoint and the exact arc models), ∂(x', y')/∂θ = (−Δy, Δx) with (Δx, Δy)
+    the change of the estimated position, so Fx = [[1,0,−Δy],[0,1,Δx],[0,0,1]] and:
+
+    * P_mm is unchanged → ``(map_changed)`` findings: landmark positions whose rows changed;
+    * P_vm = Fx·P_vm(prev) → ``(cross_wrong)`` findings: landmark positions whose columns
+      mismatch (value = largest |residual| / sqrt(P_aa·P_bb) of that landmark);
+    * Pvv − Fx·Pvv(prev)·Fxᵀ ≽ 0 (process noise is PSD) → ``noise_min_eig`` (the violating
+      smallest eigenvalue) or ``None``.
+
+    ``pos_prev`` / ``pos_cur`` are the positions of the common landmarks in each state.
+    """
+    dx = float(pose_cur[0] - pose_prev[0])
+    dy = float(pose_cur[1] - pose_prev[1])
+    Fx = np.array([[1.0, 0.0, -dy], [0.0, 1.0, dx], [0.0, 0.0, 1.0]])
+    m = pos_prev.shape[0]
+    d_prev = np.abs(np.diagonal(P_prev))
+    d_cur = np.abs(np.diagonal(P_cur))
+    if m:
+        rows_prev, rows_cur = map_rows(pos_prev), map_rows(pos_cur)
+        Pmm_prev = map_block(P_prev, pos_prev)
+        Pmm_cur = map_block(P_cur, pos_cur)
+        dm = d_prev[rows_prev]
+        # map block: untouched by a predict, so any change beyond rounding is a fault
+        tol_mm = rtol * np.sqrt(np.outer(dm, dm)) + atol
+        over_mm = np.abs(Pmm_cur - Pmm_prev) / tol_mm
+        worst_mm = over_mm.reshape(2 * m, m, 2).max(axis=(0, 2))  # per landmark column
+        changed = np.flatnonzero(worst_mm > 1.0)
+        map_changed = Findings(changed, worst_mm[changed] * rtol, np.full(changed.shape, rtol),
+                               m)
+        # cross-covariance: P_vm' = Fx·P_vm, residual scaled by the Cauchy-Schwarz bound
+        Pvm_prev = P_prev[:3, rows_prev]
+        Pvm_cur = P_cur[:3, rows_cur]
+        resid = np.abs(Pvm_cur - Fx @ Pvm_prev)
+        dv = np.maximum(d_prev[:3], d_cur[:3])
+        scale = np.sqrt(np.outer(dv, dm))
+        rel = resid / (scale + atol / max(rtol, 1e-300))
+        worst_vm = rel.reshape(3, m, 2).max(axis=(0, 2))
+        wrong = np.flatnonzero(worst_vm > rtol)
+        cross_wrong = Findings(wrong, worst_vm[wrong], np.full(wrong.shape, rtol), m)
+    else:
+        map_changed = cross_wrong = _empty()
+    Q = P_cur[:3, :3] - Fx @ P_prev[:3, :3] @ Fx.T
+    Q = 0.5 * (Q + Q.T)
+    lam = float(np.linalg.eigvalsh(Q)[0])
+    tol_q = rtol * float(np.trace(np.abs(P_cur[:3, :3]))) + atol
+    return map_changed, cross_wrong, (lam if lam < -tol_q else None)
