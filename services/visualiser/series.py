@@ -1,0 +1,189 @@
+"""Time series behind the viewer's plots (issue 5): P_d size per pair, min/mean/max per
+cluster pair, and the monitor's statistics (NEES, NIS and their bounds).
+
+Samples are decimated in wall-clock time (one state and one health sample per
+``min_interval_s`` at most) so a fixed number of samples covers minutes, whatever the
+estimator's event rate. Each state sample keeps the size of P_d for *every* pair, so the
+plot of any pair can be drawn after the fact, not only from when somebody asked for it.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections import deque
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from common.geometry import all_relative_covariances, pd_size_m
+from common.messages import Health, SlamState
+
+#: A scalar size for each P_d of a stack (m, 2, 2) → (m,).
+SizeFn = Callable[[np.ndarray], np.ndarray]
+#: Cluster labels (n,) for landmark positions (n, 2); stable identities across calls.
+ClusterFn = Callable[[np.ndarray, np.ndarray], np.ndarray]
+
+
+def pair_index(i: int, j: int, n: int) -> int:
+    """Position of pair (i, j), i < j, in ``np.triu_indices(n, k=1)`` order."""
+    return i * (2 * n - i - 1) // 2 + (j - i - 1)
+
+
+@dataclass(frozen=True)
+class StateSample:
+    stamp: float
+    seq: int
+    landmark_ids: np.ndarray  #: int64[n]
+    sizes: np.ndarray  #: float32[n(n−1)/2], triu order
+    clusters: dict[tuple[int, int], tuple[float, float, float]]  #: (A, B) → min, mean, max
+
+
+@dataclass(frozen=True)
+class HealthSample:
+    stamp: float
+    seq: int
+    statistics: dict[str, float]
+
+
+def _clean(values: Iterable[float | None]) -> list[float | None]:
+    """JSON-safe list: NaN and infinities become null."""
+    return [None if v is None or not math.isfinite(v) else float(v) for v in values]
+
+
+class SeriesStore:
+    """Bounded, decimated history of states and health verdicts (thread-safe)."""
+
+    def __init__(self, *, length: int = 600, min_interval_s: float = 0.2,
+                 size_of: SizeFn = pd_size_m, cluster: ClusterFn | None = None,
+                 size_name: str = "size of P_d: √λmax, the 1-σ major semi-axis (m)") -> None:
+        self._states: deque[StateSample] = deque(maxlen=length)
+        self._health: deque[HealthSample] = deque(maxlen=length)
+        self._min_interval = min_interval_s
+        self._size_of = size_of
+        self._cluster = cluster
+        self.size_name = size_name
+        self._last_state = -math.inf
+        self._last_health = -math.inf
+        self._lock = threading.Lock()
+
+    def clear(self) -> None:
+        with self._lock:
+            self._states.clear()
+            self._health.clear()
+            self._last_state = self._last_health = -math.inf
+
+    # -- filling ------------------------------------------------------------------
+    def add_state(self, state: SlamState, *, now: float) -> bool:
+        """Sample ``state`` unless one was sampled less than ``min_interval_s`` ago."""
+        if now - self._last_state < self._min_interval:
+            return False
+        n = state.n
+        if n >= 2:
+            _, _, Pd = all_relative_covariances(state.covariance, n)
+            sizes = np.asarray(self._size_of(Pd), dtype=np.float32)  # half the memory
+        else:
+            Pd = np.zeros((0, 2, 2))
+            sizes = np.zeros(0, dtype=np.float32)
+        clusters = self._cluster_stats(state, Pd, sizes) if self._cluster is not None else {}
+        sample = StateSample(float(state.stamp), int(state.seq),
+                             np.array(state.landmark_ids), sizes, clusters)
+        with self._lock:
+            if self._states and sample.seq < self._states[-1].seq:
+                self._states.clear()  # the estimator restarted: a new run, a new plot
+                self._health.clear()
+            self._states.append(sample)
+            self._last_state = now
+        return True
+
+    def _cluster_stats(self, state: SlamState, Pd: np.ndarray,
+                       sizes: np.ndarray) -> dict[tuple[int, int], tuple[float, float, float]]:
+        n = state.n
+        if n < 2 or self._cluster is None:
+            return {}
+        labels = np.asarray(self._cluster(np.asarray(state.landmarks), np.asarray(
+            state.landmark_ids)))
+        first, second = np.triu_indices(n, k=1)
+        A, B = labels[first], labels[second]
+        lo, hi = np.minimum(A, B), np.maximum(A, B)
+        out: dict[tuple[int, int], tuple[float, float, float]] = {}
+        for a, b in sorted({(int(x), int(y)) for x, y in zip(lo, hi, strict=True) if x != y}):
+            members = (lo == a) & (hi == b)
+            # mean: the size of the element-wise mean P_d (as the minmeanmax glyph shows it)
+            mean = float(self._size_of(Pd[members].mean(axis=0)[None])[0])
+            out[(a, b)] = (float(sizes[members].min()), mean, float(sizes[members].max()))
+        return out
+
+    def add_health(self, health: Health, *, now: float) -> bool:
+        if now - self._last_health < self._min_interval:
+            return False
+        with self._lock:
+            self._health.append(HealthSample(float(health.stamp), int(health.seq),
+                                             dict(health.statistics)))
+            self._last_health = now
+        return True
+
+    # -- reading ------------------------------------------------------------------
+    def latest_sizes(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """(landmark_ids, sizes) of the newest state sample."""
+        with self._lock:
+            if not self._states:
+                return None
+            s = self._states[-1]
+        return s.landmark_ids, s.sizes
+
+    def default_pairs(self, *, selected: int | None = None, flagged: Sequence[tuple[int, int]] = (),
+                      limit: int = 6) -> list[tuple[int, int]]:
+        """Pairs worth plotting: flagged by the monitor, else the selected feature's,
+        else the largest P_d right now."""
+        if flagged:
+            return [(min(a, b), max(a, b)) for a, b in flagged][:limit]
+        latest = self.latest_sizes()
+        if latest is None:
+            return []
+        ids, sizes = latest
+        n = len(ids)
+        first, second = np.triu_indices(n, k=1)
+        if selected is not None:
+            mask = (ids[first] == selected) | (ids[second] == selected)
+            first, second, sizes = first[mask], second[mask], sizes[mask]
+        order = np.argsort(-sizes, kind="stable")[:limit]
+        return [(min(int(ids[first[k]]), int(ids[second[k]])),
+                 max(int(ids[first[k]]), int(ids[second[k]]))) for k in order]
+
+    def to_json(self, pairs: Sequence[tuple[int, int]]) -> dict[str, Any]:
+        with self._lock:
+            states = list(self._states)
+            health = list(self._health)
+        pair_values: list[list[float | None]] = [[] for _ in pairs]
+        for s in states:
+            index = {int(v): k for k, v in enumerate(s.landmark_ids)}
+            n = len(s.landmark_ids)
+            for values, (a, b) in zip(pair_values, pairs, strict=True):
+                i, j = index.get(a), index.get(b)
+                if i is None or j is None or i == j:
+                    values.append(None)
+                    continue
+                i, j = min(i, j), max(i, j)
+                values.append(float(s.sizes[pair_index(i, j, n)]))
+        labels = sorted({k for s in states for k in s.clusters})
+        clusters = []
+        for a, b in labels:
+            rows = [s.clusters.get((a, b)) for s in states]
+            clusters.append({
+                "clusters": [a, b], "label": f"{a}–{b}",
+                **{name: _clean(None if r is None else r[k] for r in rows)
+                   for k, name in enumerate(("min", "mean", "max"))}})
+        stat_names = sorted({k for h in health for k in h.statistics})
+        return {
+            "size": self.size_name,
+            "state": {"t": [s.stamp for s in states], "seq": [s.seq for s in states]},
+            "pairs": [{"ids": [a, b], "label": f"{a}–{b}", "values": _clean(v)}
+                      for (a, b), v in zip(pairs, pair_values, strict=True)],
+            "clusters": clusters,
+            "health": {"t": [h.stamp for h in health], "seq": [h.seq for h in health],
+                       "stats": {k: _clean(h.statistics.get(k) for h in health)
+                                 for k in stat_names}},
+        }

@@ -1,0 +1,102 @@
+"""Small pure pieces of the viewer service: rendered pictures, eyes, map bounds, placeholders."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+
+from common.messages import SlamState
+from services.visualiser.camera_model import CameraModel
+from services.visualiser.settings import ViewSettings
+
+#: map-view bounds snap to this grid, so the virtual camera moves rarely, not every state
+BOUNDS_STEP_M = 0.5
+#: smallest extent of the map view, m (a robot alone at the origin still gets a floor)
+MIN_EXTENT_M = 2.0
+PLACEHOLDER_SIZE = (1280, 720)
+
+
+@dataclass(frozen=True, eq=False)
+class Rendered:
+    """One composited picture of one view."""
+
+    version: int  #: +1 per picture of this view
+    seq: int | None  #: seq of the state drawn (None: no state yet)
+    stamp: float | None  #: stamp of that state, s
+    image: np.ndarray  #: BGR uint8, read-only
+    jpeg: bytes
+    rendered_at: float  #: time.monotonic() when it was finished
+
+
+@dataclass(frozen=True, eq=False)
+class Eye:
+    """One camera of a view: its model (None until registered), picture and a note."""
+
+    name: str
+    camera: CameraModel | None
+    image: np.ndarray | None  #: BGR camera picture; None draws the neutral floor
+    note: str  #: shown instead of the overlay when it cannot be drawn
+
+
+def grow_bounds(bounds: tuple[float, float, float, float] | None,
+                state: SlamState) -> tuple[float, float, float, float]:
+    """Map-view bounds (xmin, ymin, xmax, ymax) that only grow, snapped to a grid.
+
+    Growing only and snapping keep the virtual top-down camera still while the map
+    fills in, instead of zooming with every new landmark or robot step.
+    """
+    points = np.vstack([np.asarray(state.landmarks).reshape(-1, 2),
+                        np.asarray(state.pose[:2]).reshape(1, 2)])
+    lo, hi = points.min(axis=0), points.max(axis=0)
+    centre = (lo + hi) / 2
+    half = np.maximum((hi - lo) / 2, MIN_EXTENT_M / 2)
+    lo, hi = centre - half, centre + half
+    snapped = (math.floor(lo[0] / BOUNDS_STEP_M) * BOUNDS_STEP_M,
+               math.floor(lo[1] / BOUNDS_STEP_M) * BOUNDS_STEP_M,
+               math.ceil(hi[0] / BOUNDS_STEP_M) * BOUNDS_STEP_M,
+               math.ceil(hi[1] / BOUNDS_STEP_M) * BOUNDS_STEP_M)
+    if bounds is None:
+        return snapped
+    return (min(bounds[0], snapped[0]), min(bounds[1], snapped[1]),
+            max(bounds[2], snapped[2]), max(bounds[3], snapped[3]))
+
+
+def placeholder(eye: Eye, text: str, settings: ViewSettings) -> np.ndarray:
+    """The eye's picture (or a neutral floor) with a one-line note: nothing to overlay yet."""
+    if eye.image is not None:
+        image = eye.image.copy()
+    else:
+        if eye.camera is not None:
+            width, height = eye.camera.width, eye.camera.height
+        else:
+            width, height = PLACEHOLDER_SIZE
+        image = np.empty((height, width, 3), np.uint8)
+        image[:] = settings.colour_background
+    h = image.shape[0]
+    scale = max(0.5, h / 1200)
+    cv2.rectangle(image, (0, h - int(40 * scale) - 8), (image.shape[1], h), (0, 0, 0), -1)
+    cv2.putText(image, text, (12, h - 14), cv2.FONT_HERSHEY_SIMPLEX, scale, (255, 255, 255),
+                max(1, round(scale * 1.5)), cv2.LINE_AA)
+    return image
+
+
+def project_features(eyes: tuple[Eye, ...], landmarks_xy: np.ndarray) -> list[Any]:
+    """Pixel position of each landmark in the composited picture (left eye first; a
+    landmark behind the camera or outside the picture is None)."""
+    out: list[Any] = [None] * len(landmarks_xy)
+    offset = 0
+    for eye in eyes:
+        if eye.camera is None or len(landmarks_xy) == 0:
+            continue
+        points = np.c_[landmarks_xy, np.zeros(len(landmarks_xy))]
+        uv, depth = eye.camera.project(points)
+        for k, ((u, v), z) in enumerate(zip(uv, depth, strict=True)):
+            inside = z > 0 and 0 <= u < eye.camera.width and 0 <= v < eye.camera.height
+            if out[k] is None and inside and np.isfinite(u) and np.isfinite(v):
+                out[k] = [float(u) + offset, float(v)]
+        offset += eye.camera.width
+    return out

@@ -1,0 +1,384 @@
+"""The web viewer: an aiohttp app around a :class:`ViewerService`, on its own thread.
+
+Endpoints (every ``client`` is a browser tab's random id; without one, the default settings):
+
+* ``GET /`` the page; ``GET /static/…`` its script and style (no build step, no CDN);
+* ``GET /ws?client=ID`` the live view over a websocket: a JSON header then the JPEG, one
+  frame per ``next`` the page sends back (flow control: a slow tab gets fewer frames,
+  never a growing backlog);
+* ``GET /stream.mjpg?client=ID`` the same as ``multipart/x-mixed-replace`` MJPEG (for
+  ``<img>``, VLC, ffmpeg); every part carries ``X-State-Seq`` and ``X-State-Stamp``;
+* ``GET /snapshot.png[?client=ID][&download=1]`` the current picture as PNG (SPEC §9);
+* ``GET/POST /api/settings?client=ID``, ``GET /api/status``, ``GET /api/features``,
+  ``GET /api/health``, ``GET /api/series[?pairs=1-2,3-4]``,
+  ``POST /api/record/start|stop?client=ID``, ``GET /recordings/NAME``.
+
+User input never causes a 500: bad values answer 400 with ``{"error": "..."}``.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+import re
+import threading
+from collections.abc import Awaitable, Callable
+from pathlib import Path
+from typing import Any
+
+from aiohttp import WSMsgType, web
+
+from common.errors import ConfigError, SlamlensError
+from services.visualiser.recording import NAME_PATTERN, encode_png
+from services.visualiser.service import ViewerService
+from services.visualiser.settings import ViewSettings
+
+log = logging.getLogger("slamlens.viewer.web")
+
+STATIC_DIR = Path(__file__).resolve().parent / "static"
+CLIENT_PATTERN = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
+BOUNDARY = "slamlensframe"
+SNAPSHOT_WAIT_S = 3.0  # how long a snapshot waits for a picture of the newest inputs
+NO_STORE = {"Cache-Control": "no-store"}
+
+Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
+
+
+class BadRequest(Exception):
+    """User input the viewer cannot use (answered with HTTP 400 and the reason)."""
+
+
+def parse_http(address: str) -> tuple[str, int]:
+    """``HOST:PORT`` (``[::1]:PORT`` for IPv6) → (host, port); ConfigError if malformed."""
+    host, sep, port = address.rpartition(":")
+    if not sep or not host or not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise ConfigError(f"--http {address!r}: expected HOST:PORT, e.g. 127.0.0.1:8080")
+    return host.strip("[]"), int(port)
+
+
+def parse_pairs(text: str) -> list[tuple[int, int]]:
+    """``"1-2,3-4"`` → [(1, 2), (3, 4)] (BadRequest naming the bad item)."""
+    pairs = []
+    for item in (t.strip() for t in text.split(",")):
+        if not item:
+            continue
+        a, sep, b = item.partition("-")
+        if not sep or not a.strip().isdigit() or not b.strip().isdigit():
+            raise BadRequest(f"pairs: {item!r} is not of the form ID-ID (e.g. 3-7)")
+        pairs.append((int(a), int(b)))
+    if len(pairs) > 32:
+        raise BadRequest(f"pairs: at most 32 pairs, got {len(pairs)}")
+    return pairs
+
+
+def _json(data: Any, status: int = 200) -> web.Response:
+    return web.json_response(data, status=status, headers=NO_STORE,
+                             dumps=lambda d: json.dumps(d, allow_nan=False))
+
+
+@web.middleware
+async def _errors(request: web.Request, handler: Handler) -> web.StreamResponse:
+    try:
+        return await handler(request)
+    except (BadRequest, ConfigError) as exc:
+        return _json({"error": str(exc)}, status=400)
+    except web.HTTPException as exc:
+        if exc.status >= 400:
+            return _json({"error": exc.reason}, status=exc.status)
+        raise
+    except SlamlensError as exc:
+        return _json({"error": str(exc)}, status=400)
+
+
+class WebServer:
+    """Serves a :class:`ViewerService` over HTTP on a background thread."""
+
+    def __init__(self, service: ViewerService, *, host: str = "127.0.0.1",
+                 port: int = 8080) -> None:
+        self.service = service
+        self.host = host
+        self.port = port
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._runner: web.AppRunner | None = None
+        self._thread: threading.Thread | None = None
+        self._frames = asyncio.Event()  # replaced by a fresh one on each new picture
+        self._closing = False
+
+    # -- life cycle ---------------------------------------------------------------
+    @property
+    def url(self) -> str:
+        host = f"[{self.host}]" if ":" in self.host else self.host
+        return f"http://{host}:{self.port}"
+
+    def start(self) -> str:
+        """Bind and serve; returns the URL (``port=0`` picks a free port)."""
+        ready = threading.Event()
+        errors: list[BaseException] = []
+
+        def run() -> None:
+            loop = asyncio.new_event_loop()
+            self._loop = loop
+            asyncio.set_event_loop(loop)
+            try:
+                loop.run_until_complete(self._serve())
+            except BaseException as exc:  # reported to start()'s caller
+                errors.append(exc)
+                ready.set()
+                return
+            ready.set()
+            loop.run_forever()
+            loop.run_until_complete(self._shutdown())
+            loop.close()
+
+        self._thread = threading.Thread(target=run, name="viewer-web", daemon=True)
+        self._thread.start()
+        ready.wait()
+        if errors:
+            exc = errors[0]
+            raise ConfigError(f"cannot serve the viewer on {self.host}:{self.port}: {exc}")
+        self.service.add_listener(self._on_frames_threadsafe)
+        return self.url
+
+    async def _serve(self) -> None:
+        self._frames = asyncio.Event()
+        app = self.make_app()
+        self._runner = web.AppRunner(app, access_log=None)
+        await self._runner.setup()
+        # streams end on their own at shutdown (they watch _closing): wait 2 s at most
+        site = web.TCPSite(self._runner, self.host, self.port, shutdown_timeout=2.0)
+        await site.start()
+        server = getattr(site, "_server", None)
+        if server is not None and server.sockets:
+            self.port = server.sockets[0].getsockname()[1]
+
+    async def _shutdown(self) -> None:
+        self._closing = True
+        self._frames.set()
+        if self._runner is not None:
+            await self._runner.cleanup()
+
+    def stop(self) -> None:
+        loop, thread = self._loop, self._thread
+        if loop is None or thread is None or not thread.is_alive():
+            return
+        self._closing = True
+        loop.call_soon_threadsafe(self._frames.set)
+        loop.call_soon_threadsafe(loop.stop)
+        thread.join(timeout=10.0)
+
+    def _on_frames_threadsafe(self) -> None:
+        loop = self._loop
+        if loop is not None and not loop.is_closed():
+            try:
+                loop.call_soon_threadsafe(self._on_frames)
+            except RuntimeError:  # the loop closed meanwhile
+                pass
+
+    def _on_frames(self) -> None:
+        event, self._frames = self._frames, asyncio.Event()
+        event.set()
+
+    async def _next_frames(self, timeout: float) -> None:
+        """Wait until the service produced new pictures (or ``timeout``)."""
+        try:
+            await asyncio.wait_for(self._frames.wait(), timeout)
+        except TimeoutError:
+            pass
+
+    # -- the app ------------------------------------------------------------------
+    def make_app(self) -> web.Application:
+        app = web.Application(middlewares=[_errors])
+        r = app.router
+        r.add_get("/", self.index)
+        r.add_static("/static", STATIC_DIR)
+        r.add_get("/ws", self.websocket)
+        r.add_get("/stream.mjpg", self.mjpeg)
+        r.add_get("/snapshot.png", self.snapshot)
+        r.add_get("/api/settings", self.get_settings)
+        r.add_post("/api/settings", self.post_settings)
+        r.add_get("/api/status", self.status)
+        r.add_get("/api/features", self.features)
+        r.add_get("/api/health", self.health)
+        r.add_get("/api/series", self.series)
+        r.add_post("/api/record/start", self.record_start)
+        r.add_post("/api/record/stop", self.record_stop)
+        r.add_get("/recordings/{name}", self.recording)
+        return app
+
+    # -- helpers --------------------------------------------------------------------
+    @staticmethod
+    def _client(request: web.Request, *, required: bool = False) -> str | None:
+        client = request.query.get("client")
+        if client is None or client == "":
+            if required:
+                raise BadRequest("the query parameter 'client' is required (a tab's id)")
+            return None
+        if not CLIENT_PATTERN.match(client):
+            raise BadRequest("client: expected 1-64 letters, digits, '-' or '_'")
+        return client
+
+    def _settings(self, request: web.Request) -> ViewSettings:
+        return self.service.settings_for(self._client(request))
+
+    # -- pages and pictures -----------------------------------------------------------
+    async def index(self, request: web.Request) -> web.StreamResponse:
+        return web.FileResponse(STATIC_DIR / "index.html", headers=NO_STORE)
+
+    async def mjpeg(self, request: web.Request) -> web.StreamResponse:
+        client = self._client(request)
+        response = web.StreamResponse(headers={
+            "Content-Type": f"multipart/x-mixed-replace; boundary={BOUNDARY}",
+            "Cache-Control": "no-cache, no-store, must-revalidate", "Pragma": "no-cache"})
+        await response.prepare(request)
+        last = None
+        try:
+            while not self._closing:
+                settings = self.service.settings_for(client)
+                self.service.touch(settings)
+                rendered = self.service.latest(settings)
+                if rendered is None or rendered is last:
+                    await self._next_frames(1.0)
+                    continue
+                last = rendered
+                head = (f"--{BOUNDARY}\r\nContent-Type: image/jpeg\r\n"
+                        f"Content-Length: {len(rendered.jpeg)}\r\n"
+                        f"X-State-Seq: {'' if rendered.seq is None else rendered.seq}\r\n"
+                        f"X-State-Stamp: {'' if rendered.stamp is None else rendered.stamp!r}"
+                        f"\r\nX-Frame-Version: {rendered.version}\r\n\r\n")
+                await response.write(head.encode() + rendered.jpeg + b"\r\n")
+        except (ConnectionResetError, asyncio.CancelledError):
+            pass  # the viewer went away
+        return response
+
+    async def websocket(self, request: web.Request) -> web.StreamResponse:
+        client = self._client(request)
+        ws = web.WebSocketResponse(heartbeat=20.0)
+        await ws.prepare(request)
+        wanted = asyncio.Event()
+        wanted.set()
+
+        async def read() -> None:
+            async for msg in ws:
+                if msg.type == WSMsgType.TEXT and msg.data == "next":
+                    wanted.set()
+                elif msg.type == WSMsgType.ERROR:
+                    break
+
+        reader = asyncio.create_task(read())
+        last = None
+        try:
+            while not self._closing and not ws.closed and not reader.done():
+                settings = self.service.settings_for(client)
+                self.service.touch(settings)
+                rendered = self.service.latest(settings)
+                if not wanted.is_set():  # the page has not drawn the previous frame yet
+                    try:
+                        await asyncio.wait_for(wanted.wait(), 1.0)
+                    except TimeoutError:
+                        pass
+                    continue
+                if rendered is None or rendered is last:
+                    await self._next_frames(1.0)
+                    continue
+                last = rendered
+                wanted.clear()
+                height, width = rendered.image.shape[:2]
+                await ws.send_json({"seq": rendered.seq, "stamp": rendered.stamp,
+                                    "version": rendered.version, "width": width,
+                                    "height": height})
+                await ws.send_bytes(rendered.jpeg)
+        except (ConnectionResetError, asyncio.CancelledError):
+            pass
+        finally:
+            reader.cancel()
+            await ws.close()
+        return ws
+
+    async def snapshot(self, request: web.Request) -> web.StreamResponse:
+        settings = self._settings(request)
+        self.service.touch(settings)
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + SNAPSHOT_WAIT_S
+        while not self.service.fresh(settings) and loop.time() < deadline:
+            await self._next_frames(max(0.0, min(0.5, deadline - loop.time())))
+            self.service.touch(settings)
+        rendered = self.service.latest(settings)
+        if rendered is None:
+            return _json({"error": "no picture yet: the viewer is still starting"}, status=503)
+        png = await loop.run_in_executor(None, encode_png, rendered.image)
+        name = f"slamlens-{self.service.config.robot}-{rendered.seq or 0}.png"
+        disposition = "attachment" if request.query.get("download") else "inline"
+        return web.Response(body=png, content_type="image/png", headers={
+            **NO_STORE, "X-State-Seq": "" if rendered.seq is None else str(rendered.seq),
+            "Content-Disposition": f'{disposition}; filename="{name}"'})
+
+    # -- JSON API -------------------------------------------------------------------
+    async def get_settings(self, request: web.Request) -> web.StreamResponse:
+        client = self._client(request)
+        return _json({"client": client, "settings": self.service.settings_for(client).to_dict(),
+                      "defaults": self.service.default_settings.to_dict()})
+
+    async def post_settings(self, request: web.Request) -> web.StreamResponse:
+        client = self._client(request, required=True)
+        assert client is not None
+        if request.can_read_body:
+            try:
+                changes = await request.json()
+            except (json.JSONDecodeError, UnicodeDecodeError):
+                raise BadRequest("the body must be a JSON object of settings") from None
+        else:
+            changes = {k: v for k, v in request.query.items() if k != "client"}
+        if not isinstance(changes, dict):
+            raise BadRequest("the body must be a JSON object of settings")
+        if changes.get("reset"):
+            changes = {k: v for k, v in self.service.default_settings.to_dict().items()}
+        for key, value in changes.items():
+            if isinstance(value, list):  # colours
+                changes[key] = ",".join(str(v) for v in value)
+            elif value is not None and not isinstance(value, (str, int, float, bool)):
+                raise BadRequest(f"setting {key!r}: expected a string, number or boolean")
+        settings = self.service.update_settings(client, changes)
+        return _json({"client": client, "settings": settings.to_dict()})
+
+    async def status(self, request: web.Request) -> web.StreamResponse:
+        return _json(self.service.status())
+
+    async def features(self, request: web.Request) -> web.StreamResponse:
+        return _json(self.service.features(self._settings(request)))
+
+    async def health(self, request: web.Request) -> web.StreamResponse:
+        return _json(self.service.health_json())
+
+    async def series(self, request: web.Request) -> web.StreamResponse:
+        pairs = parse_pairs(request.query.get("pairs", ""))
+        settings = self._settings(request)
+        loop = asyncio.get_running_loop()
+        data = await loop.run_in_executor(None, self.service.series_json, settings, pairs)
+        return _json(data)
+
+    async def record_start(self, request: web.Request) -> web.StreamResponse:
+        client = self._client(request, required=True)
+        assert client is not None
+        info = await asyncio.get_running_loop().run_in_executor(
+            None, self.service.record_start, client)
+        return _json({**info, "url": f"/recordings/{info['file']}"})
+
+    async def record_stop(self, request: web.Request) -> web.StreamResponse:
+        client = self._client(request, required=True)
+        assert client is not None
+        info = await asyncio.get_running_loop().run_in_executor(
+            None, self.service.record_stop, client)
+        if info is None:
+            return _json({"error": f"client {client} is not recording"}, status=404)
+        return _json({**info, "url": f"/recordings/{info['file']}"})
+
+    async def recording(self, request: web.Request) -> web.StreamResponse:
+        name = request.match_info["name"]
+        if not NAME_PATTERN.match(name):
+            raise BadRequest("recording: not a recording file name")
+        path = Path(self.service.config.recordings_dir) / name
+        if not path.is_file():
+            return _json({"error": f"no recording named {name}"}, status=404)
+        return web.FileResponse(path, headers={
+            "Content-Disposition": f'attachment; filename="{name}"'})
