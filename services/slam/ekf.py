@@ -25,7 +25,7 @@ import ctypes
 import functools
 import math
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -136,29 +136,6 @@ def lower_from_symmetric(P: np.ndarray, *, capacity: int | None = None) -> np.nd
     return L
 
 
-@dataclass
-class Workspace:
-    """Scratch rows reused by every kernel call, so a call allocates (almost) nothing.
-
-    ``cols`` holds five columns of the symmetric P as rows (robot x, y, θ and the two of
-    one landmark); ``wt`` holds W ᵀ = (P Hᵀ)ᵀ; ``vt`` holds Vᵀ = (W L_S⁻ᵀ)ᵀ.
-    """
-
-    cols: np.ndarray  # (5, capacity)
-    wt: np.ndarray  # (2, capacity)
-    vt: np.ndarray  # (2, capacity)
-    h5: np.ndarray  # (2, 5) the non-zero columns of H
-
-    @classmethod
-    def for_capacity(cls, capacity: int) -> Workspace:
-        return cls(cols=np.zeros((5, capacity)), wt=np.zeros((2, capacity)),
-                   vt=np.zeros((2, capacity)), h5=np.zeros((2, 5)))
-
-    @property
-    def capacity(self) -> int:
-        return int(self.cols.shape[1])
-
-
 def _robot_columns(L: np.ndarray, N: int, out: np.ndarray) -> None:
     """out[0:3, :N] = the robot rows of the symmetric P (= its robot columns)."""
     out[0:3, 3:N] = L[3:N, 0:3].T  # strided gather of 3 values per row: O(N)
@@ -211,7 +188,7 @@ def _dsyrk() -> Callable[..., None] | None:
     return proto(address)
 
 
-class _SyrkArgs:
+class SyrkArgs:
     """Preallocated ctypes scalars for dsyrk (building them per call costs microseconds)."""
 
     def __init__(self) -> None:
@@ -227,29 +204,54 @@ class _SyrkArgs:
                      for name in ("uplo", "trans", "n", "k", "alpha", "beta", "lda", "ldc")}
 
 
-_SYRK_ARGS = _SyrkArgs()
-
-
-def downdate_lower(L: np.ndarray, vt: np.ndarray, N: int, *, use_blas: bool = True) -> None:
+def downdate_lower(L: np.ndarray, vt: np.ndarray, N: int, *, args: SyrkArgs | None = None,
+                   use_blas: bool = True) -> None:
     """L[:N, :N] −= V Vᵀ on (at least) the lower triangle, in place; V = vt[:, :N]ᵀ (N×2).
 
-    ``use_blas=False`` forces the numpy fallback (tests compare the two).
+    ``args`` is reusable scratch (one per thread); ``use_blas=False`` forces the numpy
+    fallback (tests compare the two).
     """
     fn = _dsyrk() if use_blas else None
     ok = (fn is not None and L.dtype == np.float64 and vt.dtype == np.float64
-          and L.strides[1] == 8 and vt.strides[1] == 8)
+          and L.strides[1] == 8 and vt.strides[1] == 8
+          and L.strides[0] >= 8 * N and vt.strides[0] >= 8 * N)
     if not ok:
         # Fallback: one full product and subtraction (3 passes, same result on the triangle).
         block = L[:N, :N]
         block -= vt[:, :N].T @ vt[:, :N]
         return
-    a = _SYRK_ARGS
+    assert fn is not None
+    a = SyrkArgs() if args is None else args
     a.n.value = N
     a.lda.value = vt.strides[0] // 8
     a.ldc.value = L.strides[0] // 8
     ad = a.addr
     fn(ad["uplo"], ad["trans"], ad["n"], ad["k"], ad["alpha"], vt.ctypes.data, ad["lda"],
        ad["beta"], L.ctypes.data, ad["ldc"])
+
+
+@dataclass
+class Workspace:
+    """Scratch rows reused by every kernel call, so a call allocates (almost) nothing.
+
+    ``cols`` holds five columns of the symmetric P as rows (robot x, y, θ and the two of
+    one landmark); ``wt`` holds W ᵀ = (P Hᵀ)ᵀ; ``vt`` holds Vᵀ = (W L_S⁻ᵀ)ᵀ.
+    """
+
+    cols: np.ndarray  # (5, capacity)
+    wt: np.ndarray  # (2, capacity)
+    vt: np.ndarray  # (2, capacity)
+    h5: np.ndarray  # (2, 5) the non-zero columns of H
+    syrk: SyrkArgs = field(default_factory=SyrkArgs)  # one per workspace (thread)
+
+    @classmethod
+    def for_capacity(cls, capacity: int) -> Workspace:
+        return cls(cols=np.zeros((5, capacity)), wt=np.zeros((2, capacity)),
+                   vt=np.zeros((2, capacity)), h5=np.zeros((2, 5)))
+
+    @property
+    def capacity(self) -> int:
+        return int(self.cols.shape[1])
 
 
 # ---------------------------------------------------------------------------------------
@@ -355,7 +357,7 @@ def update(x: np.ndarray, L: np.ndarray, n: int, j: int, *, z_range: float,
     xs += u0 * vt[0]
     xs += u1 * vt[1]
     x[2] = _wrap(float(x[2]))
-    downdate_lower(L, ws.vt, N)
+    downdate_lower(L, ws.vt, N, args=ws.syrk)
     return nu_r, nu_b, s00, s01, s11
 
 
@@ -397,7 +399,7 @@ def check_finite_inputs(**values: float) -> None:
 
 
 __all__ = [
-    "SingularInnovationError", "Workspace", "check_finite_inputs", "downdate_lower",
+    "SingularInnovationError", "SyrkArgs", "Workspace", "check_finite_inputs", "downdate_lower",
     "initialise", "inverse_observation", "inverse_observation_jacobians", "lower_from_symmetric",
     "motion", "motion_jacobians", "observation_jacobians", "observe", "predict", "symmetric",
     "update", "wrap_angle",

@@ -1,0 +1,328 @@
+"""The EKF-SLAM estimator: a thin stateful class over the kernels of :mod:`services.slam.ekf`.
+
+It owns the state buffers (capacity doubled when the map outgrows them, so adding a
+landmark does not reallocate every time), maps landmark ids to state order, applies
+observation batches one observation at a time (SPEC §4), associates anonymous observations
+(:mod:`services.slam.association`), plants a configured fault (:mod:`services.slam.faults`)
+and turns its state into a :class:`~common.messages.SlamState`. No I/O here.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from common.errors import ConfigError
+from common.messages import SlamState
+from services.slam import association, ekf, faults
+
+log = logging.getLogger("slamlens.estimator")
+
+_INITIAL_CAPACITY = 16  # landmarks; doubled on demand
+
+
+def _doc(text: str, **meta: Any) -> dict[str, Any]:
+    return {"doc": text, **meta}
+
+
+@dataclass(frozen=True)
+class EstimatorSettings:
+    """Settings of the estimator (``slamlens estimator``; TOML keys = field names).
+
+    Noise defaults equal the simulator's "paper" world, so a correct run is consistent.
+    """
+
+    robot: str = field(default="robot1", metadata=_doc("robot name"))
+    sigma_v: float = field(default=0.05, metadata=_doc("odometry speed noise σv, m/s",
+                                                         min=0.0))
+    sigma_w: float = field(default=0.05, metadata=_doc("odometry turn-rate noise σω, rad/s",
+                                                         min=0.0))
+    sigma_range: float = field(default=0.05, metadata=_doc("range noise σr, m (> 0)", min=0.0))
+    sigma_bearing: float = field(default=0.02, metadata=_doc("bearing noise σφ, rad (> 0)",
+                                                               min=0.0))
+    gate_chi2: float = field(default=9.21, metadata=_doc(
+        "id −1: accept the nearest landmark when d² is below this (χ²₂ 99 %)", min=0.0))
+    new_landmark_chi2: float = field(default=13.82, metadata=_doc(
+        "id −1: start a new landmark when the nearest d² is above this (χ²₂ 99.9 %)", min=0.0))
+    anonymous_id_base: int = field(default=1_000_000, metadata=_doc(
+        "first id given to landmarks found by association (then counting up)", min=0))
+    initial_pose: tuple[float, ...] = field(default=(0.0, 0.0, 0.0), metadata=_doc(
+        "x_v(0) = (x m, y m, θ rad) in the map frame"))
+    initial_pose_sigma: tuple[float, ...] = field(default=(0.0, 0.0, 0.0), metadata=_doc(
+        "standard deviations of x_v(0) (m, m, rad); 0 = the map frame is the start pose"))
+    fault: str = field(default="none", metadata=_doc(
+        "planted fault (docs/estimator.md)", choices=faults.FAULT_KINDS))
+    faulty_features: tuple[int, ...] = field(default=(), metadata=_doc(
+        "landmark ids the fault acts on"))
+    fault_magnitude: float | None = field(default=None, metadata=_doc(
+        "size of the fault; None = the kind's default (map-update 2e-3 m², "
+        "cross-covariance 1.0 = propagation fully omitted)", min=0.0))
+    fault_onset: float = field(default=0.0, metadata=_doc(
+        "stamp (s) from which the fault acts (0 = from the start)"))
+    publish_innovations: bool = field(default=True, metadata=_doc(
+        "put each update's innovations and S into the state (for the monitor's NIS)"))
+
+    def __post_init__(self) -> None:
+        if not (self.sigma_range > 0 and self.sigma_bearing > 0):
+            raise ConfigError("settings 'sigma_range' and 'sigma_bearing' must be > 0 "
+                              "(R must be positive definite)")
+        for name in ("sigma_v", "sigma_w"):
+            if not getattr(self, name) >= 0:
+                raise ConfigError(f"setting {name!r} must be ≥ 0")
+        if not 0 < self.gate_chi2 <= self.new_landmark_chi2:
+            raise ConfigError(f"settings need 0 < 'gate_chi2' ≤ 'new_landmark_chi2', got "
+                              f"{self.gate_chi2} and {self.new_landmark_chi2}")
+        for name in ("initial_pose", "initial_pose_sigma"):
+            value = getattr(self, name)
+            if len(value) != 3 or not all(math.isfinite(float(v)) for v in value):
+                raise ConfigError(f"setting {name!r}: expected 3 finite numbers, got {value!r}")
+        if any(s < 0 for s in self.initial_pose_sigma):
+            raise ConfigError("setting 'initial_pose_sigma': standard deviations must be ≥ 0")
+        try:
+            faults.make_fault(self.fault, self.faulty_features, magnitude=self.fault_magnitude,
+                              onset=self.fault_onset)
+        except ValueError as exc:
+            raise ConfigError(f"settings 'fault'/'faulty_features'/'fault_magnitude': {exc}") \
+                from None
+
+
+@dataclass(frozen=True, eq=False)
+class ObserveReport:
+    """What one observation batch did (arrays are read-only)."""
+
+    observed_ids: np.ndarray  #: int64, landmarks updated or initialised, message order, once
+    new_ids: np.ndarray  #: int64, landmarks initialised by this batch
+    innovation_ids: np.ndarray  #: int64[k], the landmark of each update, in order
+    innovations: np.ndarray  #: float64[k, 2], ν = z − h (m, rad) before each update
+    innovation_covariances: np.ndarray  #: float64[k, 2, 2], S of each update
+    assigned_ids: np.ndarray  #: int64[m], per observation: the id it was applied to, or −1
+    rejected: int  #: observations not applied (ambiguous, or S not positive definite)
+    ambiguous: int  #: of those, id −1 observations between the two association thresholds
+
+
+def _frozen(values: Any, dtype: Any, shape: tuple[int, ...] | None = None) -> np.ndarray:
+    a = np.array(values, dtype=dtype)
+    if shape is not None:
+        a = a.reshape(shape)
+    a.flags.writeable = False
+    return a
+
+
+class Estimator:
+    """EKF-SLAM with the SPEC §4 models (see docs/estimator.md)."""
+
+    def __init__(self, settings: EstimatorSettings, *,
+                 capacity: int = _INITIAL_CAPACITY) -> None:
+        self.settings = settings
+        self._var_v = settings.sigma_v ** 2
+        self._var_w = settings.sigma_w ** 2
+        self._var_r = settings.sigma_range ** 2
+        self._var_b = settings.sigma_bearing ** 2
+        self._gates = association.Gates(settings.gate_chi2, settings.new_landmark_chi2)
+        self._fault = faults.make_fault(settings.fault, settings.faulty_features,
+                                        magnitude=settings.fault_magnitude,
+                                        onset=settings.fault_onset)
+        self._capacity = max(1, int(capacity))
+        size = 3 + 2 * self._capacity
+        self._x = np.zeros(size)
+        self._L = np.zeros((size, size))
+        self._ws = ekf.Workspace.for_capacity(size)
+        self._x[0:3] = [float(v) for v in settings.initial_pose]
+        self._x[2] = float(ekf.wrap_angle(self._x[2]))
+        self._L[0:3, 0:3] = np.diag([float(s) ** 2 for s in settings.initial_pose_sigma])
+        self._n = 0
+        self._ids: list[int] = []
+        self._index: dict[int, int] = {}
+        self._next_anonymous = settings.anonymous_id_base
+
+    # -- read-only views ---------------------------------------------------------------
+    @property
+    def n(self) -> int:
+        """Number of landmarks in the map."""
+        return self._n
+
+    @property
+    def pose(self) -> np.ndarray:
+        """Robot pose (x m, y m, θ rad) in the map frame (a copy)."""
+        return self._x[0:3].copy()
+
+    @property
+    def landmark_ids(self) -> np.ndarray:
+        """Landmark ids, int64[n], in state order (a copy)."""
+        return np.array(self._ids, dtype=np.int64)
+
+    @property
+    def landmarks(self) -> np.ndarray:
+        """Landmark positions [n, 2], m, map frame (a copy)."""
+        return self._x[3:3 + 2 * self._n].reshape(self._n, 2).copy()
+
+    @property
+    def covariance(self) -> np.ndarray:
+        """Full symmetric state covariance [(3+2n), (3+2n)] (a new array)."""
+        return ekf.symmetric(self._L, 3 + 2 * self._n)
+
+    @property
+    def capacity(self) -> int:
+        """Landmarks the buffers hold before the next doubling."""
+        return self._capacity
+
+    def index_of(self, landmark_id: int) -> int | None:
+        """State-order index of a landmark id, or None if it is not in the map."""
+        return self._index.get(int(landmark_id))
+
+    # -- events ------------------------------------------------------------------------
+    def predict(self, *, v: float, w: float, dt: float, stamp: float) -> None:
+        """Apply one odometry step (v m/s, w rad/s held for dt s). Refuses NaN and dt < 0
+        with ValueError, leaving the state unchanged."""
+        ekf.check_finite_inputs(v=v, w=w, dt=dt, stamp=stamp)
+        if dt < 0:
+            raise ValueError(f"dt must be ≥ 0, got {dt!r}")
+        fault = self._fault
+        if fault is not None and fault.kind == faults.CROSS_COVARIANCE and fault.active(stamp):
+            faults.predict_without_cross_covariance(
+                self._x, self._L, self._n, indices=self._faulty_indices(), fraction=fault.magnitude,
+                v=v, w=w, dt=dt, var_v=self._var_v, var_w=self._var_w)
+            return
+        ekf.predict(self._x, self._L, self._n, v=v, w=w, dt=dt, var_v=self._var_v,
+                    var_w=self._var_w)
+
+    def observe(self, *, ids: Any, ranges: Any, bearings: Any, stamp: float) -> ObserveReport:
+        """Apply one observation batch, one observation at a time in message order.
+
+        A known id updates, an unknown id is initialised (and not also used to update), id
+        −1 is associated (:mod:`services.slam.association`). Malformed input (NaN, negative
+        range, ids < −1, mismatched lengths) raises ValueError before anything changes.
+        """
+        ids_a, ranges_a, bearings_a = self._check_batch(ids, ranges, bearings, stamp)
+        observed: list[int] = []
+        new: list[int] = []
+        innovation_ids: list[int] = []
+        innovations: list[tuple[float, float]] = []
+        covariances: list[tuple[float, float, float, float]] = []
+        assigned: list[int] = []
+        rejected = ambiguous = 0
+        for lid, z_r, z_b in zip(ids_a.tolist(), ranges_a.tolist(), bearings_a.tolist(),
+                                 strict=True):
+            if lid == -1:
+                decision = association.decide(association.mahalanobis_all(
+                    self._x, self._L, self._n, z_range=z_r, z_bearing=z_b,
+                    var_range=self._var_r, var_bearing=self._var_b), self._gates)
+                if decision.kind == association.AMBIGUOUS:
+                    log.debug("anonymous observation (%.3f m, %.3f rad) ambiguous: d² = %.2f",
+                              z_r, z_b, decision.d2)
+                    rejected += 1
+                    ambiguous += 1
+                    assigned.append(-1)
+                    continue
+                lid = (self._ids[decision.index] if decision.kind == association.MATCH
+                       else self._fresh_anonymous_id())
+            j = self._index.get(lid)
+            if j is None:
+                self._initialise(lid, z_r, z_b)
+                new.append(lid)
+            else:
+                try:
+                    out = ekf.update(self._x, self._L, self._n, j, z_range=z_r, z_bearing=z_b,
+                                     var_range=self._var_r, var_bearing=self._var_b,
+                                     ws=self._ws)
+                except ekf.SingularInnovationError as exc:
+                    log.warning("observation of landmark %d not applied: %s", lid, exc)
+                    rejected += 1
+                    assigned.append(-1)
+                    continue
+                nu_r, nu_b, s00, s01, s11 = out
+                innovation_ids.append(lid)
+                innovations.append((nu_r, nu_b))
+                covariances.append((s00, s01, s01, s11))
+            assigned.append(lid)
+            if lid not in observed:
+                observed.append(lid)
+        fault = self._fault
+        if (fault is not None and fault.kind == faults.MAP_UPDATE and innovation_ids
+                and fault.active(stamp)):
+            faults.inflate_map_covariance(self._L, self._faulty_indices(), fault.magnitude)
+        k = len(innovation_ids)
+        return ObserveReport(
+            observed_ids=_frozen(observed, np.int64), new_ids=_frozen(new, np.int64),
+            innovation_ids=_frozen(innovation_ids, np.int64),
+            innovations=_frozen(innovations, np.float64, (k, 2)),
+            innovation_covariances=_frozen(covariances, np.float64, (k, 2, 2)),
+            assigned_ids=_frozen(assigned, np.int64), rejected=rejected, ambiguous=ambiguous)
+
+    def to_state(self, *, seq: int, stamp: float, step: str,
+                 report: ObserveReport | None = None) -> SlamState:
+        """The current state as a SlamState message (covariance materialised once)."""
+        n = self._n
+        cov = ekf.symmetric(self._L, 3 + 2 * n)
+        cov.flags.writeable = False  # the message keeps it without another copy
+        extra: dict[str, Any] = {}
+        if report is not None:
+            extra["observed_ids"] = report.observed_ids
+            extra["new_ids"] = report.new_ids
+            if self.settings.publish_innovations:
+                extra["innovation_ids"] = report.innovation_ids
+                extra["innovations"] = report.innovations
+                extra["innovation_covariances"] = report.innovation_covariances
+        return SlamState(robot=self.settings.robot, seq=seq, stamp=stamp, step=step,
+                         pose=self.pose, landmark_ids=self.landmark_ids,
+                         landmarks=self.landmarks, covariance=cov, **extra)
+
+    # -- internals ---------------------------------------------------------------------
+    @staticmethod
+    def _check_batch(ids: Any, ranges: Any, bearings: Any,
+                     stamp: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        ekf.check_finite_inputs(stamp=stamp)
+        ids_raw = np.asarray(ids)
+        if ids_raw.ndim != 1 or (ids_raw.size and ids_raw.dtype.kind not in "iu"):
+            raise ValueError(f"ids must be a 1-D integer array, got dtype {ids_raw.dtype} "
+                             f"shape {ids_raw.shape}")
+        ids_a = ids_raw.astype(np.int64)
+        ranges_a = np.asarray(ranges, dtype=np.float64)
+        bearings_a = np.asarray(bearings, dtype=np.float64)
+        if ranges_a.shape != ids_a.shape or bearings_a.shape != ids_a.shape:
+            raise ValueError(f"ids, ranges and bearings must have the same length, got "
+                             f"{ids_a.shape}, {ranges_a.shape}, {bearings_a.shape}")
+        if not (np.all(np.isfinite(ranges_a)) and np.all(np.isfinite(bearings_a))):
+            raise ValueError("ranges and bearings must be finite (NaN or infinity received)")
+        if np.any(ranges_a < 0):
+            raise ValueError("ranges must be ≥ 0")
+        if np.any(ids_a < -1):
+            raise ValueError(f"ids must be ≥ −1, got {int(ids_a.min())}")
+        return ids_a, ranges_a, bearings_a
+
+    def _fresh_anonymous_id(self) -> int:
+        while self._next_anonymous in self._index:
+            self._next_anonymous += 1
+        lid = self._next_anonymous
+        self._next_anonymous += 1
+        return lid
+
+    def _initialise(self, lid: int, z_range: float, z_bearing: float) -> None:
+        self._ensure_capacity(self._n + 1)
+        ekf.initialise(self._x, self._L, self._n, z_range=z_range, z_bearing=z_bearing,
+                       var_range=self._var_r, var_bearing=self._var_b, ws=self._ws)
+        self._index[lid] = self._n
+        self._ids.append(lid)
+        self._n += 1
+
+    def _ensure_capacity(self, n_needed: int) -> None:
+        if n_needed <= self._capacity:
+            return
+        capacity = max(2 * self._capacity, n_needed)
+        size, N = 3 + 2 * capacity, 3 + 2 * self._n
+        x = np.zeros(size)
+        x[:N] = self._x[:N]
+        L = np.zeros((size, size))
+        L[:N, :N] = self._L[:N, :N]
+        self._x, self._L = x, L
+        self._ws = ekf.Workspace.for_capacity(size)
+        self._capacity = capacity
+        log.debug("state capacity doubled to %d landmarks", capacity)
+
+    def _faulty_indices(self) -> list[int]:
+        assert self._fault is not None
+        return sorted(self._index[i] for i in self._fault.feature_ids if i in self._index)
