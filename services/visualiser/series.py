@@ -83,13 +83,13 @@ class SeriesStore:
         n = state.n
         if n >= 2:
             _, _, Pd = all_relative_covariances(state.covariance, n)
-            sizes = np.asarray(self._size_of(Pd), dtype=np.float32)  # half the memory
+            sizes = np.asarray(self._size_of(Pd), dtype=float)
         else:
             Pd = np.zeros((0, 2, 2))
-            sizes = np.zeros(0, dtype=np.float32)
+            sizes = np.zeros(0)
         clusters = self._cluster_stats(state, Pd, sizes) if self._cluster is not None else {}
-        sample = StateSample(float(state.stamp), int(state.seq),
-                             np.array(state.landmark_ids), sizes, clusters)
+        sample = StateSample(float(state.stamp), int(state.seq), np.array(state.landmark_ids),
+                             sizes.astype(np.float32), clusters)  # float32: half the memory
         with self._lock:
             if self._states and sample.seq < self._states[-1].seq:
                 self._states.clear()  # the estimator restarted: a new run, a new plot

@@ -124,6 +124,9 @@ class WebServer:
                 loop.run_until_complete(self._serve())
             except BaseException as exc:  # reported to start()'s caller
                 errors.append(exc)
+                if self._runner is not None:
+                    loop.run_until_complete(self._runner.cleanup())
+                loop.close()
                 ready.set()
                 return
             ready.set()
@@ -143,10 +146,10 @@ class WebServer:
     async def _serve(self) -> None:
         self._frames = asyncio.Event()
         app = self.make_app()
-        self._runner = web.AppRunner(app, access_log=None)
-        await self._runner.setup()
         # streams end on their own at shutdown (they watch _closing): wait 2 s at most
-        site = web.TCPSite(self._runner, self.host, self.port, shutdown_timeout=2.0)
+        self._runner = web.AppRunner(app, access_log=None, shutdown_timeout=2.0)
+        await self._runner.setup()
+        site = web.TCPSite(self._runner, self.host, self.port)
         await site.start()
         server = getattr(site, "_server", None)
         if server is not None and server.sockets:

@@ -1,0 +1,366 @@
+"""The viewer service and its web server on real Zenoh (loopback) with real OpenCV.
+
+The test plays estimator, camera and monitor: it publishes (or serves) SlamState,
+Registration, CameraFrame and Health, and reads the viewer's HTTP endpoints.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+import urllib.error
+import urllib.request
+from collections.abc import Callable, Iterator
+from pathlib import Path
+
+import cv2
+import msgpack
+import numpy as np
+import pytest
+
+from common.keys import Keys
+from common.messages import CameraFrame, Health, Registration, SlamState, Violation
+from services.visualiser.service import ViewerConfig, ViewerService
+from services.visualiser.web import WebServer
+
+KEYS = Keys()
+ROBOT, CAMERA = "robot1", "top"
+WIDTH, HEIGHT, FOCAL = 800, 600, 600.0
+CAMERA_CENTRE = np.array([1.5, 1.5, 3.0])  # 3 m above the middle of the arena
+BACKGROUND_BGR = (120, 100, 80)
+# two clusters of three features, 2.8 m apart
+LANDMARKS = np.array([[0.5, 0.5], [0.9, 0.5], [0.7, 0.85],
+                      [2.3, 2.3], [2.7, 2.3], [2.5, 2.65]])
+
+
+def camera_pose() -> np.ndarray:
+    """T_camera_from_map of a camera looking straight down (x right, y image-down)."""
+    R = np.diag([1.0, -1.0, -1.0])
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R, -R @ CAMERA_CENTRE
+    return T
+
+
+K = np.array([[FOCAL, 0, WIDTH / 2], [0, FOCAL, HEIGHT / 2], [0, 0, 1.0]])
+
+
+def pixel_of(xy: np.ndarray) -> tuple[int, int]:
+    """Hand-made pinhole projection of a floor point (the test's own oracle)."""
+    p = camera_pose() @ np.array([xy[0], xy[1], 0.0, 1.0])
+    u, v = FOCAL * p[0] / p[2] + WIDTH / 2, FOCAL * p[1] / p[2] + HEIGHT / 2
+    return int(round(u)), int(round(v))
+
+
+def make_state(seq: int, *, sigma_m: float = 0.05, landmarks: np.ndarray = LANDMARKS) -> SlamState:
+    n = len(landmarks)
+    P = np.eye(3 + 2 * n) * sigma_m ** 2  # P_d = 2σ² I: 2-sigma glyph semi-axis 0.14 m
+    P[:3, :3] = np.diag([1e-4, 1e-4, 1e-4])
+    return SlamState(robot=ROBOT, seq=seq, stamp=0.1 * seq, step="update",
+                     pose=np.array([1.5, 0.2, 0.0]), landmark_ids=np.arange(10, 10 + n),
+                     landmarks=landmarks, covariance=P)
+
+
+def make_registration(camera: str = CAMERA) -> Registration:
+    return Registration(camera=camera, robot=ROBOT, stamp=0.0, K=K, dist=np.zeros(5),
+                        width=WIDTH, height=HEIGHT, T_camera_from_map=camera_pose(),
+                        reprojection_error_px=0.3)
+
+
+def make_frame(seq: int, camera: str = CAMERA) -> CameraFrame:
+    image = np.empty((HEIGHT, WIDTH, 3), np.uint8)
+    image[:] = BACKGROUND_BGR
+    ok, jpeg = cv2.imencode(".jpg", image)
+    assert ok
+    return CameraFrame(camera=camera, seq=seq, stamp=0.1 * seq, encoding="jpeg", width=WIDTH,
+                       height=HEIGHT, data=jpeg.tobytes())
+
+
+def red_pixels(image: np.ndarray, uv: tuple[int, int], half: int = 5) -> int:
+    """Red-dominant pixels (the glyph colour and its shading) around ``uv``."""
+    u, v = uv
+    patch = image[v - half:v + half + 1, u - half:u + half + 1].astype(int)
+    b, g, r = patch[..., 0], patch[..., 1], patch[..., 2]
+    return int(np.sum((r > 100) & (r > 1.5 * g) & (r > 1.5 * b)))
+
+
+def midpoint(i: int, j: int) -> tuple[int, int]:
+    return pixel_of((LANDMARKS[i] + LANDMARKS[j]) / 2)
+
+
+# ------------------------------------------------------------------------------ helpers
+def http(url: str, *, data: dict | None = None, method: str | None = None,
+         timeout: float = 10.0) -> tuple[int, dict[str, str], bytes]:
+    body = None if data is None else json.dumps(data).encode()
+    request = urllib.request.Request(url, data=body, method=method or (
+        "POST" if data is not None else "GET"), headers={"Content-Type": "application/json"})
+    try:
+        with urllib.request.urlopen(request, timeout=timeout) as response:
+            return response.status, dict(response.headers), response.read()
+    except urllib.error.HTTPError as exc:
+        return exc.code, dict(exc.headers), exc.read()
+
+
+def snapshot(url: str, client: str | None = None) -> tuple[np.ndarray, dict[str, str]]:
+    status, headers, body = http(url + "/snapshot.png" + (f"?client={client}" if client else ""))
+    assert status == 200, body
+    assert headers["Content-Type"] == "image/png"
+    assert body[:8] == b"\x89PNG\r\n\x1a\n"
+    image = cv2.imdecode(np.frombuffer(body, np.uint8), cv2.IMREAD_COLOR)
+    assert image is not None
+    return image, headers
+
+
+def wait_until(predicate: Callable[[], bool], timeout: float = 10.0) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return
+        time.sleep(0.02)
+    raise AssertionError("condition not met in time")
+
+
+def status_of(url: str) -> dict:
+    status, _, body = http(url + "/api/status")
+    assert status == 200
+    return json.loads(body)
+
+
+@pytest.fixture
+def start_viewer(make_client, tmp_path: Path) -> Iterator[Callable[..., tuple[ViewerService, str]]]:
+    started: list[tuple[ViewerService, WebServer]] = []
+
+    def start(**config: object) -> tuple[ViewerService, str]:
+        settings = {"robot": ROBOT, "recordings_dir": str(tmp_path / "recordings"), **config}
+        service = ViewerService(make_client(), keys=KEYS, config=ViewerConfig(**settings))
+        service.start()
+        web = WebServer(service, host="127.0.0.1", port=0)
+        url = web.start()
+        started.append((service, web))
+        return service, url
+
+    yield start
+    for service, web in started:
+        web.stop()
+        service.stop()
+
+
+@pytest.fixture
+def publisher(make_client) -> Callable[[str, bytes], None]:
+    bus = make_client()
+    publishers: dict[str, object] = {}
+
+    def put(key: str, payload: bytes) -> None:
+        if key not in publishers:
+            publishers[key] = bus.publisher(key)
+            time.sleep(0.2)  # let the subscription reach the new publisher
+        publishers[key].put(payload)  # type: ignore[attr-defined]
+
+    return put
+
+
+# ------------------------------------------------------------------------------ tests
+def test_snapshot_is_the_camera_picture_with_red_glyphs_at_pair_midpoints(
+        start_viewer, publisher) -> None:
+    _, url = start_viewer(camera=CAMERA)
+    publisher(KEYS.registration(CAMERA, ROBOT), make_registration().to_bytes())
+    publisher(KEYS.frame(CAMERA), make_frame(1).to_bytes())
+    publisher(KEYS.state(ROBOT), make_state(7).to_bytes())
+    wait_until(lambda: (s := status_of(url))["state"] is not None
+               and s["cameras"][0]["frame"] is not None
+               and s["cameras"][0]["registration"] is not None)
+
+    image, headers = snapshot(url)
+    assert image.shape == (HEIGHT, WIDTH, 3)  # the camera's size
+    assert headers["X-State-Seq"] == "7"
+    for i, j in [(0, 1), (3, 4), (1, 4), (2, 5)]:
+        assert red_pixels(image, midpoint(i, j)) >= 40, (i, j)
+    # away from every glyph the camera's own picture shows through
+    corner = image[HEIGHT - 20, WIDTH - 20].astype(int)
+    assert np.abs(corner - BACKGROUND_BGR).max() <= 8
+    assert red_pixels(image, (WIDTH - 30, HEIGHT - 30)) == 0
+
+
+def test_a_late_viewer_shows_the_current_picture_at_once(start_viewer, make_client) -> None:
+    estimator = make_client()  # plays estimator and camera: answers `get`, publishes nothing
+    state, registration = make_state(42), make_registration()
+    estimator.serve_latest(KEYS.state(ROBOT), lambda: state.to_bytes())
+    estimator.serve_latest(KEYS.registration(CAMERA, ROBOT), lambda: registration.to_bytes())
+    time.sleep(0.3)
+
+    _, url = start_viewer(camera=CAMERA)
+    image, headers = snapshot(url)
+    assert headers["X-State-Seq"] == "42"
+    assert image.shape == (HEIGHT, WIDTH, 3)  # registered size, though no frame came yet
+    assert red_pixels(image, midpoint(0, 1)) >= 40
+    assert red_pixels(image, midpoint(1, 4)) >= 40
+
+
+def test_malformed_states_are_counted_and_the_viewer_keeps_going(start_viewer,
+                                                                  publisher) -> None:
+    _, url = start_viewer()  # map view
+    key = KEYS.state(ROBOT)
+    publisher(key, make_state(1).to_bytes())
+    wait_until(lambda: (status_of(url)["state"] or {}).get("seq") == 1)
+
+    wrong_shape = make_state(2).to_dict()
+    wrong_shape["covariance"]["shape"] = [5, 5]  # 25 entries announced, 225 sent
+    nan_pose = make_state(3).to_dict()
+    nan_pose["pose"]["data"] = np.array([np.nan, 0.0, 0.0]).tobytes()
+    bad = [b"\x00garbage", msgpack.packb({"schema": 1, "robot": ROBOT}),
+           msgpack.packb(wrong_shape, use_bin_type=True),
+           msgpack.packb(nan_pose, use_bin_type=True)]
+    for payload in bad:
+        publisher(key, payload)
+        time.sleep(0.1)  # one by one: the viewer keeps only the latest
+    publisher(key, make_state(5).to_bytes())
+
+    wait_until(lambda: (status_of(url)["state"] or {}).get("seq") == 5)
+    status = status_of(url)
+    assert status["bad_messages"] == {"state": len(bad)}
+    image, headers = snapshot(url)
+    assert headers["X-State-Seq"] == "5"
+    assert image.shape == (720, 1280, 3)  # the map view
+
+
+def test_two_clients_with_different_modes_get_different_pictures(start_viewer,
+                                                                 publisher) -> None:
+    _, url = start_viewer(camera=CAMERA)
+    publisher(KEYS.registration(CAMERA, ROBOT), make_registration().to_bytes())
+    publisher(KEYS.state(ROBOT), make_state(3).to_bytes())
+    wait_until(lambda: status_of(url)["state"] is not None
+               and status_of(url)["cameras"][0]["registration"] is not None)
+
+    status, _, body = http(url + "/api/settings?client=tabB", data={"mode": "inter"})
+    assert status == 200 and json.loads(body)["settings"]["mode"] == "inter"
+    all_pairs, _ = snapshot(url, "tabA")
+    inter, _ = snapshot(url, "tabB")
+    intra = [(0, 1), (3, 4)]  # pairs inside one cluster
+    for i, j in intra:
+        assert red_pixels(all_pairs[:, :], midpoint(i, j)) >= 40
+        assert red_pixels(inter, midpoint(i, j)) == 0
+    assert red_pixels(inter, midpoint(1, 4)) >= 40  # inter-cluster pairs stay
+    # each tab kept its own settings
+    assert json.loads(http(url + "/api/settings?client=tabA")[2])["settings"]["mode"] == "all"
+    assert json.loads(http(url + "/api/settings?client=tabB")[2])["settings"]["mode"] == "inter"
+    # the default snapshot (no client) is all pairs (SPEC §9)
+    default, _ = snapshot(url)
+    assert red_pixels(default, midpoint(0, 1)) >= 40
+
+
+def test_mjpeg_stream_follows_the_state_and_tags_each_frame(start_viewer, publisher) -> None:
+    _, url = start_viewer()
+    key = KEYS.state(ROBOT)
+    publisher(key, make_state(1).to_bytes())
+    response = urllib.request.urlopen(url + "/stream.mjpg?client=mj", timeout=10)
+    assert response.headers["Content-Type"].startswith("multipart/x-mixed-replace")
+    seqs: list[int] = []
+    next_seq = 2
+    while len(seqs) < 4 or seqs[-1] < 4:
+        headers: dict[str, str] = {}
+        line = response.readline().strip()
+        while not line:
+            line = response.readline().strip()
+        assert line == b"--slamlensframe"
+        while (line := response.readline().strip()):
+            name, _, value = line.decode().partition(":")
+            headers[name.strip().lower()] = value.strip()
+        jpeg = response.read(int(headers["content-length"]))
+        image = cv2.imdecode(np.frombuffer(jpeg, np.uint8), cv2.IMREAD_COLOR)
+        assert image.shape == (720, 1280, 3)
+        if headers["x-state-seq"]:
+            seqs.append(int(headers["x-state-seq"]))
+        if next_seq <= 4 and seqs and seqs[-1] == next_seq - 1:
+            publisher(key, make_state(next_seq).to_bytes())
+            next_seq += 1
+    response.close()
+    assert seqs == sorted(seqs) and seqs[-1] == 4
+
+
+def test_bad_requests_get_a_clear_400_never_a_500(start_viewer) -> None:
+    _, url = start_viewer()
+    cases = [
+        ("/api/settings?client=t1", {"mode": "sideways"}, "mode"),
+        ("/api/settings?client=t1", {"scale": "big"}, "scale"),
+        ("/api/settings?client=t1", {"scale": -1}, "scale"),
+        ("/api/settings?client=t1", {"cluster_threshold_m": "nan"}, "cluster_threshold_m"),
+        ("/api/settings?client=t1", {"selected_feature": "x"}, "selected_feature"),
+        ("/api/settings?client=t1", {"no_such_setting": 1}, "no_such_setting"),
+        ("/api/settings?client=t1", {"robot": {"a": 1}}, "robot"),
+        ("/api/settings", {"mode": "all"}, "client"),
+        ("/api/settings?client=../../etc", {"mode": "all"}, "client"),
+    ]
+    for path, data, word in cases:
+        status, headers, body = http(url + path, data=data)
+        assert status == 400, (path, data, body)
+        assert headers["Content-Type"].startswith("application/json")
+        assert word in json.loads(body)["error"], body
+    status, _, body = http(url + "/api/series?pairs=1-x")
+    assert status == 400 and "pairs" in json.loads(body)["error"]
+    status, _, body = http(url + "/snapshot.png?client=bad%20id")
+    assert status == 400
+    status, _, body = http(url + "/recordings/..%2Fsecrets")
+    assert status in (400, 404)
+    status, _, body = http(url + "/api/record/stop?client=nobody", data={})
+    assert status == 404 and "not recording" in json.loads(body)["error"]
+    # a bad change left the settings untouched
+    assert json.loads(http(url + "/api/settings?client=t1")[2])["settings"]["mode"] == "all"
+
+
+def test_health_and_series_endpoints_report_the_monitor(start_viewer, publisher) -> None:
+    _, url = start_viewer(series_interval_s=0.0)
+    for seq in range(1, 4):
+        publisher(KEYS.state(ROBOT), make_state(seq, sigma_m=0.05 / seq).to_bytes())
+        health = Health(robot=ROBOT, seq=seq, stamp=0.1 * seq, ok=seq < 3,
+                        suspects=np.array([12] if seq == 3 else [], dtype=np.int64),
+                        violations=(Violation("pair", (10, 12), seq, 1e-3),) if seq == 3
+                        else (),
+                        statistics={"nees_pose": 2.0 + seq, "nees_pose_lo": 0.5,
+                                    "nees_pose_hi": 9.0})
+        publisher(KEYS.health(ROBOT), health.to_bytes())
+        wait_until(lambda s=seq: (status_of(url)["health"] or {}).get("seq") == s)
+
+    h = json.loads(http(url + "/api/health")[2])
+    assert h["latest"]["ok"] is False and h["latest"]["suspects"] == [12]
+    assert h["recent"][0]["kind"] == "pair" and h["recent"][0]["ids"] == [10, 12]
+
+    series = json.loads(http(url + "/api/series?pairs=10-11,12-10")[2])
+    assert [p["ids"] for p in series["pairs"]] == [[10, 11], [12, 10]]
+    sizes = series["pairs"][0]["values"]
+    assert len(sizes) == 3 and sizes == sorted(sizes, reverse=True)  # P_d shrank each step
+    # size of P_d = 2σ² I is √(2σ²)
+    assert sizes[0] == pytest.approx(np.sqrt(2) * 0.05, rel=1e-5)
+    assert series["health"]["stats"]["nees_pose"] == [3.0, 4.0, 5.0]
+    assert series["health"]["stats"]["nees_pose_hi"] == [9.0, 9.0, 9.0]
+    # two clusters → one cluster pair with min ≤ mean ≤ max
+    (cluster_pair,) = series["clusters"]
+    low, mean, high = (cluster_pair[k][-1] for k in ("min", "mean", "max"))
+    assert low <= mean * (1 + 1e-12) and mean <= high * (1 + 1e-12)
+    assert mean == pytest.approx(np.sqrt(2) * 0.05 / 3, rel=1e-9)
+    # automatic pairs: the monitor's flagged pair first
+    auto = json.loads(http(url + "/api/series")[2])
+    assert auto["pairs"][0]["ids"] == [10, 12]
+
+
+def test_recording_writes_a_playable_video_that_can_be_downloaded(start_viewer,
+                                                                 publisher) -> None:
+    service, url = start_viewer(fps=20.0)
+    publisher(KEYS.state(ROBOT), make_state(1).to_bytes())
+    status, _, body = http(url + "/api/record/start?client=rec", data={})
+    assert status == 200, body
+    started = json.loads(body)
+    for seq in range(2, 8):
+        publisher(KEYS.state(ROBOT), make_state(seq).to_bytes())
+        time.sleep(0.1)
+    status, _, body = http(url + "/api/record/stop?client=rec", data={})
+    assert status == 200, body
+    info = json.loads(body)
+    assert info["file"] == started["file"] and info["frames"] >= 5
+
+    path = Path(service.config.recordings_dir) / info["file"]
+    capture = cv2.VideoCapture(str(path))
+    ok, frame = capture.read()
+    capture.release()
+    assert ok and frame.shape == (720, 1280, 3)
+    status, headers, body = http(url + info["url"])
+    assert status == 200 and body == path.read_bytes()
+    assert "attachment" in headers["Content-Disposition"]
