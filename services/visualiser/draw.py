@@ -1,0 +1,259 @@
+"""Drawing primitives for the renderer: floor polylines, cones, shaded glyphs, text boxes.
+
+Every function draws onto a BGR uint8 image in place. Coordinates go to OpenCV as int32
+with ``SHIFT`` fractional bits, so sub-pixel positions survive. Items whose projection
+fails (behind the camera) are skipped or clipped at the near plane, never drawn wrongly.
+"""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+from services.visualiser.camera_model import NEAR_M, CameraModel
+from services.visualiser.glyphs import ImageEllipses, unit_circle
+
+SHIFT = 4  #: fractional bits of the fixed-point coordinates given to OpenCV
+_ONE = 1 << SHIFT
+_LIMIT_PX = 2.0e5  # clamp before fixed point: far-off points must not overflow int32
+LIGHT_DIR = np.array([-0.45, -0.89])  # image-space direction towards the light (up, left)
+
+#: glyph shading: (scale of the nested ellipse, colour factor, share of white mixed in)
+SHADES = ((1.0, 0.55, 0.0), (0.66, 0.85, 0.0), (0.32, 1.0, 0.42))
+
+BGR = tuple[int, int, int]
+
+
+def fixed(uv: np.ndarray) -> np.ndarray:
+    """Float pixels → OpenCV fixed-point int32 (``SHIFT`` bits)."""
+    return np.round(np.clip(uv, -_LIMIT_PX, _LIMIT_PX) * _ONE).astype(np.int32)
+
+
+def shade(colour: BGR, factor: float, white: float = 0.0) -> BGR:
+    """``colour`` darkened by ``factor`` then mixed with ``white`` of white."""
+    c = np.clip(np.asarray(colour, dtype=float) * factor, 0, 255)
+    c = c + white * (255.0 - c)
+    return int(c[0]), int(c[1]), int(c[2])
+
+
+def line_type(count: int, limit: int) -> int:
+    """Anti-aliased up to ``limit`` items, plain 8-connected beyond (keeps frames on time)."""
+    return cv2.LINE_AA if count <= limit else cv2.LINE_8
+
+
+# -- floor polylines --------------------------------------------------------------------
+def project_segments(camera: CameraModel, p0: np.ndarray, p1: np.ndarray, *,
+                     subdivisions: int | None = None) -> tuple[list[np.ndarray], np.ndarray]:
+    """Segments p0→p1 (m, 3) in the map frame as image polylines (fixed point).
+
+    Segments are clipped at the camera's near plane; wholly hidden ones are dropped, so
+    the index (into p0) of each returned polyline comes with them. With lens distortion
+    each segment is subdivided so that its image curves as the lens bends it.
+    """
+    if len(p0) == 0:
+        return [], np.zeros(0, dtype=np.int64)
+    T = camera.T_camera_from_map
+    c0 = p0 @ T[:3, :3].T + T[:3, 3]
+    c1 = p1 @ T[:3, :3].T + T[:3, 3]
+    z0, z1 = c0[:, 2], c1[:, 2]
+    near = 2 * NEAR_M
+    keep = (z0 > near) | (z1 > near)
+    c0, c1, z0, z1 = c0[keep], c1[keep], z0[keep], z1[keep]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = np.clip((near - z0) / (z1 - z0), 0.0, 1.0)
+    c0 = np.where((z0 < near)[:, None], c0 + t[:, None] * (c1 - c0), c0)
+    c1 = np.where((z1 < near)[:, None], c1 + t[:, None] * (c0 - c1), c1)
+    if subdivisions is None:
+        subdivisions = 8 if camera.has_distortion else 1
+    s = np.linspace(0.0, 1.0, subdivisions + 1)
+    pts = c0[:, None, :] + s[None, :, None] * (c1 - c0)[:, None, :]
+    uv = _camera_points_to_pixels(camera, pts.reshape(-1, 3))
+    return list(fixed(uv).reshape(len(c0), subdivisions + 1, 2)), np.flatnonzero(keep)
+
+
+def _camera_points_to_pixels(camera: CameraModel, pc: np.ndarray) -> np.ndarray:
+    xy = pc[:, :2] / pc[:, 2:3]
+    if camera.has_distortion:
+        xy = camera.distort_normalised(xy)
+    K = camera.K
+    return np.column_stack([K[0, 0] * xy[:, 0] + K[0, 1] * xy[:, 1] + K[0, 2],
+                            K[1, 1] * xy[:, 1] + K[1, 2]])
+
+
+def project_polyline(camera: CameraModel, points_map: np.ndarray, *,
+                     closed: bool = False) -> list[np.ndarray]:
+    """A map-frame polyline (k, 3) as image polylines, split where points are unprojectable."""
+    if len(points_map) < 2:
+        return []
+    uv, depth = camera.project(points_map)
+    ok = np.isfinite(uv).all(axis=1)
+    if ok.all():
+        pts = fixed(uv)
+        return [np.concatenate([pts, pts[:1]]) if closed else pts]
+    runs, start = [], None
+    for k, good in enumerate(ok.tolist() + [False]):
+        if good and start is None:
+            start = k
+        elif not good and start is not None:
+            if k - start >= 2:
+                runs.append(fixed(uv[start:k]))
+            start = None
+    return runs
+
+
+def draw_polylines(img: np.ndarray, polylines: list[np.ndarray], colour: BGR,
+                   thickness: int, lt: int) -> None:
+    if polylines:
+        cv2.polylines(img, polylines, False, colour, thickness, lt, SHIFT)
+
+
+def floor_circle(centre_xy: np.ndarray, radius_m: float, *, z: float = 0.0,
+                 vertices: int = 32) -> np.ndarray:
+    """(vertices, 3) points of a horizontal circle in the map frame."""
+    circle = unit_circle(vertices) * radius_m + np.asarray(centre_xy, dtype=float)[:2]
+    return np.column_stack([circle, np.full(vertices, z)])
+
+
+# -- cones ------------------------------------------------------------------------------
+class Cones:
+    """Projected upright cones, tip down on the floor, flat base up (paper §3.2 markers)."""
+
+    VERTICES = 20
+
+    def __init__(self, camera: CameraModel, tips_xy: np.ndarray, *, height_m: float,
+                 radius_m: float, colour: BGR) -> None:
+        self._side, self._cap = shade(colour, 0.6), shade(colour, 1.0)
+        self._edge, self._dot = shade(colour, 0.45), shade(colour, 0.3)
+        tips_xy = np.asarray(tips_xy, dtype=float).reshape(-1, 2)
+        c = len(tips_xy)
+        circle = unit_circle(self.VERTICES) * radius_m
+        base = np.empty((c, self.VERTICES, 3))
+        base[:, :, :2] = tips_xy[:, None, :] + circle[None]
+        base[:, :, 2] = height_m
+        tips = np.column_stack([tips_xy, np.zeros(c)])
+        uv, depth = camera.project(np.concatenate([tips, base.reshape(-1, 3)]))
+        self.tip_uv = uv[:c]
+        base_uv = uv[c:].reshape(c, self.VERTICES, 2)
+        self.valid = np.isfinite(uv[:c]).all(axis=1) & np.isfinite(base_uv).all(axis=(1, 2))
+        mid = np.column_stack([tips_xy, np.full(c, height_m / 2)])
+        self.depth = camera.to_camera(mid)[:, 2] if c else np.zeros(0)
+        self.cap_visible = bool(camera.centre_map[2] > height_m)
+        self._tip = fixed(np.nan_to_num(self.tip_uv))
+        self._base = fixed(np.nan_to_num(base_uv))
+
+    def __len__(self) -> int:
+        return len(self.depth)
+
+    def draw(self, img: np.ndarray, k: int) -> None:
+        """Draw cone ``k``: shaded side (hull of tip and base), lit cap, tip dot."""
+        if not self.valid[k]:
+            return
+        base = self._base[k]
+        hull = cv2.convexHull(np.concatenate([base, self._tip[k:k + 1]]))
+        cv2.fillConvexPoly(img, hull, self._side, cv2.LINE_AA, SHIFT)
+        if self.cap_visible:
+            cv2.fillConvexPoly(img, base, self._cap, cv2.LINE_AA, SHIFT)
+            cv2.polylines(img, [base], True, self._edge, 1, cv2.LINE_AA, SHIFT)
+        # The tip is the estimate itself: mark it even when the cap hides it (view from above).
+        cv2.circle(img, tuple(self._tip[k].tolist()), 2 * _ONE, self._dot, -1,
+                   cv2.LINE_AA, SHIFT)
+
+
+# -- glyphs -----------------------------------------------------------------------------
+class ShadedEllipses:
+    """Image ellipses as nested polygons shaded darker (rim) to lighter (lit highlight).
+
+    Nested ellipses are shifted towards ``LIGHT_DIR`` so the glyph reads as a lit solid;
+    the dark rim also separates overlapping glyphs. Level of detail: tiny glyphs get one
+    or two layers, big ones more polygon vertices.
+    """
+
+    def __init__(self, ie: ImageEllipses, index: np.ndarray, *, max_axis_px: float) -> None:
+        self.index = np.asarray(index, dtype=np.int64)
+        g = len(self.index)
+        centre = ie.centre[self.index]
+        axes = np.minimum(ie.axes[self.index], max_axis_px)
+        angle = ie.angle[self.index]
+        self.layers = np.where(axes[:, 0] < 2.5, 1, np.where(axes[:, 0] < 7.0, 2, 3)).tolist()
+        vertices = np.where(axes[:, 0] < 40, 20, np.where(axes[:, 0] < 200, 40, 96))
+        cos, sin = np.cos(angle), np.sin(angle)
+        # Polygons per vertex-count bucket and layer; glyph k is row _row[k] of _bucket[k].
+        self._polys: list[list[list[np.ndarray]]] = []
+        bucket = np.zeros(g, dtype=np.int64)
+        row = np.zeros(g, dtype=np.int64)
+        for b, v in enumerate(np.unique(vertices).tolist()):
+            sel = np.flatnonzero(vertices == v)
+            bucket[sel], row[sel] = b, np.arange(len(sel))
+            circle = unit_circle(int(v))
+            layers = []
+            for scale, _, _ in SHADES:
+                offset = (1.0 - scale) * 0.55 * axes[sel, 1:2] * LIGHT_DIR  # stays inside
+                x = scale * axes[sel, 0:1] * circle[:, 0]
+                y = scale * axes[sel, 1:2] * circle[:, 1]
+                c = centre[sel] + offset
+                px = c[:, 0:1] + cos[sel, None] * x - sin[sel, None] * y
+                py = c[:, 1:2] + sin[sel, None] * x + cos[sel, None] * y
+                layers.append(list(fixed(np.stack([px, py], axis=-1))))
+            self._polys.append(layers)
+        self._bucket = bucket.tolist()
+        self._row = row.tolist()
+
+    def draw(self, img: np.ndarray, k: int, colours: tuple[BGR, ...], lt: int) -> None:
+        """Draw glyph ``k`` (position in ``index``) with per-layer ``colours``."""
+        polys, r = self._polys[self._bucket[k]], self._row[k]
+        cv2.fillConvexPoly(img, polys[0][r], colours[0], cv2.LINE_AA, SHIFT)
+        for layer in range(1, self.layers[k]):
+            cv2.fillConvexPoly(img, polys[layer][r], colours[layer], lt, SHIFT)
+
+    def outline(self, img: np.ndarray, k: int, colour: BGR, thickness: int) -> None:
+        polygon = self._polys[self._bucket[k]][0][self._row[k]]
+        cv2.polylines(img, [polygon], True, colour, thickness, cv2.LINE_AA, SHIFT)
+
+
+def glyph_colours(colour: BGR) -> tuple[BGR, ...]:
+    return tuple(shade(colour, f, w) for _, f, w in SHADES)
+
+
+# -- text -------------------------------------------------------------------------------
+FONT = cv2.FONT_HERSHEY_SIMPLEX
+
+
+def text(img: np.ndarray, message: str, org: tuple[int, int], *, scale: float,
+         colour: BGR = (255, 255, 255), thickness: int = 1) -> None:
+    """Text with a dark halo, legible over any picture."""
+    cv2.putText(img, message, org, FONT, scale, (0, 0, 0), thickness + 2, cv2.LINE_AA)
+    cv2.putText(img, message, org, FONT, scale, colour, thickness, cv2.LINE_AA)
+
+
+def text_box(img: np.ndarray, rows: list[list[tuple[str, BGR | None]]], *,
+             origin: tuple[int, int] = (10, 10), scale: float = 0.5) -> None:
+    """A translucent dark box of text rows; a row is [(text, swatch colour or None), …]."""
+    if not rows:
+        return
+    (_, th), base = cv2.getTextSize("Ag", FONT, scale, 1)
+    line_h = th + base + 6
+    swatch = th + 2
+    widths = []
+    for row in rows:
+        w = 0
+        for message, colour in row:
+            w += (swatch + 4 if colour is not None else 0) + cv2.getTextSize(
+                message, FONT, scale, 1)[0][0] + 10
+        widths.append(w)
+    x0, y0 = origin
+    x1 = min(img.shape[1] - 1, x0 + max(widths) + 10)
+    y1 = min(img.shape[0] - 1, y0 + line_h * len(rows) + 8)
+    if x1 <= x0 or y1 <= y0:
+        return
+    roi = img[y0:y1, x0:x1]
+    roi[:] = (roi.astype(np.uint16) * 2 // 7).astype(np.uint8)  # darken to ~30 %
+    y = y0 + 6 + th
+    for row in rows:
+        x = x0 + 8
+        for message, colour in row:
+            if colour is not None:
+                cv2.rectangle(img, (x, y - th), (x + swatch, y + 2), colour, -1)
+                x += swatch + 4
+            cv2.putText(img, message, (x, y), FONT, scale, (235, 235, 235), 1, cv2.LINE_AA)
+            x += cv2.getTextSize(message, FONT, scale, 1)[0][0] + 10
+        y += line_h

@@ -1,0 +1,402 @@
+"""The AR renderer: the estimator's state drawn over a camera picture (SPEC §6, paper §3.2).
+
+Drawing order:
+
+1. the floor layer: map grid (map view only), cluster outlines, robot path, pair lines,
+   heading arrow: flat on the floor, so everything standing on the floor covers them;
+2. the 3D objects, glyphs and cones, far to near by camera depth (painter's algorithm);
+3. overlays that must never be hidden: health outlines and rings, labels, the legend.
+
+``Renderer`` keeps only what needs history: the robot's path (reset when the robot changes
+or ``seq`` goes backwards) and the cluster trackers that keep cluster ids and colours stable
+from frame to frame. Use one ``Renderer`` per robot; it may be shared by threads.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections import OrderedDict
+
+import cv2
+import numpy as np
+
+from common.messages import Health, SlamState
+from services.visualiser import draw
+from services.visualiser.camera_model import CameraModel
+from services.visualiser.clusters import ClusterTracker, cluster_colour, cluster_labels
+from services.visualiser.glyphs import project_ellipsoids
+from services.visualiser.scene import ROLE_NAMES, ROLE_PAIR, Scene, build_scene
+from services.visualiser.settings import ViewSettings
+
+MAX_PATH_POINTS = 20_000  #: beyond this the older path is thinned (every other point)
+_MAX_TRACKERS = 8  # one per distinct clustering setting in use, oldest dropped
+_AA_LINES_LIMIT = 400  # anti-aliased pair lines up to this many, plain beyond (frame time)
+_AA_GLYPH_LIMIT = 400  # same for the inner shading layers of glyphs
+
+
+class Renderer:
+    """Draws ``SlamState`` (and ``Health``) over a picture; see the module docstring."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._path: list[tuple[float, float]] = []
+        self._path_robot: str | None = None
+        self._path_seq = -1
+        self._trackers: OrderedDict[tuple[float, int], ClusterTracker] = OrderedDict()
+        self._floor: tuple[tuple[object, ...], np.ndarray] | None = None  # map view cache
+
+    # -- history --------------------------------------------------------------------
+    def reset_path(self) -> None:
+        with self._lock:
+            self._path = []
+            self._path_seq = -1
+
+    @property
+    def path_xy(self) -> np.ndarray:
+        """The remembered path (k, 2), m, map frame."""
+        with self._lock:
+            return np.array(self._path, dtype=float).reshape(-1, 2)
+
+    def _update_path(self, state: SlamState) -> np.ndarray:
+        if state.robot != self._path_robot or state.seq < self._path_seq:
+            self._path, self._path_robot, self._path_seq = [], state.robot, -1
+        if state.seq > self._path_seq:
+            self._path_seq = state.seq
+            point = (float(state.pose[0]), float(state.pose[1]))
+            if not self._path or self._path[-1] != point:
+                self._path.append(point)
+            if len(self._path) > MAX_PATH_POINTS:
+                half = len(self._path) // 2
+                self._path = self._path[:half:2] + self._path[half:]
+        return np.array(self._path, dtype=float).reshape(-1, 2)
+
+    def cluster_ids(self, state: SlamState, settings: ViewSettings) -> np.ndarray:
+        """Stable cluster id per landmark of ``state`` under ``settings``' clustering."""
+        labels = cluster_labels(state.landmarks, threshold_m=settings.cluster_threshold_m,
+                                count=settings.cluster_count)
+        key = (settings.cluster_threshold_m, settings.cluster_count)
+        with self._lock:
+            tracker = self._trackers.get(key)
+            if tracker is None:
+                tracker = self._trackers[key] = ClusterTracker()
+                while len(self._trackers) > _MAX_TRACKERS:
+                    self._trackers.popitem(last=False)
+            self._trackers.move_to_end(key)
+            return tracker.update(state.landmark_ids, labels)
+
+    # -- drawing --------------------------------------------------------------------
+    def _floor_image(self, camera: CameraModel,
+                     settings: ViewSettings) -> tuple[np.ndarray, CameraModel]:
+        """The map view's floor and grid: drawn once per camera and colour, then copied."""
+        key = (camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes(),
+               camera.T_camera_from_map.tobytes(), settings.colour_background)
+        with self._lock:
+            cached = self._floor
+        if cached is None or cached[0] != key:
+            pixel = np.array(settings.colour_background, dtype=np.uint8)
+            floor = np.ascontiguousarray(
+                np.broadcast_to(pixel, (camera.height, camera.width, 3)))
+            _draw_grid(floor, camera)
+            cached = (key, floor)
+            with self._lock:
+                self._floor = cached
+        return cached[1].copy(), camera
+
+    def render(self, image_bgr: np.ndarray | None, *, state: SlamState, camera: CameraModel,
+               settings: ViewSettings, health: Health | None = None) -> np.ndarray:
+        """A new BGR uint8 picture: ``image_bgr`` (or the map view's floor) with the state.
+
+        The camera is rescaled if the image's size differs from the camera's.
+        """
+        img, camera = (self._floor_image(camera, settings) if image_bgr is None
+                       else _canvas(image_bgr, camera))
+        with self._lock:
+            path = self._update_path(state)
+        clustered = settings.mode in ("inter", "minmeanmax") and state.n > 0
+        cluster_ids = self.cluster_ids(state, settings) if clustered else None
+        violating, suspects = _health_sets(health, state) if settings.health else (
+            frozenset(), np.zeros(0, np.int64))
+        scene = build_scene(state, settings, cluster_ids=cluster_ids,
+                            violating_pairs=violating)
+        px = max(1, round(camera.height / 720))  # line width unit for this resolution
+
+        # 1. floor layer
+        if cluster_ids is not None:
+            _draw_cluster_outlines(img, camera, state, cluster_ids, settings, px)
+        if settings.path and len(path) >= 2:
+            draw.draw_polylines(img, draw.project_polyline(
+                camera, np.column_stack([path, np.zeros(len(path))])),
+                settings.colour_path, 2 * px, cv2.LINE_AA)
+        line_polys: list[np.ndarray] = []
+        line_index = np.zeros(0, dtype=np.int64)
+        if settings.lines and len(scene.lines_xy):
+            zeros = np.zeros((len(scene.lines_xy), 1))
+            line_polys, line_index = draw.project_segments(
+                camera, np.hstack([scene.lines_xy[:, 0], zeros]),
+                np.hstack([scene.lines_xy[:, 1], zeros]))
+            lt = draw.line_type(len(line_polys), _AA_LINES_LIMIT)
+            draw.draw_polylines(img, line_polys, settings.colour_lines, px, lt)
+        if settings.robot:
+            _draw_heading(img, camera, state.pose, settings)
+
+        # 2. glyphs and cones, far to near
+        ie = project_ellipsoids(scene.glyphs, camera)
+        shown = np.zeros(0, dtype=np.int64)
+        glyphs = None
+        if settings.ellipsoids and len(scene.glyphs):
+            shown = _on_screen(ie, camera)
+            glyphs = draw.ShadedEllipses(ie, shown, max_axis_px=4.0 * (camera.width
+                                                                       + camera.height))
+        cone_sets: list[draw.Cones] = []
+        if settings.features and state.n:
+            cone_sets.append(draw.Cones(camera, state.landmarks, height_m=settings.cone_height_m,
+                                        radius_m=settings.cone_radius_m,
+                                        colour=settings.colour_features))
+        if settings.robot:
+            cone_sets.append(draw.Cones(camera, state.pose[None, :2],
+                                        height_m=1.4 * settings.cone_height_m,
+                                        radius_m=1.4 * settings.cone_radius_m,
+                                        colour=settings.colour_robot))
+        depth = np.concatenate([ie.depth[shown]] + [c.depth for c in cone_sets])
+        kind = np.concatenate([np.full(len(shown), -1)]
+                              + [np.full(len(c), s) for s, c in enumerate(cone_sets)])
+        item = np.concatenate([np.arange(len(shown))] + [np.arange(len(c)) for c in cone_sets])
+        glyph_colours = draw.glyph_colours(settings.colour_ellipsoids)
+        lt = draw.line_type(len(shown), _AA_GLYPH_LIMIT)
+        for k in np.argsort(-depth, kind="stable").tolist():
+            s, i = int(kind[k]), int(item[k])
+            if s < 0:
+                glyphs.draw(img, i, glyph_colours, lt)  # type: ignore[union-attr]
+            else:
+                cone_sets[s].draw(img, i)
+
+        # 3. overlays
+        if settings.health:
+            _draw_health(img, camera, state, scene, glyphs, line_polys, line_index, suspects,
+                         settings, px)
+        if settings.labels and settings.features:
+            _draw_labels(img, camera, state, settings)
+        if glyphs is not None and scene.mode == "minmeanmax":
+            _draw_roles(img, ie, scene, shown, camera)
+        if settings.legend:
+            _draw_legend(img, state, scene, settings, health, len(shown), camera)
+        return img
+
+
+def side_by_side(left_bgr: np.ndarray, right_bgr: np.ndarray) -> np.ndarray:
+    """Left and right pictures in one frame (right scaled to the left's height if needed)."""
+    if right_bgr.shape[0] != left_bgr.shape[0]:
+        h = left_bgr.shape[0]
+        w = max(1, round(right_bgr.shape[1] * h / right_bgr.shape[0]))
+        right_bgr = cv2.resize(right_bgr, (w, h), interpolation=cv2.INTER_AREA)
+    return np.hstack([left_bgr, right_bgr])
+
+
+def feature_pixels(state: SlamState, camera: CameraModel) -> tuple[np.ndarray, np.ndarray]:
+    """(ids (n,), pixels (n, 2)) of the feature estimates (cone tips); NaN if not visible."""
+    uv, _ = camera.project(np.column_stack([state.landmarks, np.zeros(state.n)]))
+    return state.landmark_ids.copy(), uv
+
+
+def pick_feature(u: float, v: float, *, state: SlamState, camera: CameraModel,
+                 radius_px: float = 20.0) -> int | None:
+    """The id of the feature whose tip is nearest pixel (u, v) within ``radius_px``."""
+    ids, uv = feature_pixels(state, camera)
+    if not len(ids):
+        return None
+    d = np.hypot(uv[:, 0] - u, uv[:, 1] - v)
+    d[~np.isfinite(d)] = np.inf
+    k = int(np.argmin(d))
+    return int(ids[k]) if d[k] <= radius_px else None
+
+
+# -- helpers ------------------------------------------------------------------------------
+def _canvas(image: np.ndarray, camera: CameraModel) -> tuple[np.ndarray, CameraModel]:
+    img = np.asarray(image)
+    if img.dtype != np.uint8:
+        img = np.clip(img, 0, 255).astype(np.uint8)
+    if img.ndim == 2:
+        img = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+    elif img.shape[2] == 4:
+        img = cv2.cvtColor(img, cv2.COLOR_BGRA2BGR)
+    else:
+        img = img.copy()
+    return img, camera.resized(img.shape[1], img.shape[0])
+
+
+def _health_sets(health: Health | None,
+                 state: SlamState) -> tuple[frozenset[tuple[int, int]], np.ndarray]:
+    """Violating pairs (min id, max id) and the feature ids to ring (suspects + feature kind)."""
+    if health is None:
+        return frozenset(), np.zeros(0, np.int64)
+    pairs = frozenset((min(v.ids), max(v.ids)) for v in health.violations
+                      if v.kind == "pair" and len(v.ids) == 2)
+    ring = set(health.suspects.tolist())
+    ring.update(i for v in health.violations if v.kind == "feature" for i in v.ids)
+    present = np.array(sorted(ring), dtype=np.int64)
+    return pairs, present[np.isin(present, state.landmark_ids)]
+
+
+def _on_screen(ie, camera: CameraModel) -> np.ndarray:
+    a, b, t = ie.axes[:, 0], ie.axes[:, 1], ie.angle
+    half_w = np.sqrt((a * np.cos(t)) ** 2 + (b * np.sin(t)) ** 2)
+    half_h = np.sqrt((a * np.sin(t)) ** 2 + (b * np.cos(t)) ** 2)
+    cu, cv = ie.centre[:, 0], ie.centre[:, 1]
+    ok = (ie.valid & (cu + half_w >= 0) & (cu - half_w < camera.width)
+          & (cv + half_h >= 0) & (cv - half_h < camera.height))
+    return np.flatnonzero(ok)
+
+
+def _floor_bounds(camera: CameraModel) -> tuple[float, float, float, float] | None:
+    """Map-frame xy bounds of the floor seen by an undistorted camera (None: horizon)."""
+    corners = np.array([[0, 0], [camera.width, 0], [0, camera.height],
+                        [camera.width, camera.height]], dtype=float)
+    rays_cam = np.column_stack([corners, np.ones(4)]) @ np.linalg.inv(camera.K).T
+    R = camera.T_camera_from_map[:3, :3]
+    rays = rays_cam @ R  # = (Rᵀ·ray) per row: directions in the map frame
+    origin = camera.centre_map
+    if np.any(rays[:, 2] >= 0) or origin[2] <= 0:
+        return None
+    t = -origin[2] / rays[:, 2]
+    pts = origin[:2] + t[:, None] * rays[:, :2]
+    return float(pts[:, 0].min()), float(pts[:, 1].min()), float(pts[:, 0].max()), \
+        float(pts[:, 1].max())
+
+
+def _draw_grid(img: np.ndarray, camera: CameraModel, step_m: float = 0.5) -> None:
+    bounds = _floor_bounds(camera)
+    if bounds is None:
+        return
+    xmin, ymin, xmax, ymax = bounds
+    if (xmax - xmin) / step_m > 400 or (ymax - ymin) / step_m > 400:
+        return
+    xs = np.arange(math.floor(xmin / step_m), math.ceil(xmax / step_m) + 1) * step_m
+    ys = np.arange(math.floor(ymin / step_m), math.ceil(ymax / step_m) + 1) * step_m
+    p0 = np.concatenate([np.column_stack([xs, np.full_like(xs, ys[0]), np.zeros_like(xs)]),
+                         np.column_stack([np.full_like(ys, xs[0]), ys, np.zeros_like(ys)])])
+    p1 = np.concatenate([np.column_stack([xs, np.full_like(xs, ys[-1]), np.zeros_like(xs)]),
+                         np.column_stack([np.full_like(ys, xs[-1]), ys, np.zeros_like(ys)])])
+    major = np.concatenate([np.isclose(xs, 0.0), np.isclose(ys, 0.0)])
+    base = img[0, 0].astype(int)
+    minor_colour = tuple(int(c) for c in np.clip(base + 14, 0, 255))
+    major_colour = tuple(int(c) for c in np.clip(base + 45, 0, 255))
+    draw.draw_polylines(img, draw.project_segments(camera, p0[~major], p1[~major])[0],
+                        minor_colour, 1, cv2.LINE_AA)
+    draw.draw_polylines(img, draw.project_segments(camera, p0[major], p1[major])[0],
+                        major_colour, 1, cv2.LINE_AA)
+
+
+def _draw_cluster_outlines(img: np.ndarray, camera: CameraModel, state: SlamState,
+                           cluster_ids: np.ndarray, settings: ViewSettings, px: int) -> None:
+    """A rounded hull around each cluster's features, in the cluster's colour."""
+    pad = 2.5 * settings.cone_radius_m
+    ring = draw.floor_circle(np.zeros(2), pad, vertices=16)[:, :2]
+    for cid in np.unique(cluster_ids).tolist():
+        members = state.landmarks[cluster_ids == cid]
+        pts = (members[:, None, :] + ring[None]).reshape(-1, 2).astype(np.float32)
+        hull = cv2.convexHull(pts).reshape(-1, 2).astype(float)
+        hull3 = np.column_stack([hull, np.zeros(len(hull))])
+        draw.draw_polylines(img, draw.project_polyline(camera, hull3, closed=True),
+                            cluster_colour(int(cid)), px, cv2.LINE_AA)
+
+
+def _draw_heading(img: np.ndarray, camera: CameraModel, pose: np.ndarray,
+                  settings: ViewSettings) -> None:
+    """A flat arrow on the floor from the robot's position along its heading."""
+    length = 2.2 * settings.cone_height_m
+    shaft, head, half = 0.018 * length / 0.33, 0.3 * length, 0.16 * length
+    outline = np.array([[0, -shaft], [length - head, -shaft], [length - head, -half],
+                        [length, 0], [length - head, half], [length - head, shaft],
+                        [0, shaft]])
+    c, s = math.cos(float(pose[2])), math.sin(float(pose[2]))
+    xy = outline @ np.array([[c, s], [-s, c]]) + pose[:2]
+    uv, _ = camera.project(np.column_stack([xy, np.full(len(xy), 0.002)]))
+    if np.isfinite(uv).all():
+        cv2.fillPoly(img, [draw.fixed(uv)], settings.colour_heading, cv2.LINE_AA, draw.SHIFT)
+
+
+def _draw_health(img: np.ndarray, camera: CameraModel, state: SlamState, scene: Scene,
+                 glyphs: draw.ShadedEllipses | None, line_polys: list[np.ndarray],
+                 line_index: np.ndarray, suspects: np.ndarray, settings: ViewSettings,
+                 px: int) -> None:
+    colour = settings.colour_violation
+    if line_polys and scene.line_violation.any():
+        bad = [line_polys[k] for k in np.flatnonzero(scene.line_violation[line_index])]
+        draw.draw_polylines(img, bad, colour, 2 * px, cv2.LINE_AA)
+    if glyphs is not None and scene.glyph_violation.any():
+        for k in np.flatnonzero(scene.glyph_violation[glyphs.index]).tolist():
+            glyphs.outline(img, k, colour, 2 * px)
+    if len(suspects):
+        scale = 0.45 * camera.height / 720
+        for fid in suspects.tolist():
+            xy = state.landmarks[int(np.flatnonzero(state.landmark_ids == fid)[0])]
+            ring = draw.floor_circle(xy, 2.2 * settings.cone_radius_m,
+                                     z=0.5 * settings.cone_height_m)
+            polys = draw.project_polyline(camera, ring, closed=True)
+            draw.draw_polylines(img, polys, colour, 2 * px, cv2.LINE_AA)
+            uv, _ = camera.project(ring[:1])
+            if np.isfinite(uv).all():
+                draw.text(img, str(fid), (int(uv[0, 0]) + 4, int(uv[0, 1])), scale=scale,
+                          colour=colour)
+
+
+def _draw_labels(img: np.ndarray, camera: CameraModel, state: SlamState,
+                 settings: ViewSettings) -> None:
+    ids, uv = feature_pixels(state, camera)
+    scale = 0.42 * camera.height / 720
+    offset = 8 * camera.height / 720
+    for fid, (u, v) in zip(ids.tolist(), uv.tolist(), strict=True):
+        if math.isfinite(u) and math.isfinite(v):
+            draw.text(img, str(fid), (int(u + offset), int(v - offset)), scale=scale,
+                      colour=settings.colour_features)
+
+
+def _draw_roles(img: np.ndarray, ie, scene: Scene, shown: np.ndarray,
+                camera: CameraModel) -> None:
+    """'min' / 'mean' / 'max' beside the minmeanmax glyphs."""
+    scale = 0.42 * camera.height / 720
+    for g in shown.tolist():
+        role = int(scene.glyph_role[g])
+        if role == ROLE_PAIR:
+            continue
+        a, b, t = ie.axes[g, 0], ie.axes[g, 1], ie.angle[g]
+        half_w = math.sqrt((a * math.cos(t)) ** 2 + (b * math.sin(t)) ** 2)
+        u, v = ie.centre[g]
+        draw.text(img, ROLE_NAMES[role], (int(u + half_w + 4), int(v + 5)), scale=scale)
+
+
+def _draw_legend(img: np.ndarray, state: SlamState, scene: Scene, settings: ViewSettings,
+                 health: Health | None, glyphs_shown: int, camera: CameraModel) -> None:
+    mode_text = {"all": "all pairs", "inter": "inter-cluster pairs",
+                 "minmeanmax": "min/mean/max per cluster pair (size = trace of P_d)"}
+    if settings.glyph == "sigma":
+        glyph_text = f"{settings.sigma_k:g}-sigma ellipsoid of P_d"
+    else:
+        glyph_text = "semi-axes = eigenvalues of P_d (m^2 drawn as m)"
+    if settings.scale != 1.0:
+        glyph_text += f" x{settings.scale:g}"
+    rows: list[list[tuple[str, tuple[int, int, int] | None]]] = [
+        [(f"robot {state.robot}  seq {state.seq}  {state.step}", None)],
+        [(f"mode: {mode_text[scene.mode]}", None)],
+        [(f"{glyphs_shown} glyphs: {glyph_text}", settings.colour_ellipsoids)],
+        [("robot", settings.colour_robot), ("heading", settings.colour_heading),
+         (f"features ({state.n})", settings.colour_features),
+         (f"pair lines ({len(scene.lines_xy)})", settings.colour_lines)],
+    ]
+    if settings.selected_feature is not None:
+        note = " (not in the map)" if scene.selected_missing else ""
+        rows.append([(f"selected feature {settings.selected_feature}{note}", None)])
+    if scene.cluster_ids is not None:
+        ids = np.unique(scene.cluster_ids).tolist()
+        row: list[tuple[str, tuple[int, int, int] | None]] = [(f"clusters ({len(ids)}):", None)]
+        row += [(f"{c}", cluster_colour(int(c))) for c in ids[:12]]
+        rows.append(row)
+    if settings.health and health is not None:
+        if health.ok and not health.violations:
+            rows.append([("health: OK", None)])
+        else:
+            suspects = ", ".join(str(s) for s in health.suspects.tolist()) or "none"
+            rows.append([(f"health: {len(health.violations)} violations, suspects {suspects}",
+                          settings.colour_violation)])
+    draw.text_box(img, rows, scale=max(0.35, 0.45 * camera.height / 720))

@@ -1,0 +1,130 @@
+"""What a viewer wants to see: one frozen ``ViewSettings`` per client (SPEC §6, paper §3.2).
+
+Colours are OpenCV BGR tuples with the paper's defaults (robot and path green, heading
+arrow yellow, features cyan, pair lines yellow, correlation ellipsoids red); violations
+and suspects are magenta, which the paper does not use, so they cannot be mistaken for
+ordinary glyphs. Every field can come from a TOML file (``load_settings``), from a web
+page's query string (``from_query``) or from code (``replace``); bad values raise
+:class:`~common.errors.ConfigError` naming the field.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from common.config import settings_from_mapping
+from common.errors import ConfigError
+
+MODES = ("all", "inter", "minmeanmax")
+GLYPHS = ("sigma", "linear")
+LAYERS = ("robot", "path", "features", "lines", "ellipsoids", "legend", "labels", "health")
+
+BGR = tuple[int, int, int]
+
+
+def _colour(default: BGR, doc: str) -> Any:
+    return field(default=default, metadata={"doc": doc, "colour": True})
+
+
+@dataclass(frozen=True)
+class ViewSettings:
+    """How one viewer draws the estimator's state over its picture."""
+
+    mode: str = field(default="all", metadata={
+        "choices": MODES,
+        "doc": "all pairs | inter: pairs whose features lie in different clusters | "
+               "minmeanmax: per cluster pair only the min / mean / max P_d"})
+    cluster_threshold_m: float = field(default=0.6, metadata={
+        "min": 1e-6, "doc": "single-linkage cut distance, m (used when cluster_count is 0)"})
+    cluster_count: int = field(default=0, metadata={
+        "min": 0, "doc": ">0: cut the dendrogram into this many clusters instead"})
+    glyph: str = field(default="sigma", metadata={
+        "choices": GLYPHS,
+        "doc": "sigma: semi-axes = sigma_k·sqrt(eigenvalue) (m) | linear: semi-axes = "
+               "eigenvalue read as metres (the paper's glyph; m² shown as m)"})
+    sigma_k: float = field(default=2.0, metadata={"min": 1e-6, "doc": "k of the k-sigma glyph"})
+    scale: float = field(default=1.0, metadata={
+        "min": 1e-6, "doc": "extra factor on every glyph axis, for readability"})
+    minmeanmax_spread: float = field(default=0.15, metadata={
+        "min": 0.0, "doc": "minmeanmax: min and max sit this fraction of the centroid line "
+                           "before / after the mean (besides below / above it)"})
+    cone_height_m: float = field(default=0.15, metadata={
+        "min": 1e-3, "doc": "height of a feature cone, m (the robot's is 1.4 times that)"})
+    cone_radius_m: float = field(default=0.045, metadata={
+        "min": 1e-3, "doc": "base radius of a feature cone, m"})
+    # layers
+    robot: bool = field(default=True, metadata={"doc": "robot cone and heading arrow"})
+    path: bool = field(default=True, metadata={"doc": "estimated robot path"})
+    features: bool = field(default=True, metadata={"doc": "feature cones"})
+    lines: bool = field(default=True, metadata={"doc": "yellow line of every drawn pair"})
+    ellipsoids: bool = field(default=True, metadata={"doc": "red correlation ellipsoids"})
+    legend: bool = field(default=True, metadata={"doc": "legend box in the top-left corner"})
+    labels: bool = field(default=False, metadata={"doc": "feature ids next to the cones"})
+    health: bool = field(default=True, metadata={"doc": "violations and suspects outlined"})
+    selected_feature: int | None = field(default=None, metadata={
+        "doc": "only the pairs containing this feature id (None: no selection)"})
+    # colours (BGR)
+    colour_robot: BGR = _colour((40, 200, 40), "robot cone")
+    colour_heading: BGR = _colour((0, 230, 255), "heading arrow")
+    colour_path: BGR = _colour((40, 200, 40), "robot path")
+    colour_features: BGR = _colour((230, 230, 0), "feature cones")
+    colour_lines: BGR = _colour((0, 230, 255), "pair lines")
+    colour_ellipsoids: BGR = _colour((30, 30, 220), "correlation ellipsoids")
+    colour_violation: BGR = _colour((255, 0, 255), "violating pairs and suspect features")
+    colour_background: BGR = _colour((92, 98, 96), "floor of the map view (no camera image)")
+
+    def __post_init__(self) -> None:
+        for f in dataclasses.fields(self):
+            value = getattr(self, f.name)
+            choices = f.metadata.get("choices")
+            if choices is not None and value not in choices:
+                raise ConfigError(f"view setting {f.name!r}: {value!r} is not one of "
+                                  f"{list(choices)}")
+            minimum = f.metadata.get("min")
+            if minimum is not None and not (value >= minimum):  # also rejects NaN
+                raise ConfigError(f"view setting {f.name!r}: {value!r} is below {minimum}")
+            if f.metadata.get("colour"):
+                ok = (isinstance(value, tuple) and len(value) == 3
+                      and all(isinstance(c, int) and 0 <= c <= 255 for c in value))
+                if not ok:
+                    raise ConfigError(f"view setting {f.name!r}: expected three integers "
+                                      f"0-255 (B, G, R), got {value!r}")
+
+    def replace(self, **changes: Any) -> ViewSettings:
+        """A copy with ``changes`` applied (validated like the constructor)."""
+        return dataclasses.replace(self, **changes)
+
+    @classmethod
+    def from_query(cls, query: Mapping[str, str], *,
+                   base: ViewSettings | None = None) -> ViewSettings:
+        """Settings from a web page's query/JSON strings, applied over ``base``.
+
+        Booleans accept true/false/1/0/yes/no/on/off; ``selected_feature`` accepts an id or
+        ""/"none" for no selection; colours accept "B,G,R". Unknown keys are rejected.
+        """
+        base = base or cls()
+        values: dict[str, Any] = {f.name: getattr(base, f.name) for f in dataclasses.fields(cls)}
+        for key, raw in query.items():
+            name = key.replace("-", "_")
+            value: Any = raw
+            if isinstance(raw, str):
+                text = raw.strip()
+                if name == "selected_feature" and text.lower() in {"", "none", "null"}:
+                    value = None
+                elif text.lower() in {"on", "off"}:
+                    value = text.lower() == "on"
+                else:
+                    value = text
+            if name not in values:
+                raise ConfigError(f"unknown view setting {key!r}; known: "
+                                  f"{', '.join(sorted(values))}")
+            values[name] = value
+        return settings_from_mapping(cls, values, source="view settings")
+
+    def to_dict(self) -> dict[str, Any]:
+        """Plain JSON-able values (colours as lists), e.g. for the web page."""
+        return {f.name: list(v) if isinstance(v := getattr(self, f.name), tuple) else v
+                for f in dataclasses.fields(self)}
