@@ -240,8 +240,12 @@ def available_robots(folder: str | Path) -> list[int]:
     return sorted(found)
 
 
-def load_mrclam(folder: str | Path, robot: int = 1, *, name: str | None = None) -> MrclamRun:
-    """Parse one robot's files of an MRCLAM dataset folder (see the module docstring)."""
+def load_mrclam(folder: str | Path, robot: int = 1, *,
+                robot_name: str | None = None) -> MrclamRun:
+    """Parse robot ``robot``'s files of an MRCLAM folder (see the module docstring).
+
+    ``robot_name`` is the name put in the messages (default ``robot{robot}``).
+    """
     folder = Path(folder)
     if not folder.is_dir():
         raise SourceError(f"MRCLAM folder {folder} does not exist")
@@ -294,7 +298,7 @@ def load_mrclam(folder: str | Path, robot: int = 1, *, name: str | None = None) 
     order = np.argsort(landmarks[:, 0], kind="stable")
     landmarks = landmarks[order]
     return MrclamRun(
-        robot_number=robot, robot=name or f"robot{robot}",
+        robot_number=robot, robot=robot_name or f"robot{robot}",
         odometry=frozen_array(odometry, "<f8"), measurements=frozen_array(measurements, "<f8"),
         groundtruth=frozen_array(groundtruth, "<f8"),
         landmark_ids=frozen_array(landmarks[:, 0], "<i8"),

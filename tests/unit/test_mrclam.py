@@ -197,3 +197,9 @@ def test_real_dataset_facts(robot: int) -> None:
     assert 0.04 <= mad(dr_a) <= 0.12
     assert 0.004 <= mad(db_a) <= 0.012
     assert 0.5 <= 100 * np.mean(np.abs(dr_a) > 0.5) <= 3.6
+
+
+def test_robot_name_is_configurable() -> None:
+    run = load_mrclam(SMALL, robot=1, robot_name="pioneer")
+    assert run.robot == "pioneer"
+    assert {e.robot for e in run.events(end=2.0)} == {"pioneer"}
