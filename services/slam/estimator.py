@@ -138,6 +138,7 @@ class Estimator:
         self._ids: list[int] = []
         self._index: dict[int, int] = {}
         self._next_anonymous = settings.anonymous_id_base
+        self.refused_updates = 0  #: observations refused because S was not positive definite
 
     # -- read-only views ---------------------------------------------------------------
     @property
@@ -230,7 +231,7 @@ class Estimator:
                                      var_range=self._var_r, var_bearing=self._var_b,
                                      ws=self._ws)
                 except ekf.SingularInnovationError as exc:
-                    log.warning("observation of landmark %d not applied: %s", lid, exc)
+                    self._log_refused(lid, exc)
                     rejected += 1
                     assigned.append(-1)
                     continue
@@ -293,6 +294,12 @@ class Estimator:
         if np.any(ids_a < -1):
             raise ValueError(f"ids must be ≥ −1, got {int(ids_a.min())}")
         return ids_a, ranges_a, bearings_a
+
+    def _log_refused(self, lid: int, exc: Exception) -> None:
+        self.refused_updates += 1
+        count = self.refused_updates
+        if count == 1 or count % 100 == 0:  # a broken P refuses every update: do not flood
+            log.warning("observation of landmark %d not applied (%d so far): %s", lid, count, exc)
 
     def _fresh_anonymous_id(self) -> int:
         while self._next_anonymous in self._index:
