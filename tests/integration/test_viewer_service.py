@@ -364,3 +364,22 @@ def test_recording_writes_a_playable_video_that_can_be_downloaded(start_viewer,
     status, headers, body = http(url + info["url"])
     assert status == 200 and body == path.read_bytes()
     assert "attachment" in headers["Content-Disposition"]
+
+
+def test_stereo_views_are_side_by_side(start_viewer, publisher) -> None:
+    _, map_url = start_viewer(view="stereo")  # no camera: a stereo pair of the map view
+    _, cam_url = start_viewer(view="stereo", camera=CAMERA)  # cameras top-left, top-right
+    for eye in ("left", "right"):
+        publisher(KEYS.registration(f"{CAMERA}-{eye}", ROBOT),
+                  make_registration(f"{CAMERA}-{eye}").to_bytes())
+    publisher(KEYS.state(ROBOT), make_state(9).to_bytes())
+    wait_until(lambda: all(c["registration"] for c in status_of(cam_url)["cameras"])
+               and status_of(cam_url)["state"] is not None)
+
+    pair, _ = snapshot(map_url)
+    assert pair.shape == (720, 2 * 1280, 3)
+    pair, _ = snapshot(cam_url)
+    assert pair.shape == (HEIGHT, 2 * WIDTH, 3)
+    u, v = midpoint(1, 4)
+    assert red_pixels(pair, (u, v)) >= 40  # left eye
+    assert red_pixels(pair, (u + WIDTH, v)) >= 40  # right eye
