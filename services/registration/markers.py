@@ -1,0 +1,324 @@
+"""Fiducial marker detection: OpenCV's ArUco/AprilTag detector plus sub-pixel edge refinement.
+
+Corners come out in OpenCV's order (top-left, top-right, bottom-right, bottom-left of the
+marker image, clockwise on screen) and OpenCV's pixel convention (pixel centres at integer
+coordinates). The default corner refinement, ``"edges"``, fits a straight line to each side of
+the marker's black border (the gradient peak along the side's normal, sampled at ≥ 16 points)
+and intersects neighbouring lines, iterated to a fixed point. It is the refinement that
+AprilTag's C library uses (``refine_edges``), and on the real photos in tests/fixtures it is
+the most accurate of OpenCV's choices as well (docs/registration_vision.md has the figures).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from common.errors import ConfigError, SourceError
+
+log = logging.getLogger(__name__)
+
+DICTIONARIES: Mapping[str, int] = {
+    "apriltag_16h5": cv2.aruco.DICT_APRILTAG_16h5,
+    "apriltag_25h9": cv2.aruco.DICT_APRILTAG_25h9,
+    "apriltag_36h10": cv2.aruco.DICT_APRILTAG_36h10,
+    "apriltag_36h11": cv2.aruco.DICT_APRILTAG_36h11,
+    "aruco_original": cv2.aruco.DICT_ARUCO_ORIGINAL,
+    "aruco_mip_36h12": cv2.aruco.DICT_ARUCO_MIP_36h12,
+    **{
+        f"aruco_{n}x{n}_{size}": getattr(cv2.aruco, f"DICT_{n}X{n}_{size}")
+        for n in (4, 5, 6, 7) for size in (50, 100, 250, 1000)
+    },
+}
+"""Dictionary names accepted on the command line and in settings → OpenCV constants."""
+
+DEFAULT_DICTIONARY = "apriltag_36h11"
+CORNER_REFINEMENTS = ("edges", "subpix", "apriltag", "contour", "none")
+_CV_REFINEMENT = {
+    "edges": cv2.aruco.CORNER_REFINE_NONE,  # OpenCV's raw contour corners, then ours
+    "none": cv2.aruco.CORNER_REFINE_NONE,
+    "subpix": cv2.aruco.CORNER_REFINE_SUBPIX,
+    "apriltag": cv2.aruco.CORNER_REFINE_APRILTAG,
+    "contour": cv2.aruco.CORNER_REFINE_CONTOUR,
+}
+
+
+def get_dictionary(name: str) -> cv2.aruco.Dictionary:
+    """The OpenCV dictionary called ``name`` (see :data:`DICTIONARIES`)."""
+    try:
+        return cv2.aruco.getPredefinedDictionary(DICTIONARIES[name])
+    except KeyError:
+        raise ConfigError(f"unknown marker dictionary {name!r}; choices: "
+                          f"{', '.join(sorted(DICTIONARIES))}") from None
+
+
+def load_custom_dictionary(path: str | Path) -> cv2.aruco.Dictionary:
+    """A dictionary from a YAML like OpenCV's ``tutorial_dict.yml`` (nmarkers, markersize,
+    marker_0 … as bit strings)."""
+    p = Path(path)
+    if not p.is_file():
+        raise ConfigError(f"custom dictionary {p} does not exist")
+    try:
+        fs = cv2.FileStorage(str(p), cv2.FILE_STORAGE_READ)
+    except (cv2.error, SystemError):
+        raise ConfigError(f"custom dictionary {p} is not an OpenCV YAML file") from None
+    try:
+        dictionary = cv2.aruco.Dictionary()
+        if not fs.isOpened() or not dictionary.readDictionary(fs.root()):
+            raise ConfigError(f"custom dictionary {p}: needs nmarkers, markersize and marker_i")
+    finally:
+        fs.release()
+    return dictionary
+
+
+def marker_image(dictionary: str, marker_id: int, *, side_px: int,
+                 border_bits: int = 1) -> np.ndarray:
+    """The marker's black-bordered image (uint8, side_px²), as printed; no white margin."""
+    return cv2.aruco.generateImageMarker(get_dictionary(dictionary), marker_id, side_px,
+                                         borderBits=border_bits)
+
+
+@dataclass(frozen=True)
+class Detection:
+    """One marker found in an image."""
+
+    marker_id: int
+    """The marker's id in its dictionary."""
+    corners_px: np.ndarray
+    """(4, 2) float64 pixels, OpenCV order: top-left, top-right, bottom-right, bottom-left of
+    the marker image; read-only."""
+
+    def __post_init__(self) -> None:
+        corners = np.array(self.corners_px, dtype=np.float64).reshape(4, 2)
+        corners.setflags(write=False)
+        object.__setattr__(self, "corners_px", corners)
+        object.__setattr__(self, "marker_id", int(self.marker_id))
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Detection):
+            return NotImplemented
+        return self.marker_id == other.marker_id and np.array_equal(self.corners_px,
+                                                                    other.corners_px)
+
+    __hash__ = None  # type: ignore[assignment]
+
+    @property
+    def center_px(self) -> np.ndarray:
+        return self.corners_px.mean(axis=0)
+
+    @property
+    def side_px(self) -> float:
+        """Mean side length in pixels."""
+        return float(np.mean(np.linalg.norm(
+            self.corners_px - np.roll(self.corners_px, -1, axis=0), axis=1)))
+
+
+def mean_detection(detections: Sequence[Detection]) -> Detection:
+    """The corner-wise mean of one marker's detections in several frames of a still camera.
+
+    A single small marker seen face-on constrains its tilt poorly (at 3 m a 0.2 m marker's
+    tilt moves its corners by hundredths of a pixel per degree), so registration should
+    average a few frames before solving the pose.
+    """
+    if not detections:
+        raise ValueError("mean_detection needs at least one detection")
+    ids = {d.marker_id for d in detections}
+    if len(ids) != 1:
+        raise ValueError(f"mean_detection needs one marker id, got {sorted(ids)}")
+    return Detection(detections[0].marker_id,
+                     np.mean([d.corners_px for d in detections], axis=0))
+
+
+@dataclass(frozen=True)
+class DetectorTuning:
+    """Detector settings; the defaults keep OpenCV's candidate search (see the benchmark)."""
+
+    corner_refinement: str = field(default="edges", metadata={"choices": CORNER_REFINEMENTS})
+    """"edges" (line fit to the border, default), OpenCV's "subpix"/"apriltag"/"contour", or
+    "none" (raw contour vertices, what OpenCV's own tests compare against)."""
+    downscale: float = field(default=1.0, metadata={"min": 1.0})
+    """Find candidates on the image shrunk by this factor, then refine corners at full
+    resolution ("edges" recommended with it: the shrunk corners are ±downscale/2 px)."""
+    min_marker_perimeter_rate: float = field(default=0.03, metadata={"min": 0.0})
+    """Smallest marker perimeter as a fraction of the image's larger side (OpenCV default)."""
+    adaptive_thresh_win_size_min: int = field(default=3, metadata={"min": 3})
+    adaptive_thresh_win_size_max: int = field(default=23, metadata={"min": 3})
+    adaptive_thresh_win_size_step: int = field(default=10, metadata={"min": 1})
+    """OpenCV thresholds the image once per window size in min..max by step: fewer is faster."""
+    edge_search_px: float = field(default=1.5, metadata={"min": 0.5})
+    """How far each edge refinement step looks either side of the current side, pixels."""
+    edge_max_iterations: int = field(default=20, metadata={"min": 1})
+    edge_tolerance_px: float = field(default=0.01, metadata={"min": 0.0})
+
+
+# --- "edges" refinement: a pure function over all markers at once -------------------------
+
+def _sample(gray: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Bilinear intensities at float (x, y) points of any leading shape."""
+    flat = points.reshape(-1, 2).astype(np.float32)
+    # cv2.remap is bilinear to 1/32 px: far below the 0.25 px search step
+    values = cv2.remap(gray, flat[:, :1], flat[:, 1:], cv2.INTER_LINEAR,
+                       borderMode=cv2.BORDER_REPLICATE)
+    return values.reshape(points.shape[:-1]).astype(np.float64)
+
+
+def _refine_once(gray: np.ndarray, corners: np.ndarray, *, search_px: float,
+                 step_px: float = 0.25, gradient_px: float = 1.0
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """One line-fit step for (m, 4, 2) corners; returns (new corners, ok per marker)."""
+    start = corners
+    end = np.roll(corners, -1, axis=1)
+    side = end - start
+    length = np.linalg.norm(side, axis=-1)  # (m, 4)
+    along = side / np.maximum(length, 1e-9)[..., None]
+    normal = np.stack([along[..., 1], -along[..., 0]], axis=-1)  # outward for clockwise corners
+    # ≥ 16 samples per side, one every 8 px on big markers (as AprilTag's refine_edges)
+    n_samples = max(16, int(math.ceil(float(length.max()) / 8.0)))
+    alpha = (1.0 + np.arange(n_samples)) / (n_samples + 1)  # skip the unreliable corners
+    base = start[:, :, None, :] + alpha[None, None, :, None] * side[:, :, None, :]
+    offsets = np.arange(-search_px, search_px + 1e-9, step_px)
+    n = normal[:, :, None, None, :]
+    probe = base[:, :, :, None, :] + offsets[None, None, None, :, None] * n
+    gradient = _sample(gray, probe + gradient_px * n) - _sample(gray, probe - gradient_px * n)
+    # dark inside, light outside: a backwards gradient belongs to another edge, drop it
+    weight = np.where(gradient > 0.0, gradient * gradient, 0.0)
+    total = weight.sum(axis=-1)
+    valid = total > 0.0
+    shift = (weight * offsets).sum(axis=-1) / np.where(valid, total, 1.0)
+    points = base + shift[..., None] * normal[:, :, None, :]  # (m, 4, ns, 2)
+
+    count = valid.sum(axis=-1)  # (m, 4)
+    w = valid.astype(np.float64)
+    denom = np.maximum(count, 1)[..., None]
+    mean = (points * w[..., None]).sum(axis=2) / denom
+    d = (points - mean[:, :, None, :]) * w[..., None]
+    cxx = (d[..., 0] ** 2).sum(axis=-1)
+    cyy = (d[..., 1] ** 2).sum(axis=-1)
+    cxy = (d[..., 0] * d[..., 1]).sum(axis=-1)
+    angle = 0.5 * np.arctan2(2.0 * cxy, cxx - cyy)  # principal axis of the samples
+    direction = np.stack([np.cos(angle), np.sin(angle)], axis=-1)
+
+    # corner i joins side i−1 (ending at it) and side i (starting at it)
+    m1, d1 = np.roll(mean, 1, axis=1), np.roll(direction, 1, axis=1)
+    m2, d2 = mean, direction
+    cross = d1[..., 0] * d2[..., 1] - d1[..., 1] * d2[..., 0]
+    diff = m2 - m1
+    s = (diff[..., 0] * d2[..., 1] - diff[..., 1] * d2[..., 0]) / np.where(
+        np.abs(cross) > 1e-3, cross, 1.0)
+    refined = m1 + s[..., None] * d1
+    ok = np.all(count >= 3, axis=1) & np.all(np.abs(cross) > 1e-3, axis=1)
+    ok &= np.all(np.isfinite(refined), axis=(1, 2))
+    return np.where(ok[:, None, None], refined, corners), ok
+
+
+def refine_corners_edges(gray: np.ndarray, corners: np.ndarray, *, search_px: float = 1.5,
+                         max_iterations: int = 20, tolerance_px: float = 0.01) -> np.ndarray:
+    """Refine (m, 4, 2) marker corners by fitting lines to the border edges.
+
+    Each step moves every side to the gradient peak within ``search_px`` of it and
+    re-intersects the sides; steps repeat until no corner moves more than
+    ``tolerance_px``. A marker whose fit fails or wanders further than a quarter of its
+    side (2 px at least) from where it started keeps its input corners.
+    """
+    corners = np.asarray(corners, dtype=np.float64).reshape(-1, 4, 2)
+    if corners.shape[0] == 0:
+        return corners.copy()
+    image = gray if gray.dtype == np.float32 else gray.astype(np.float32)
+    current = corners.copy()
+    active = np.ones(len(corners), dtype=bool)
+    failed = np.zeros(len(corners), dtype=bool)
+    for _ in range(max_iterations):
+        idx = np.flatnonzero(active)
+        if idx.size == 0:
+            break
+        refined, ok = _refine_once(image, current[idx], search_px=search_px)
+        moved = np.abs(refined - current[idx]).max(axis=(1, 2))
+        current[idx] = refined
+        failed[idx[~ok]] = True
+        active[idx[(moved < tolerance_px) | ~ok]] = False
+    side = np.linalg.norm(corners - np.roll(corners, -1, axis=1), axis=-1).mean(axis=1)
+    wandered = np.abs(current - corners).max(axis=(1, 2)) > np.maximum(2.0, 0.25 * side)
+    keep = failed | wandered
+    current[keep] = corners[keep]
+    return current
+
+
+# --- the detector ---------------------------------------------------------------------------
+
+def to_gray(image: np.ndarray) -> np.ndarray:
+    """uint8 gray from a gray, BGR or BGRA image; SourceError on anything else."""
+    if not isinstance(image, np.ndarray) or image.dtype != np.uint8:
+        raise SourceError(f"image: expected a uint8 numpy array, got "
+                          f"{getattr(image, 'dtype', type(image).__name__)}")
+    if image.ndim == 2:
+        return image
+    if image.ndim == 3 and image.shape[2] == 3:
+        return cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    if image.ndim == 3 and image.shape[2] == 4:
+        return cv2.cvtColor(image, cv2.COLOR_BGRA2GRAY)
+    if image.ndim == 3 and image.shape[2] == 1:
+        return np.ascontiguousarray(image[:, :, 0])
+    raise SourceError(f"image: expected HxW, HxWx3 or HxWx4, got shape {image.shape}")
+
+
+class MarkerDetector:
+    """Finds markers of one dictionary; stateless between frames apart from its settings."""
+
+    def __init__(self, dictionary: str = DEFAULT_DICTIONARY, *,
+                 params: DetectorTuning | None = None,
+                 custom_dictionary_path: str | Path | None = None) -> None:
+        self.tuning = params or DetectorTuning()
+        if self.tuning.corner_refinement not in CORNER_REFINEMENTS:
+            raise ConfigError(f"corner_refinement {self.tuning.corner_refinement!r}; "
+                              f"choices: {', '.join(CORNER_REFINEMENTS)}")
+        if custom_dictionary_path is not None:
+            self.dictionary_name = f"custom:{custom_dictionary_path}"
+            self.dictionary = load_custom_dictionary(custom_dictionary_path)
+        else:
+            self.dictionary_name = dictionary
+            self.dictionary = get_dictionary(dictionary)
+        self._detector = cv2.aruco.ArucoDetector(self.dictionary, self._cv_parameters())
+
+    def _cv_parameters(self) -> cv2.aruco.DetectorParameters:
+        t = self.tuning
+        p = cv2.aruco.DetectorParameters()
+        p.cornerRefinementMethod = _CV_REFINEMENT[t.corner_refinement]
+        p.minMarkerPerimeterRate = t.min_marker_perimeter_rate
+        p.adaptiveThreshWinSizeMin = t.adaptive_thresh_win_size_min
+        p.adaptiveThreshWinSizeMax = max(t.adaptive_thresh_win_size_max,
+                                         t.adaptive_thresh_win_size_min)
+        p.adaptiveThreshWinSizeStep = t.adaptive_thresh_win_size_step
+        return p
+
+    def detect(self, image: np.ndarray) -> list[Detection]:
+        """Markers in a BGR, BGRA or gray uint8 image, sorted by id then x then y."""
+        gray = to_gray(image)
+        scale = self.tuning.downscale
+        if scale > 1.0:
+            small = cv2.resize(gray, (max(1, round(gray.shape[1] / scale)),
+                                      max(1, round(gray.shape[0] / scale))),
+                               interpolation=cv2.INTER_AREA)
+            corners, ids, _ = self._detector.detectMarkers(small)
+        else:
+            corners, ids, _ = self._detector.detectMarkers(gray)
+        if ids is None or len(ids) == 0:
+            return []
+        found = np.asarray(corners, dtype=np.float64).reshape(-1, 4, 2)
+        if scale > 1.0:
+            sx = gray.shape[1] / small.shape[1]
+            sy = gray.shape[0] / small.shape[0]
+            # pixel centres sit at integers: scale about the −0.5 pixel edge, not about 0
+            found = (found + 0.5) * np.array([sx, sy]) - 0.5
+        if self.tuning.corner_refinement == "edges":
+            found = refine_corners_edges(gray, found, search_px=self.tuning.edge_search_px,
+                                         max_iterations=self.tuning.edge_max_iterations,
+                                         tolerance_px=self.tuning.edge_tolerance_px)
+        detections = [Detection(int(i), c) for i, c in zip(np.ravel(ids), found, strict=True)]
+        detections.sort(key=lambda d: (d.marker_id, *d.center_px))
+        return detections
