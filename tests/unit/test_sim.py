@@ -10,7 +10,7 @@ import pytest
 
 from common.messages import Observations, Odometry, Truth
 from services.slam.sim import Simulator, first_seen_times, plan_trajectory
-from services.slam.world import World, load_world
+from services.slam.world import NoiseModel, World, load_world
 
 PAPER = load_world("paper")
 
@@ -95,7 +95,9 @@ def test_true_pose_integrates_the_commanded_controls_with_the_spec_model() -> No
 
 
 def test_odometry_noise_has_the_worlds_sigma() -> None:
-    sim = Simulator(PAPER, seed=11, loops=10)
+    noise = NoiseModel(sigma_v=0.03, sigma_w=0.08, sigma_range=0.05, sigma_bearing=0.02)
+    world = dataclasses.replace(PAPER, noise=noise)  # distinct σ: a swap would show
+    sim = Simulator(world, seed=11, loops=10)
     odo, truths, _ = split(list(sim.events()))
     dt = PAPER.motion.dt_s
     poses = np.array([t.pose for t in truths])
@@ -108,7 +110,7 @@ def test_odometry_noise_has_the_worlds_sigma() -> None:
     ew = np.array([o.w for o in odo]) - w_true
     n = ev.size
     assert n > 1500
-    for err, sigma in ((ev, PAPER.noise.sigma_v), (ew, PAPER.noise.sigma_w)):
+    for err, sigma in ((ev, noise.sigma_v), (ew, noise.sigma_w)):
         assert abs(err.mean()) < 4 * sigma / math.sqrt(n)
         assert abs(err.std(ddof=1) / sigma - 1) < 0.1  # ~6 standard errors of a std for n>1500
         assert abs(np.corrcoef(err[:-1], err[1:])[0, 1]) < 0.1  # white
