@@ -11,7 +11,7 @@ import cv2
 import numpy as np
 
 from services.visualiser.camera_model import NEAR_M, CameraModel
-from services.visualiser.glyphs import ImageEllipses, unit_circle
+from services.visualiser.glyphs import ImageEllipses, ellipse_polygons, unit_circle
 
 SHIFT = 4  #: fractional bits of the fixed-point coordinates given to OpenCV
 _ONE = 1 << SHIFT
@@ -176,7 +176,6 @@ class ShadedEllipses:
         angle = ie.angle[self.index]
         self.layers = np.where(axes[:, 0] < 2.5, 1, np.where(axes[:, 0] < 7.0, 2, 3)).tolist()
         vertices = np.where(axes[:, 0] < 40, 20, np.where(axes[:, 0] < 200, 40, 96))
-        cos, sin = np.cos(angle), np.sin(angle)
         # Polygons per vertex-count bucket and layer; glyph k is row _row[k] of _bucket[k].
         self._polys: list[list[list[np.ndarray]]] = []
         bucket = np.zeros(g, dtype=np.int64)
@@ -184,16 +183,12 @@ class ShadedEllipses:
         for b, v in enumerate(np.unique(vertices).tolist()):
             sel = np.flatnonzero(vertices == v)
             bucket[sel], row[sel] = b, np.arange(len(sel))
-            circle = unit_circle(int(v))
             layers = []
             for scale, _, _ in SHADES:
                 offset = (1.0 - scale) * 0.55 * axes[sel, 1:2] * LIGHT_DIR  # stays inside
-                x = scale * axes[sel, 0:1] * circle[:, 0]
-                y = scale * axes[sel, 1:2] * circle[:, 1]
-                c = centre[sel] + offset
-                px = c[:, 0:1] + cos[sel, None] * x - sin[sel, None] * y
-                py = c[:, 1:2] + sin[sel, None] * x + cos[sel, None] * y
-                layers.append(list(fixed(np.stack([px, py], axis=-1))))
+                polygons = ellipse_polygons(centre[sel] + offset, scale * axes[sel],
+                                            angle[sel], vertices=int(v))
+                layers.append(list(fixed(polygons)))
             self._polys.append(layers)
         self._bucket = bucket.tolist()
         self._row = row.tolist()
