@@ -8,7 +8,16 @@ import numpy as np
 
 
 def wrap_angle(angle: float | np.ndarray) -> float | np.ndarray:
-    """Wrap radians to [-π, π) (SPEC §4)."""
+    """Wrap radians to [-π, π) (SPEC §4); angles already in range come back unchanged.
+
+    The modulo formula alone adds a rounding error (~1e-16) to in-range angles, which
+    would make a dataset's bearings differ from the file they were read from.
+    """
+    if isinstance(angle, np.ndarray):
+        inside = (angle >= -math.pi) & (angle < math.pi)
+        return np.where(inside, angle, (angle + math.pi) % (2.0 * math.pi) - math.pi)
+    if -math.pi <= angle < math.pi:
+        return angle
     return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
