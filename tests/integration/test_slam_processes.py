@@ -123,7 +123,8 @@ def test_third_party_client_from_spec_only(router_endpoint, estimator):
         cov = cov.reshape(3 + 2 * n, 3 + 2 * n)
         np.testing.assert_allclose(cov, cov.T, atol=1e-15)
         assert np.all(np.linalg.eigvalsh(cov) > -1e-12)
-        lms = np.frombuffer(update["landmarks"]["data"], "<f8").reshape(update["landmarks"]["shape"])
+        lms = np.frombuffer(update["landmarks"]["data"], "<f8")
+        lms = lms.reshape(update["landmarks"]["shape"])
         np.testing.assert_allclose(lms[0], [0.02 + np.cos(0.5), np.sin(0.5)], atol=1e-12)
         sub.undeclare()
     finally:
