@@ -113,7 +113,7 @@ class Renderer:
                        else _canvas(image_bgr, camera))
         with self._lock:
             path = self._update_path(state)
-        clustered = settings.mode in ("inter", "minmeanmax") and state.n > 0
+        clustered = settings.mode in ("inter", "minmeanmax")
         cluster_ids = self.cluster_ids(state, settings) if clustered else None
         violating, suspects = _health_sets(health, state) if settings.health else (
             frozenset(), np.zeros(0, np.int64))

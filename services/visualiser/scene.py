@@ -150,6 +150,8 @@ def build_scene(state: SlamState, settings: ViewSettings, *,
     mode = settings.mode
     if mode == "minmeanmax" and selected_index is not None:
         mode = "all"
+    if cluster_ids is None and n < 2:
+        cluster_ids = np.zeros(n, dtype=np.int64) if mode != "all" else None
     centroids: dict[int, np.ndarray] = {}
     if cluster_ids is not None:
         for c in np.unique(cluster_ids).tolist():
