@@ -198,7 +198,7 @@ class Estimator:
         −1 is associated (:mod:`services.slam.association`). Malformed input (NaN, negative
         range, ids < −1, mismatched lengths) raises ValueError before anything changes.
         """
-        ids_a, ranges_a, bearings_a = self._check_batch(ids, ranges, bearings, stamp)
+        id_list, range_list, bearing_list = self._check_batch(ids, ranges, bearings, stamp)
         observed: list[int] = []
         new: list[int] = []
         innovation_ids: list[int] = []
@@ -206,8 +206,7 @@ class Estimator:
         covariances: list[tuple[float, float, float, float]] = []
         assigned: list[int] = []
         rejected = ambiguous = 0
-        for lid, z_r, z_b in zip(ids_a.tolist(), ranges_a.tolist(), bearings_a.tolist(),
-                                 strict=True):
+        for lid, z_r, z_b in zip(id_list, range_list, bearing_list, strict=True):
             if lid == -1:
                 decision = association.decide(association.mahalanobis_all(
                     self._x, self._L, self._n, z_range=z_r, z_bearing=z_b,
@@ -275,25 +274,30 @@ class Estimator:
     # -- internals ---------------------------------------------------------------------
     @staticmethod
     def _check_batch(ids: Any, ranges: Any, bearings: Any,
-                     stamp: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     stamp: float) -> tuple[list[int], list[float], list[float]]:
+        """Validated plain lists (the loop runs on Python scalars; builtins over small
+        lists are cheaper than a numpy call per check)."""
         ekf.check_finite_inputs(stamp=stamp)
-        ids_raw = np.asarray(ids)
-        if ids_raw.ndim != 1 or (ids_raw.size and ids_raw.dtype.kind not in "iu"):
-            raise ValueError(f"ids must be a 1-D integer array, got dtype {ids_raw.dtype} "
-                             f"shape {ids_raw.shape}")
-        ids_a = ids_raw.astype(np.int64)
+        ids_a = np.asarray(ids)
+        if ids_a.ndim != 1 or (ids_a.size and ids_a.dtype.kind not in "iu"):
+            raise ValueError(f"ids must be a 1-D integer array, got dtype {ids_a.dtype} "
+                             f"shape {ids_a.shape}")
         ranges_a = np.asarray(ranges, dtype=np.float64)
         bearings_a = np.asarray(bearings, dtype=np.float64)
         if ranges_a.shape != ids_a.shape or bearings_a.shape != ids_a.shape:
             raise ValueError(f"ids, ranges and bearings must have the same length, got "
                              f"{ids_a.shape}, {ranges_a.shape}, {bearings_a.shape}")
-        if not (np.all(np.isfinite(ranges_a)) and np.all(np.isfinite(bearings_a))):
+        id_list: list[int] = ids_a.tolist()
+        range_list: list[float] = ranges_a.tolist()
+        bearing_list: list[float] = bearings_a.tolist()
+        if not (all(map(math.isfinite, range_list)) and all(map(math.isfinite, bearing_list))):
             raise ValueError("ranges and bearings must be finite (NaN or infinity received)")
-        if np.any(ranges_a < 0):
-            raise ValueError("ranges must be ≥ 0")
-        if np.any(ids_a < -1):
-            raise ValueError(f"ids must be ≥ −1, got {int(ids_a.min())}")
-        return ids_a, ranges_a, bearings_a
+        if id_list:
+            if min(range_list) < 0:
+                raise ValueError("ranges must be ≥ 0")
+            if min(id_list) < -1:
+                raise ValueError(f"ids must be ≥ −1, got {min(id_list)}")
+        return id_list, range_list, bearing_list
 
     def _log_refused(self, lid: int, exc: Exception) -> None:
         self.refused_updates += 1

@@ -1,0 +1,224 @@
+"""EKF-SLAM core speed: predict, update, predict+update against a streaming floor and a
+dense textbook EKF measured in the same run.
+
+    .venv/bin/python benchmarks/bench_ekf.py           # full run (about a minute)
+    .venv/bin/python benchmarks/bench_ekf.py --quick   # smoke run (a few seconds)
+
+Targets (docs/estimator.md): update at n = 1000 ≤ 1.3× the streaming floor (one read + one
+write of an N×N float64 matrix, timed as ``np.add(A, 0.0, out=A)`` on a contiguous array);
+predict + update at n ≤ 100 under 60 µs; the dense EKF ≥ 500× slower at n = 1000.
+Times are medians of ``time.perf_counter_ns`` over many repetitions. The machine is shared,
+so figures are noisy: run it a few times and compare medians.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import platform
+import statistics
+import subprocess
+import sys
+import time
+from collections.abc import Callable
+
+import numpy as np
+import scipy
+
+from services.slam import ekf
+from services.slam.estimator import Estimator, EstimatorSettings
+
+SIG = EstimatorSettings()
+VAR_V, VAR_W = SIG.sigma_v ** 2, SIG.sigma_w ** 2
+VAR_R, VAR_B = SIG.sigma_range ** 2, SIG.sigma_bearing ** 2
+
+
+def median_us(fn: Callable[[], object], reps: int, *, warmup: int = 3) -> float:
+    for _ in range(warmup):
+        fn()
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter_ns()
+        fn()
+        times.append(time.perf_counter_ns() - t0)
+    return statistics.median(times) / 1e3
+
+
+def mapped_estimator(n: int, rng: np.random.Generator) -> Estimator:
+    """A realistic state: n landmarks initialised from a moving robot, then a few updates."""
+    est = Estimator(SIG)
+    side = math.ceil(math.sqrt(n))
+    truth = {i: np.array([(i % side) - side / 2, (i // side) - side / 2]) * 0.7 + [0.3, 0.2]
+             for i in range(n)}
+    for i, m in truth.items():
+        est.predict(v=0.1, w=0.05, dt=0.1, stamp=0.0)
+        r, b = ekf.observe(est.pose, m)
+        est.observe(ids=[i], ranges=[r + rng.normal(0, 0.05)], bearings=[b], stamp=0.0)
+    return est
+
+
+def measure(n: int, rng: np.random.Generator, *, reps: int, dense_reps: int) -> dict[str, float]:
+    est = mapped_estimator(n, rng)
+    x, L, ws = est._x, est._L, est._ws  # the core kernels on the estimator's own buffers
+    N = 3 + 2 * n
+    out: dict[str, float] = {"n": n, "N": N}
+
+    def predict() -> None:
+        ekf.predict(x, L, n, v=0.2, w=0.1, dt=0.01, var_v=VAR_V, var_w=VAR_W)
+
+    js = rng.integers(0, n, size=1024)
+    state = {"k": 0}
+
+    def update() -> None:
+        j = int(js[state["k"] % js.size])
+        state["k"] += 1
+        a = 3 + 2 * j
+        z = ekf.observe(x[:3], x[a:a + 2])
+        ekf.update(x, L, n, j, z_range=float(z[0]) + 1e-3, z_bearing=float(z[1]),
+                   var_range=VAR_R, var_bearing=VAR_B, ws=ws)
+
+    def both() -> None:
+        predict()
+        update()
+
+    ids = np.array([0], dtype=np.int64)
+
+    def both_estimator() -> None:
+        est.predict(v=0.2, w=0.1, dt=0.01, stamp=1.0)
+        m = x[3:5]
+        z = ekf.observe(x[:3], m)
+        est.observe(ids=ids, ranges=[float(z[0])], bearings=[float(z[1])], stamp=1.0)
+
+    out["predict_us"] = median_us(predict, reps)
+    out["update_us"] = median_us(update, reps)
+    out["both_us"] = median_us(both, reps)
+    out["both_estimator_us"] = median_us(both_estimator, reps)
+
+    A = np.ones((N, N))
+    out["floor_us"] = median_us(lambda: np.add(A, 0.0, out=A), reps)
+    view = L[:N, :N]
+    out["floor_view_us"] = median_us(lambda: np.multiply(view, 1.0, out=view), max(5, reps // 4))
+    out["symmetric_us"] = median_us(lambda: ekf.symmetric(L, N), max(5, reps // 4))
+
+    # dense textbook EKF (SPEC §4 with full F, G, H): same maths, no structure exploited
+    P = ekf.symmetric(L, N)
+    xd = x[:N].copy()
+
+    def dense_both() -> None:
+        nonlocal P, xd
+        th = xd[2]
+        F = np.eye(N)
+        F[0, 2], F[1, 2] = -0.002 * math.sin(th), 0.002 * math.cos(th)
+        G = np.zeros((N, 2))
+        G[0, 0], G[1, 0], G[2, 1] = 0.01 * math.cos(th), 0.01 * math.sin(th), 0.01
+        P = F @ P @ F.T + G @ np.diag([VAR_V, VAR_W]) @ G.T
+        xd = xd + np.concatenate([[0.002 * math.cos(th), 0.002 * math.sin(th), 0.001],
+                                  np.zeros(N - 3)])
+        dx, dy = xd[3] - xd[0], xd[4] - xd[1]
+        q = dx * dx + dy * dy
+        H = np.zeros((2, N))
+        H[:, 0:3] = [[-dx / math.sqrt(q), -dy / math.sqrt(q), 0], [dy / q, -dx / q, -1]]
+        H[:, 3:5] = [[dx / math.sqrt(q), dy / math.sqrt(q)], [-dy / q, dx / q]]
+        S = H @ P @ H.T + np.diag([VAR_R, VAR_B])
+        K = P @ H.T @ np.linalg.inv(S)
+        xd = xd + K @ np.array([1e-3, 0.0])
+        P = P - K @ S @ K.T
+        P = 0.5 * (P + P.T)
+
+    out["dense_both_us"] = median_us(dense_both, dense_reps, warmup=1)
+    return out
+
+
+HEADER = (f"{'n':>5} {'N':>5} {'predict':>9} {'update':>9} {'pred+upd':>9} "
+          f"{'Estimator':>9} {'floor':>9} {'viewfloor':>9} {'upd/floor':>9} "
+          f"{'dense':>11} {'dense/ours':>10} {'symmetric':>9}")
+
+
+def row_text(r: dict[str, float]) -> str:
+    return (f"{r['n']:>5.0f} {r['N']:>5.0f} {r['predict_us']:>9.1f} {r['update_us']:>9.1f} "
+            f"{r['both_us']:>9.1f} {r['both_estimator_us']:>9.1f} {r['floor_us']:>9.1f} "
+            f"{r['floor_view_us']:>9.1f} {r['update_us'] / r['floor_us']:>9.2f} "
+            f"{r['dense_both_us']:>11.0f} {r['dense_both_us'] / r['both_us']:>10.0f} "
+            f"{r['symmetric_us']:>9.0f}")
+
+
+def single_thread_row(n: int, quick: bool) -> str | None:
+    """The same row measured in a child process with OPENBLAS_NUM_THREADS=1.
+
+    OpenBLAS fixes its thread count when it loads, so a second configuration needs a second
+    process. On a shared 2-core machine a 2-thread dsyrk waits for a busy core; one thread
+    shows what the kernel costs without that contention.
+    """
+    if os.environ.get("OPENBLAS_NUM_THREADS") == "1":
+        return None
+    cmd = [sys.executable, __file__, "--sizes", str(n), "--rows-only"]
+    if quick:
+        cmd.append("--quick")
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "1"}
+    done = subprocess.run(cmd, env=env, capture_output=True, text=True, check=False)
+    lines = [ln for ln in done.stdout.splitlines() if ln.strip()]
+    return lines[-1] if done.returncode == 0 and lines else f"child failed: {done.stderr[-300:]}"
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true", help="few repetitions (smoke run)")
+    parser.add_argument("--sizes", default="15,100,500,1000", help="landmark counts n")
+    parser.add_argument("--rows-only", action="store_true", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    sizes = [int(v) for v in args.sizes.split(",")]
+    rng = np.random.default_rng(0)
+
+    if not args.rows_only:
+        env = {k: os.environ[k] for k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS",
+                                          "MKL_NUM_THREADS") if k in os.environ}
+        print(f"python {platform.python_version()}, numpy {np.__version__}, scipy "
+              f"{scipy.__version__}, {os.cpu_count()} CPUs, BLAS env {env or 'unset'}, "
+              f"dsyrk fast path {'on' if ekf._dsyrk() is not None else 'OFF (numpy fallback)'}, "
+              f"load average {os.getloadavg()[0]:.2f}")
+        print("medians in µs; pred+upd = the kernels, Estimator = the class methods with "
+              "input checks; floor = np.add(A, 0, out=A) on a contiguous N×N array; "
+              "viewfloor = the same on the estimator's strided view; dense = textbook "
+              "predict+update with full F, G, H")
+        print(HEADER)
+    rows = []
+    for n in sizes:
+        if args.quick:
+            reps = 200 if n <= 100 else 20
+            dense_reps = 3 if n <= 100 else 1
+        else:
+            reps = 5000 if n <= 100 else 300
+            dense_reps = {15: 300, 100: 100, 500: 5, 1000: 3}.get(n, 3)
+        r = measure(n, rng, reps=reps, dense_reps=dense_reps)
+        rows.append(r)
+        print(row_text(r), flush=True)
+    if args.rows_only:
+        return 0
+
+    by_n = {int(r["n"]): r for r in rows}
+    checks = []
+    if 1000 in by_n:
+        big = by_n[1000]
+        single = single_thread_row(1000, args.quick)
+        if single is not None:
+            print(f"{single}   <- n=1000 again with OPENBLAS_NUM_THREADS=1 (child process)")
+        checks += [
+            ("update at n=1000 ≤ 1.3× floor", big["update_us"] / big["floor_us"] <= 1.3,
+             f"{big['update_us'] / big['floor_us']:.2f}×"),
+            ("dense ≥ 500× slower at n=1000", big["dense_both_us"] / big["both_us"] >= 500,
+             f"{big['dense_both_us'] / big['both_us']:.0f}×"),
+        ]
+    small = [r for r in rows if r["n"] <= 100]
+    if small:
+        checks.append(("predict+update at n≤100 < 60 µs", all(r["both_us"] < 60 for r in small),
+                       ", ".join(f"n={r['n']:.0f}: {r['both_us']:.1f} µs (Estimator "
+                                 f"{r['both_estimator_us']:.1f})" for r in small)))
+    print(f"load average now {os.getloadavg()[0]:.2f}")
+    for name, ok, value in checks:
+        print(f"{'PASS' if ok else 'FAIL'}  {name}: {value}")
+    return 0 if all(ok for _, ok, _ in checks) else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
