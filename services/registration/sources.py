@@ -1,0 +1,287 @@
+"""Frame sources: an OpenCV capture (device, video file, stream), a folder, the synthetic camera.
+
+A :class:`FrameSource` hands out ``(stamp, image_bgr)`` pairs. ``read`` returns ``None``
+when no frame is ready right now; it raises :class:`SourceEnded` when a finite source
+(a video file or a folder, without ``loop``) has nothing more, and
+:class:`~common.errors.SourceError` when the source failed (a device unplugged, a folder
+deleted). :class:`ReconnectingSource` turns failures into one log line, a counter and a
+capped exponential back-off of reopen attempts, so a vanished camera never ends the
+service.
+
+``live`` sources (devices, streams) pace themselves: ``read`` blocks until the next frame.
+The others (files, folders, synthetic) are paced by the caller at the configured rate.
+Stamps are wall-clock seconds at capture, except the synthetic camera's, which are the
+stamps of the truth it renders (the picture shows the world at that instant).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from typing import Protocol
+
+import cv2
+import numpy as np
+
+from common.errors import ConfigError, SourceError
+from common.messages import Truth
+from services.registration.synthetic import SyntheticCamera
+
+log = logging.getLogger(__name__)
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm")
+
+Frame = tuple[float, np.ndarray]
+
+
+class SourceEnded(SourceError):
+    """A finite source (video file, image folder) has no more frames."""
+
+
+class FrameSource(Protocol):
+    name: str
+    live: bool
+
+    def read(self) -> Frame | None:
+        """The next (stamp s, BGR uint8 image), or None if none is ready now."""
+        ...
+
+    def close(self) -> None: ...
+
+
+def _as_bgr(image: np.ndarray) -> np.ndarray:
+    if image.ndim == 2:
+        return cv2.cvtColor(image, cv2.COLOR_GRAY2BGR)
+    if image.ndim == 3 and image.shape[2] == 4:
+        return cv2.cvtColor(image, cv2.COLOR_BGRA2BGR)
+    return image
+
+
+class CaptureSource:
+    """``cv2.VideoCapture`` on a device index, a video file or a stream URL."""
+
+    def __init__(self, target: int | str, *, loop: bool = False, width: int | None = None,
+                 height: int | None = None, fps: float | None = None,
+                 clock: Callable[[], float] = time.time) -> None:
+        self.target = target
+        self.name = f"device {target}" if isinstance(target, int) else str(target)
+        self.is_file = isinstance(target, str) and "://" not in target
+        self.live = not self.is_file
+        self.loop = loop
+        self._clock = clock
+        self._cap = cv2.VideoCapture(target)
+        if not self._cap.isOpened():
+            self._cap.release()
+            raise SourceError(f"cannot open {self.name}")
+        if self.live:  # a file has its own size; a device may honour a request
+            for prop, value in ((cv2.CAP_PROP_FRAME_WIDTH, width),
+                                (cv2.CAP_PROP_FRAME_HEIGHT, height), (cv2.CAP_PROP_FPS, fps)):
+                if value:
+                    self._cap.set(prop, float(value))
+
+    def read(self) -> Frame | None:
+        ok, image = self._cap.read()
+        if not ok and self.is_file and self.loop:
+            self._cap.set(cv2.CAP_PROP_POS_FRAMES, 0)
+            ok, image = self._cap.read()
+        if not ok or image is None:
+            if self.is_file:
+                raise SourceEnded(f"{self.name} ended")
+            raise SourceError(f"{self.name} stopped delivering frames")
+        return self._clock(), _as_bgr(image)
+
+    def close(self) -> None:
+        self._cap.release()
+
+
+class FolderSource:
+    """The images of a folder in name order (PNG, JPEG, …), once or looping."""
+
+    live = False
+
+    def __init__(self, folder: str | Path, *, loop: bool = False,
+                 clock: Callable[[], float] = time.time) -> None:
+        self.folder = Path(folder)
+        self.name = f"folder {self.folder}"
+        self.loop = loop
+        self._clock = clock
+        if not self.folder.is_dir():
+            raise SourceError(f"{self.name} does not exist")
+        self.files = sorted(p for p in self.folder.iterdir()
+                            if p.suffix.lower() in IMAGE_SUFFIXES)
+        if not self.files:
+            raise SourceError(f"{self.name} holds no images ({', '.join(IMAGE_SUFFIXES)})")
+        self._next = 0
+
+    def read(self) -> Frame | None:
+        if self._next >= len(self.files):
+            if not self.loop:
+                raise SourceEnded(f"{self.name} ended after {len(self.files)} images")
+            self._next = 0
+        path = self.files[self._next]
+        image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if image is None:
+            raise SourceError(f"{path} is unreadable or gone")
+        self._next += 1
+        return self._clock(), image
+
+    def close(self) -> None:
+        pass
+
+
+class SyntheticSource:
+    """Frames of a :class:`SyntheticCamera` rendering the latest :class:`Truth` it was given.
+
+    ``pose_at(stamp)`` moves the camera (head-mounted); ``last_T_world_from_camera`` is the
+    exact pose of the last frame (the ground truth of the camera tracking).
+    """
+
+    live = False
+
+    def __init__(self, camera: SyntheticCamera, *, name: str = "synthetic",
+                 pose_at: Callable[[float], np.ndarray] | None = None,
+                 clock: Callable[[], float] = time.time) -> None:
+        self.camera = camera
+        self.name = name
+        self.pose_at = pose_at
+        self._clock = clock
+        self._truth: Truth | None = None
+        self._lock = threading.Lock()
+        self.frame_index = 0
+        self.last_T_world_from_camera = camera.T_world_from_camera.copy()
+
+    def set_truth(self, truth: Truth) -> None:
+        """Render ``truth`` (robot pose and landmarks, map = world frame) from now on."""
+        with self._lock:
+            self._truth = truth
+
+    def read(self) -> Frame | None:
+        with self._lock:
+            truth = self._truth
+        stamp = truth.stamp if truth is not None else self._clock()
+        T_wc = self.pose_at(stamp) if self.pose_at is not None else None
+        image = self.camera.render(
+            robot_pose=None if truth is None else truth.pose,
+            landmarks_xy=None if truth is None else truth.landmarks,
+            T_world_from_camera=T_wc, frame_index=self.frame_index)
+        self.frame_index += 1
+        self.last_T_world_from_camera = (self.camera.T_world_from_camera if T_wc is None
+                                         else T_wc)
+        return stamp, image
+
+    def close(self) -> None:
+        pass
+
+
+class ReconnectingSource:
+    """Wraps a source factory: a failing source is closed and reopened with back-off.
+
+    The first failure of an outage is logged as one warning line, and the recovery as
+    one info line; attempts in between are counted (``failures``) and logged at debug.
+    ``read`` never sleeps: while waiting to retry it returns None.
+    """
+
+    def __init__(self, open_source: Callable[[], FrameSource], *, name: str,
+                 initial: FrameSource | None = None, backoff_initial_s: float = 0.25,
+                 backoff_max_s: float = 5.0,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self._open = open_source
+        self.name = name
+        self._source = initial
+        self._backoff0 = backoff_initial_s
+        self._backoff_max = backoff_max_s
+        self._backoff = backoff_initial_s
+        self._clock = clock
+        self._retry_at = 0.0
+        self._outage = False
+        self.failures = 0  #: failed reads and reopen attempts
+        self.outages = 0  #: times the source vanished
+        self.reconnects = 0  #: times it came back
+
+    @property
+    def live(self) -> bool:
+        return bool(getattr(self._source, "live", False))
+
+    @property
+    def source(self) -> FrameSource | None:
+        return self._source
+
+    def _fail(self, exc: Exception) -> None:
+        self.failures += 1
+        if not self._outage:
+            self._outage = True
+            self.outages += 1
+            log.warning("%s lost: %s; retrying with back-off up to %.1f s",
+                        self.name, exc, self._backoff_max)
+        else:
+            log.debug("%s still unavailable: %s", self.name, exc)
+        self._retry_at = self._clock() + self._backoff
+        self._backoff = min(self._backoff * 2.0, self._backoff_max)
+
+    def read(self) -> Frame | None:
+        if self._source is None:
+            if self._clock() < self._retry_at:
+                return None
+            try:
+                self._source = self._open()
+            except SourceError as exc:
+                self._fail(exc)
+                return None
+            if self._outage:
+                self.reconnects += 1
+                log.info("%s is back after %d failed attempts", self.name, self.failures)
+            self._outage = False
+            self._backoff = self._backoff0
+        try:
+            return self._source.read()
+        except SourceEnded:
+            raise
+        except (SourceError, cv2.error) as exc:
+            self._close_inner()
+            self._fail(exc)
+            return None
+
+    def _close_inner(self) -> None:
+        if self._source is not None:
+            try:
+                self._source.close()
+            except Exception:  # a half-dead device may fail to close; it is gone anyway
+                log.debug("closing %s failed", self.name, exc_info=True)
+            self._source = None
+
+    def close(self) -> None:
+        self._close_inner()
+
+
+def parse_source(spec: str) -> int | Path | str:
+    """What a ``--source`` string names: a device index, a path, or a URL (or 'synthetic')."""
+    if spec.isdigit():
+        return int(spec)
+    if "://" in spec or spec == "synthetic":
+        return spec
+    return Path(spec)
+
+
+def open_capture(spec: str, *, loop: bool = False, width: int | None = None,
+                 height: int | None = None, fps: float | None = None) -> Callable[[], FrameSource]:
+    """A factory opening ``spec`` (device index, video file, URL or folder).
+
+    A path that does not exist when the service starts is a :class:`ConfigError` (a typo
+    should fail at once); later disappearances are retried by :class:`ReconnectingSource`.
+    """
+    target = parse_source(spec)
+    if target == "synthetic":
+        raise ConfigError("open_capture: 'synthetic' needs a SyntheticCamera")
+    if isinstance(target, Path):
+        if not target.exists():
+            raise ConfigError(f"source {target} does not exist")
+        if target.is_dir():
+            folder = target
+            return lambda: FolderSource(folder, loop=loop)
+        path = str(target)
+        return lambda: CaptureSource(path, loop=loop)
+    device = target
+    return lambda: CaptureSource(device, width=width, height=height, fps=fps)
