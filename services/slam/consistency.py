@@ -1,0 +1,131 @@
+"""Monte-Carlo consistency of the estimator on a simulated world (NEES of the robot pose).
+
+For each seed the simulator's events are applied to a fresh :class:`Estimator` in order,
+and after every event the robot pose error e = (x − x̂, y − ŷ, wrap(θ − θ̂)) is scored by
+NEES = eᵀ P_vv⁻¹ e against the truth at that stamp. Over M seeds the mean NEES times M is
+χ²(3M)-distributed for a consistent filter, which gives the two-sided band used by the
+tests and the plot in ``docs/consistency.md`` (Bar-Shalom, Li & Kirubarajan, §5.4).
+
+Also used by the tests of the covariance theorem: :func:`run` can collect every state.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import stats
+
+from common.geometry import wrap_angle
+from common.messages import Observations, Odometry, SlamState, Truth
+from services.slam.estimator import Estimator, EstimatorSettings
+from services.slam.sim import Simulator
+from services.slam.world import World
+
+
+@dataclass(frozen=True)
+class Run:
+    """One seed's run: NEES after every event (NaN while P_vv is singular)."""
+
+    stamps: np.ndarray  #: float64[T], s
+    steps: tuple[str, ...]  #: "predict" / "update" per event
+    nees: np.ndarray  #: float64[T]
+    states: tuple[SlamState, ...]  #: every state, when collected (else empty)
+
+
+def run(world: World, *, seed: int, settings: EstimatorSettings | None = None,
+        loops: int | None = None, anonymous: bool = False,
+        collect_states: bool = False) -> Run:
+    """Apply one seeded simulation to a fresh estimator; score the pose after each event."""
+    settings = settings or EstimatorSettings(
+        sigma_v=world.noise.sigma_v, sigma_w=world.noise.sigma_w,
+        sigma_range=world.noise.sigma_range, sigma_bearing=world.noise.sigma_bearing)
+    sim = Simulator(world, seed=seed, loops=loops, anonymous=anonymous)
+    est = Estimator(settings)
+    truth_pose: dict[float, np.ndarray] = {}
+    stamps: list[float] = []
+    steps: list[str] = []
+    nees: list[float] = []
+    states: list[SlamState] = []
+    seq = 0
+    pending: list[tuple[str, float]] = []
+    if collect_states:
+        states.append(est.to_state(seq=0, stamp=0.0, step="init"))
+
+    def score(step: str, stamp: float) -> None:
+        e = truth_pose[stamp] - est.pose
+        e[2] = wrap_angle(e[2])
+        Pvv = est.covariance[:3, :3]
+        try:
+            value = float(e @ np.linalg.solve(Pvv, e))
+        except np.linalg.LinAlgError:
+            value = math.nan
+        stamps.append(stamp)
+        steps.append(step)
+        nees.append(value if np.linalg.cond(Pvv) < 1e12 else math.nan)
+
+    for event in sim.events():
+        if isinstance(event, Truth):
+            truth_pose[event.stamp] = np.array(event.pose)
+            for step, stamp in pending:  # the odometry of this stamp came just before
+                score(step, stamp)
+            pending.clear()
+            continue
+        seq += 1
+        report = None
+        if isinstance(event, Odometry):
+            est.predict(v=event.v, w=event.w, dt=event.dt, stamp=event.stamp)
+            step = "predict"
+        else:
+            assert isinstance(event, Observations)
+            report = est.observe(ids=event.ids, ranges=event.ranges, bearings=event.bearings,
+                                 stamp=event.stamp)
+            step = "update"
+        if collect_states:
+            states.append(est.to_state(seq=seq, stamp=event.stamp, step=step, report=report))
+        if event.stamp in truth_pose:
+            score(step, event.stamp)
+        else:
+            pending.append((step, event.stamp))
+    return Run(np.array(stamps), tuple(steps), np.array(nees), tuple(states))
+
+
+@dataclass(frozen=True)
+class MonteCarlo:
+    """Mean NEES over seeds, per event, with its χ² band."""
+
+    stamps: np.ndarray
+    mean_nees: np.ndarray
+    lower: float
+    upper: float
+    seeds: int
+    dof: int = 3
+
+    @property
+    def inside(self) -> np.ndarray:
+        ok = np.isfinite(self.mean_nees)
+        return ok & (self.mean_nees >= self.lower) & (self.mean_nees <= self.upper)
+
+    @property
+    def fraction_inside(self) -> float:
+        finite = np.isfinite(self.mean_nees)
+        return float(np.mean(self.inside[finite]))
+
+    @property
+    def time_average(self) -> float:
+        return float(np.nanmean(self.mean_nees))
+
+
+def monte_carlo(world: World, seeds: Iterable[int], *, loops: int | None = None,
+                confidence: float = 0.95) -> MonteCarlo:
+    """Average NEES over ``seeds``; the band is the two-sided ``confidence`` χ²(3M)/M band."""
+    runs = [run(world, seed=s, loops=loops) for s in seeds]
+    M = len(runs)
+    length = min(len(r.nees) for r in runs)
+    mean = np.mean(np.stack([r.nees[:length] for r in runs]), axis=0)
+    alpha = 1.0 - confidence
+    lower = float(stats.chi2.ppf(alpha / 2, 3 * M) / M)
+    upper = float(stats.chi2.ppf(1 - alpha / 2, 3 * M) / M)
+    return MonteCarlo(runs[0].stamps[:length], mean, lower, upper, M)

@@ -1,0 +1,84 @@
+"""The estimator against independent statistics on the real simulator (issue 2 item 6).
+
+* Consistency: Monte-Carlo NEES of the robot pose over 20 seeds, the paper scenario's
+  default run, against the two-sided 95 % χ²(3M)/M band.
+* The covariance theorem (SPEC §5): on a correct run every P_d is non-increasing across
+  every event (Loewner order); on a faulty run the pairs containing faulty features grow.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from common.geometry import all_relative_covariances
+from services.slam.consistency import monte_carlo, run
+from services.slam.estimator import EstimatorSettings
+from services.slam.world import load_world
+
+WORLD = load_world("paper")
+
+
+def test_monte_carlo_nees_inside_chi2_band() -> None:
+    mc = monte_carlo(WORLD, range(20))
+    assert mc.seeds == 20 and len(mc.mean_nees) > 1000
+    # A consistent filter is inside a 95 % band about 95 % of the time (the samples are
+    # correlated in time, so this is not exact); we ask for at least 95 %.
+    assert mc.fraction_inside >= 0.95, mc.fraction_inside
+    # The time-averaged NEES is that of a 3-dof χ²: 3 within a few percent.
+    assert 2.7 < mc.time_average < 3.3, mc.time_average
+    # Excursions are bounded: the long-run EKF-SLAM inconsistency (Huang & Dissanayake
+    # 2007) would show as a growing mean; no step may exceed 1.25× the upper bound.
+    assert np.nanmax(mc.mean_nees) < 1.25 * mc.upper, np.nanmax(mc.mean_nees)
+    last = mc.mean_nees[-100:]
+    assert mc.lower <= float(np.mean(last)) <= mc.upper
+
+
+def _min_shrink(states) -> tuple[dict[tuple[int, int], float], dict[tuple[int, int], float]]:
+    """Per pair (ids): smallest eigenvalue of P_d(k) − P_d(k+1) over the run, and the net
+    growth of the P_d size (λ_max at the end − λ_max where it was first seen)."""
+    worst: dict[tuple[int, int], float] = {}
+    first: dict[tuple[int, int], float] = {}
+    last: dict[tuple[int, int], float] = {}
+    prev = None
+    for state in states:
+        n = state.n
+        if n < 2:
+            continue
+        I, J, Pd = all_relative_covariances(state.covariance, n)  # noqa: N806
+        ids = state.landmark_ids
+        cur = {(int(ids[i]), int(ids[j])): Pd[k] for k, (i, j) in enumerate(zip(I, J))}
+        for pair, P in cur.items():
+            lam = float(np.linalg.eigvalsh(P)[-1])
+            first.setdefault(pair, lam)
+            last[pair] = lam
+            if prev is not None and pair in prev:
+                D = prev[pair] - P
+                scale = max(float(np.abs(prev[pair]).max()), 1e-300)
+                worst[pair] = min(worst.get(pair, np.inf), float(np.linalg.eigvalsh(D)[0]) / scale)
+        prev = cur
+    growth = {p: last[p] - first[p] for p in last}
+    return worst, growth
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_correct_run_every_pd_non_increasing(seed: int) -> None:
+    states = run(WORLD, seed=seed, collect_states=True).states
+    worst, growth = _min_shrink(states)
+    assert len(worst) == 15 * 14 // 2
+    # relative to the size of P_d: rounding only
+    assert min(worst.values()) > -1e-9, min(worst.values())
+    assert max(growth.values()) <= 0.0
+
+
+def test_faulty_run_grows_exactly_the_pairs_with_faulty_features() -> None:
+    faulty = (3, 12)
+    settings = EstimatorSettings(fault="map-update", faulty_features=faulty)
+    states = run(WORLD, seed=4, settings=settings, collect_states=True).states
+    worst, growth = _min_shrink(states)
+    with_faulty = {p for p in growth if set(p) & set(faulty)}
+    others = set(growth) - with_faulty
+    assert all(growth[p] > 0 for p in with_faulty), min(growth[p] for p in with_faulty)
+    assert all(worst[p] < -1e-6 for p in with_faulty)
+    assert all(growth[p] <= 0 for p in others)
+    assert min(worst[p] for p in others) > -1e-9
