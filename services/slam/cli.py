@@ -106,7 +106,8 @@ def add_arguments(command: str, parser: argparse.ArgumentParser) -> None:
         parser.add_argument("--port", help="serial device or pyserial URL")
         parser.add_argument("--baudrate", type=int)
     elif command == "monitor":
-        parser.add_argument("--rtol", type=float, help="relative tolerance of the order checks")
+        parser.add_argument("--rtol", type=float,
+                            help="relative tolerance of the Loewner-order checks (rtol_growth)")
 
 
 # ---------------------------------------------------------------------------------
@@ -229,8 +230,9 @@ def _run_monitor(args: argparse.Namespace) -> int:
     from services.slam.monitor_service import MonitorService
     from services.slam.monitor_settings import MonitorSettings
 
-    robot = args.robot or "robot1"
-    settings = load_settings(MonitorSettings, args.config, _overrides(args, ["rtol"]))
+    settings = load_settings(MonitorSettings, args.config,
+                             {"robot": args.robot, "rtol_growth": args.rtol})
+    robot = settings.robot
     stop = stop_event()
     bus = open_bus(bus_settings(args))
     try:
