@@ -14,6 +14,7 @@ rendering. A view is active while somebody streams or requests it (``touch``), a
 from __future__ import annotations
 
 import logging
+import queue
 import threading
 import time
 from collections import OrderedDict, deque
@@ -130,7 +131,8 @@ class _View:
     settings: ViewSettings
     touched: float
     rendered: Rendered | None = None
-    inputs: tuple[Any, ...] | None = None
+    inputs: tuple[Any, ...] | None = None  #: inputs of ``rendered``
+    pending: tuple[Any, ...] | None = None  #: inputs of the picture being encoded
     rate: RateMeter = field(default_factory=RateMeter)
 
 
@@ -176,6 +178,7 @@ class ViewerService:
         self._eyes: tuple[Eye, ...] = ()
         self.render_ms: deque[float] = deque(maxlen=120)
         self._threads: list[threading.Thread] = []
+        self._encode_queue: queue.Queue[tuple[Any, ...]] = queue.Queue(maxsize=2)
         self.started = time.monotonic()
 
     def _series_clusters(self) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
@@ -201,7 +204,8 @@ class ViewerService:
                                _store(cam.registration_slot.offer))
         self._late_join()
         for name, target in (("viewer-decode", self._decode_loop),
-                             ("viewer-render", self._render_loop)):
+                             ("viewer-render", self._render_loop),
+                             ("viewer-encode", self._encode_loop)):
             thread = threading.Thread(target=target, name=name, daemon=True)
             thread.start()
             self._threads.append(thread)
@@ -245,7 +249,7 @@ class ViewerService:
 
     # -- listeners (the web layer) -------------------------------------------------
     def add_listener(self, listener: Callable[[], None]) -> None:
-        """Called on the render thread after each render cycle that produced pictures."""
+        """Called (on the encoding thread) after each new picture of any view."""
         self._listeners.append(listener)
 
     # -- clients and views ----------------------------------------------------------
@@ -359,9 +363,9 @@ class ViewerService:
 
     def _inputs(self) -> tuple[Any, ...]:
         """Signature of everything a picture depends on (besides its settings)."""
-        return (self._state_version, self._health_version, self._bounds,
+        return (self._state_version, self._health_version,
                 tuple((c.frame_version, c.registration_version)
-                      for c in self._cameras.values()))
+                      for c in self._cameras.values()), self._bounds)
 
     # -- rendering ------------------------------------------------------------------
     def _render_loop(self) -> None:
@@ -378,13 +382,9 @@ class ViewerService:
             last = time.monotonic()
             try:
                 self._ingest()
-                produced = self._render_active()
+                self._render_active()
             except Exception:  # a rendering bug must not kill the viewer
                 log.exception("render cycle failed")
-                produced = False
-            if produced:
-                for listener in list(self._listeners):
-                    listener()
 
     def _active_views(self) -> list[_View]:
         now = time.monotonic()
@@ -397,44 +397,61 @@ class ViewerService:
             return [v for v in self._views.values() if now - v.touched <= ttl]
 
     def _render_active(self) -> bool:
+        """Render every active view whose inputs changed; hand the pictures to encoding."""
         views = self._active_views()
         if not views:
             return False
-        with self._lock:
-            state = self.state
-            health = self.health
-        eyes = self._scene(state)
-        inputs = self._inputs()
+        with self._lock:  # one consistent snapshot of the inputs and their versions
+            state, health = self.state, self.health
+            cams = [(c.name, c.registration, c.image) for c in self._cameras.values()]
+            versions = (self._state_version, self._health_version,
+                        tuple((c.frame_version, c.registration_version)
+                              for c in self._cameras.values()))
+        eyes = self._scene(state, cams)
+        inputs = (*versions, self._bounds)
         produced = False
         for view in views:
-            if view.inputs == inputs and view.rendered is not None:
+            if view.rendered is not None and inputs in (view.inputs, view.pending):
                 continue
             t0 = time.perf_counter()
             image = self._compose(view, eyes, state, health)
+            image.setflags(write=False)
+            view.pending = inputs
+            # encoding runs on its own thread, overlapping the next render (throughput);
+            # a full queue makes this thread wait: the encoder sets the pace then
+            self._encode_queue.put((view, image, inputs, state, t0))
+            produced = True
+        return produced
+
+    def _encode_loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                view, image, inputs, state, t0 = self._encode_queue.get(timeout=0.5)
+            except queue.Empty:
+                continue
             ok, jpeg = cv2.imencode(".jpg", image,
                                     [cv2.IMWRITE_JPEG_QUALITY, self.config.jpeg_quality])
             if not ok:
                 log.error("JPEG encoding failed")
                 continue
-            image.setflags(write=False)
-            rendered = Rendered(
-                version=(view.rendered.version + 1) if view.rendered else 1,
-                seq=None if state is None else state.seq,
-                stamp=None if state is None else state.stamp,
-                image=image, jpeg=jpeg.tobytes(), rendered_at=time.monotonic())
             with self._lock:
+                rendered = Rendered(
+                    version=(view.rendered.version + 1) if view.rendered else 1,
+                    seq=None if state is None else state.seq,
+                    stamp=None if state is None else state.stamp,
+                    image=image, jpeg=jpeg.tobytes(), rendered_at=time.monotonic())
                 view.rendered, view.inputs = rendered, inputs
             view.rate.tick()
             self.render_ms.append((time.perf_counter() - t0) * 1e3)
-            produced = True
-        return produced
+            for listener in list(self._listeners):
+                listener()
 
-    def _scene(self, state: SlamState | None) -> tuple[Eye, ...]:
+    def _scene(self, state: SlamState | None,
+               cams: list[tuple[str, Registration | None, np.ndarray | None]]
+               ) -> tuple[Eye, ...]:
         """The camera model and background picture of each eye (one, or two for stereo)."""
         view = self.config.resolved_view
         eyes: list[Eye] = []
-        with self._lock:
-            cams = [(c.name, c.registration, c.image) for c in self._cameras.values()]
         if cams and all(reg is not None for _, reg, _ in cams):
             for name, reg, image in cams:
                 assert reg is not None
