@@ -1,0 +1,103 @@
+"""Real processes started from the deploy/ configs: outputs and exit codes."""
+
+from __future__ import annotations
+
+import subprocess
+import threading
+import time
+
+import pytest
+
+from common.keys import Keys
+from common.messages import Health
+from common.session import BusSettings, free_tcp_endpoint, open_bus
+from tests.procs import REPO, slamlens_cmd, spawn, stop
+
+DEPLOY = REPO / "deploy"
+KEYS = Keys()
+
+
+def _ready(proc, text: str, timeout: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        line = proc.stdout.readline()
+        if text in line:
+            return
+        if proc.poll() is not None:
+            raise AssertionError(f"{proc.args} exited {proc.returncode}: {proc.stderr.read()}")
+    raise AssertionError(f"{proc.args} never said {text!r}")
+
+
+@pytest.fixture
+def router():
+    endpoint = free_tcp_endpoint()
+    proc = spawn("router", "--zenoh-config", str(DEPLOY / "zenoh-router.json5"),
+                 "--listen", endpoint)
+    _ready(proc, "router ready")
+    yield endpoint
+    stop(proc)
+    assert proc.returncode == 0
+
+
+@pytest.mark.parametrize(("estimator_config", "expected_suspects"),
+                         [("estimator.toml", []), ("estimator_faulty.toml", [3, 12])])
+def test_paper_run_from_deploy_configs(router, estimator_config, expected_suspects) -> None:
+    est = spawn("estimator", "--config", str(DEPLOY / estimator_config), "--connect", router)
+    mon = spawn("monitor", "--config", str(DEPLOY / "monitor.toml"), "--connect", router)
+    healths: list[Health] = []
+    lock = threading.Lock()
+    bus = open_bus(BusSettings(connect=(router,)))
+    try:
+        _ready(est, "estimator ready")
+        _ready(mon, "monitor ready")
+
+        def on_health(key: str, payload: bytes) -> None:
+            with lock:
+                healths.append(Health.from_bytes(payload))
+
+        bus.subscribe(KEYS.health("robot1"), on_health)
+        time.sleep(0.3)
+        sim = subprocess.run(slamlens_cmd("sim", "--config", str(DEPLOY / "sim_paper.toml"),
+                                          "--connect", router),
+                             cwd=REPO, capture_output=True, text=True, timeout=180)
+        assert sim.returncode == 0, sim.stderr
+        assert "sim done" in sim.stdout
+        deadline = time.monotonic() + 30
+        while time.monotonic() < deadline:
+            with lock:
+                if healths and healths[-1].stamp >= 54.0:
+                    break
+            time.sleep(0.1)
+        with lock:
+            seen = list(healths)
+        assert seen, "no Health received"
+        assert seen[-1].stamp >= 54.0
+        final = bus.get(KEYS.health("robot1"))
+        assert len(final) == 1
+        latest = Health.from_bytes(final[0].payload)
+        if expected_suspects:
+            assert not latest.ok
+            assert sorted(latest.suspects.tolist()) == expected_suspects
+        else:
+            assert all(h.ok for h in seen), [h.violations for h in seen if not h.ok][:2]
+            assert latest.suspects.size == 0
+    finally:
+        bus.close()
+        for proc in (mon, est):
+            stop(proc)
+            assert proc.returncode == 0
+
+
+def test_bad_config_is_one_clear_line_and_exit_1(tmp_path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text('robot = "r"\ncolour = "red"\n')
+    out = subprocess.run(slamlens_cmd("estimator", "--config", str(bad)), cwd=REPO,
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 1
+    lines = out.stderr.strip().splitlines()
+    assert len(lines) == 1
+    assert lines[0].startswith("slamlens: error: unknown setting(s)")
+    assert "colour" in lines[0]
+    out = subprocess.run(slamlens_cmd("estimator", "--fault", "bitflip"), cwd=REPO,
+                         capture_output=True, text=True, timeout=60)
+    assert out.returncode == 1 and "'fault'" in out.stderr and "bitflip" in out.stderr
