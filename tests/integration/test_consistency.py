@@ -45,9 +45,10 @@ def _min_shrink(states) -> tuple[dict[tuple[int, int], float], dict[tuple[int, i
         n = state.n
         if n < 2:
             continue
-        I, J, Pd = all_relative_covariances(state.covariance, n)  # noqa: N806
+        first_idx, second_idx, Pd = all_relative_covariances(state.covariance, n)
         ids = state.landmark_ids
-        cur = {(int(ids[i]), int(ids[j])): Pd[k] for k, (i, j) in enumerate(zip(I, J))}
+        cur = {(int(ids[i]), int(ids[j])): Pd[k]
+               for k, (i, j) in enumerate(zip(first_idx, second_idx, strict=True))}
         for pair, P in cur.items():
             lam = float(np.linalg.eigvalsh(P)[-1])
             first.setdefault(pair, lam)
