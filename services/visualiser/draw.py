@@ -18,8 +18,6 @@ _ONE = 1 << SHIFT
 _LIMIT_PX = 2.0e5  # clamp before fixed point: far-off points must not overflow int32
 LIGHT_DIR = np.array([-0.45, -0.89])  # image-space direction towards the light (up, left)
 
-#: glyph shading: (scale of the nested ellipse, colour factor, share of white mixed in)
-SHADES = ((1.0, 0.55, 0.0), (0.66, 0.85, 0.0), (0.32, 1.0, 0.42))
 
 BGR = tuple[int, int, int]
 
@@ -160,53 +158,75 @@ class Cones:
 
 
 # -- glyphs -----------------------------------------------------------------------------
+#: level of detail by projected major semi-axis: (below px, shading layers, polygon vertices);
+#: the vertex counts keep the polygon within half a pixel of the true ellipse
+GLYPH_LOD = ((2.5, 1, 12), (7.0, 2, 16), (40.0, 3, 20), (150.0, 5, 40), (np.inf, 8, 96))
+
+
+def shading_profile(layers: int) -> list[tuple[float, float, float]]:
+    """(scale, colour factor, white) of each nested layer, rim first, highlight last.
+
+    A lit-sphere look: a dark rim (which also separates overlapping glyphs), the body
+    colour, then a whitened highlight shifted towards the light.
+    """
+    if layers == 1:
+        return [(1.0, 0.8, 0.0)]
+    out = []
+    for layer in range(layers):
+        t = layer / (layers - 1)
+        out.append((1.0 - 0.75 * t, 0.5 + 0.5 * min(1.0, t / 0.6),
+                    0.45 * max(0.0, (t - 0.5) / 0.5) ** 1.2))
+    return out
+
+
 class ShadedEllipses:
     """Image ellipses as nested polygons shaded darker (rim) to lighter (lit highlight).
 
-    Nested ellipses are shifted towards ``LIGHT_DIR`` so the glyph reads as a lit solid;
-    the dark rim also separates overlapping glyphs. Level of detail: tiny glyphs get one
-    or two layers, big ones more polygon vertices.
+    Nested ellipses are shifted towards ``LIGHT_DIR`` so the glyph reads as a lit solid.
+    Level of detail (``GLYPH_LOD``): tiny glyphs get one or two layers and few vertices,
+    big ones a smoother gradient and rounder outlines.
     """
 
-    def __init__(self, ie: ImageEllipses, index: np.ndarray, *, max_axis_px: float) -> None:
+    def __init__(self, ie: ImageEllipses, index: np.ndarray, *, max_axis_px: float,
+                 colour: BGR) -> None:
         self.index = np.asarray(index, dtype=np.int64)
         g = len(self.index)
         centre = ie.centre[self.index]
         axes = np.minimum(ie.axes[self.index], max_axis_px)
         angle = ie.angle[self.index]
-        self.layers = np.where(axes[:, 0] < 2.5, 1, np.where(axes[:, 0] < 7.0, 2, 3)).tolist()
-        vertices = np.where(axes[:, 0] < 40, 20, np.where(axes[:, 0] < 200, 40, 96))
-        # Polygons per vertex-count bucket and layer; glyph k is row _row[k] of _bucket[k].
-        self._polys: list[list[list[np.ndarray]]] = []
-        bucket = np.zeros(g, dtype=np.int64)
+        level = np.searchsorted(np.array([lod[0] for lod in GLYPH_LOD]), axes[:, 0],
+                                side="right")
+        # Polygons per level and layer; glyph k is row _row[k] of level _level[k].
+        self._polys: dict[int, list[list[np.ndarray]]] = {}
+        self._colours: dict[int, list[BGR]] = {}
         row = np.zeros(g, dtype=np.int64)
-        for b, v in enumerate(np.unique(vertices).tolist()):
-            sel = np.flatnonzero(vertices == v)
-            bucket[sel], row[sel] = b, np.arange(len(sel))
-            layers = []
-            for scale, _, _ in SHADES:
+        for lv in np.unique(level).tolist():
+            _, layers, vertices = GLYPH_LOD[lv]
+            sel = np.flatnonzero(level == lv)
+            row[sel] = np.arange(len(sel))
+            profile = shading_profile(layers)
+            self._colours[lv] = [shade(colour, f, w) for _, f, w in profile]
+            polys = []
+            for scale, _, _ in profile:
                 offset = (1.0 - scale) * 0.55 * axes[sel, 1:2] * LIGHT_DIR  # stays inside
                 polygons = ellipse_polygons(centre[sel] + offset, scale * axes[sel],
-                                            angle[sel], vertices=int(v))
-                layers.append(list(fixed(polygons)))
-            self._polys.append(layers)
-        self._bucket = bucket.tolist()
+                                            angle[sel], vertices=vertices)
+                polys.append(list(fixed(polygons)))
+            self._polys[lv] = polys
+        self._level = level.tolist()
         self._row = row.tolist()
 
-    def draw(self, img: np.ndarray, k: int, colours: tuple[BGR, ...], lt: int) -> None:
-        """Draw glyph ``k`` (position in ``index``) with per-layer ``colours``."""
-        polys, r = self._polys[self._bucket[k]], self._row[k]
+    def draw(self, img: np.ndarray, k: int, lt: int) -> None:
+        """Draw glyph ``k`` (a position in ``index``); inner layers with line type ``lt``."""
+        lv, r = self._level[k], self._row[k]
+        polys, colours = self._polys[lv], self._colours[lv]
         cv2.fillConvexPoly(img, polys[0][r], colours[0], cv2.LINE_AA, SHIFT)
-        for layer in range(1, self.layers[k]):
+        for layer in range(1, len(polys)):
             cv2.fillConvexPoly(img, polys[layer][r], colours[layer], lt, SHIFT)
 
     def outline(self, img: np.ndarray, k: int, colour: BGR, thickness: int) -> None:
-        polygon = self._polys[self._bucket[k]][0][self._row[k]]
+        polygon = self._polys[self._level[k]][0][self._row[k]]
         cv2.polylines(img, [polygon], True, colour, thickness, cv2.LINE_AA, SHIFT)
-
-
-def glyph_colours(colour: BGR) -> tuple[BGR, ...]:
-    return tuple(shade(colour, f, w) for _, f, w in SHADES)
 
 
 # -- text -------------------------------------------------------------------------------
@@ -216,7 +236,11 @@ FONT = cv2.FONT_HERSHEY_SIMPLEX
 def text(img: np.ndarray, message: str, org: tuple[int, int], *, scale: float,
          colour: BGR = (255, 255, 255), thickness: int = 1) -> None:
     """Text with a dark halo, legible over any picture."""
-    cv2.putText(img, message, org, FONT, scale, (0, 0, 0), thickness + 2, cv2.LINE_AA)
+    x, y = org
+    # Halo by shifted copies: a thicker stroke would also widen OpenCV's glyph advance.
+    for dx, dy in ((-1, 0), (1, 0), (0, -1), (0, 1), (-1, -1), (1, 1), (-1, 1), (1, -1)):
+        cv2.putText(img, message, (x + dx, y + dy), FONT, scale, (0, 0, 0), thickness,
+                    cv2.LINE_AA)
     cv2.putText(img, message, org, FONT, scale, colour, thickness, cv2.LINE_AA)
 
 

@@ -25,7 +25,7 @@ from common.messages import Health, SlamState
 from services.visualiser import draw
 from services.visualiser.camera_model import CameraModel
 from services.visualiser.clusters import ClusterTracker, cluster_colour, cluster_labels
-from services.visualiser.glyphs import project_ellipsoids
+from services.visualiser.glyphs import ImageEllipses, project_ellipsoids
 from services.visualiser.scene import ROLE_NAMES, ROLE_PAIR, Scene, build_scene
 from services.visualiser.settings import ViewSettings
 
@@ -58,17 +58,25 @@ class Renderer:
         with self._lock:
             return np.array(self._path, dtype=float).reshape(-1, 2)
 
-    def _update_path(self, state: SlamState) -> np.ndarray:
-        if state.robot != self._path_robot or state.seq < self._path_seq:
-            self._path, self._path_robot, self._path_seq = [], state.robot, -1
-        if state.seq > self._path_seq:
-            self._path_seq = state.seq
-            point = (float(state.pose[0]), float(state.pose[1]))
+    def track(self, robot: str, seq: int, xy: np.ndarray) -> None:
+        """Add a position to the path without drawing (for callers that draw only some
+        states, e.g. a viewer whose latest-wins input skips states)."""
+        with self._lock:
+            self._track(robot, seq, (float(xy[0]), float(xy[1])))
+
+    def _track(self, robot: str, seq: int, point: tuple[float, float]) -> None:
+        if robot != self._path_robot or seq < self._path_seq:
+            self._path, self._path_robot, self._path_seq = [], robot, -1
+        if seq > self._path_seq:
+            self._path_seq = seq
             if not self._path or self._path[-1] != point:
                 self._path.append(point)
             if len(self._path) > MAX_PATH_POINTS:
                 half = len(self._path) // 2
                 self._path = self._path[:half:2] + self._path[half:]
+
+    def _update_path(self, state: SlamState) -> np.ndarray:
+        self._track(state.robot, state.seq, (float(state.pose[0]), float(state.pose[1])))
         return np.array(self._path, dtype=float).reshape(-1, 2)
 
     def cluster_ids(self, state: SlamState, settings: ViewSettings) -> np.ndarray:
@@ -146,8 +154,8 @@ class Renderer:
         glyphs = None
         if settings.ellipsoids and len(scene.glyphs):
             shown = _on_screen(ie, camera)
-            glyphs = draw.ShadedEllipses(ie, shown, max_axis_px=4.0 * (camera.width
-                                                                       + camera.height))
+            glyphs = draw.ShadedEllipses(ie, shown, colour=settings.colour_ellipsoids,
+                                         max_axis_px=4.0 * (camera.width + camera.height))
         cone_sets: list[draw.Cones] = []
         if settings.features and state.n:
             cone_sets.append(draw.Cones(camera, state.landmarks, height_m=settings.cone_height_m,
@@ -162,12 +170,11 @@ class Renderer:
         kind = np.concatenate([np.full(len(shown), -1)]
                               + [np.full(len(c), s) for s, c in enumerate(cone_sets)])
         item = np.concatenate([np.arange(len(shown))] + [np.arange(len(c)) for c in cone_sets])
-        glyph_colours = draw.glyph_colours(settings.colour_ellipsoids)
         lt = draw.line_type(len(shown), _AA_GLYPH_LIMIT)
         for k in np.argsort(-depth, kind="stable").tolist():
             s, i = int(kind[k]), int(item[k])
             if s < 0:
-                glyphs.draw(img, i, glyph_colours, lt)  # type: ignore[union-attr]
+                glyphs.draw(img, i, lt)  # type: ignore[union-attr]
             else:
                 cone_sets[s].draw(img, i)
 
@@ -238,7 +245,7 @@ def _health_sets(health: Health | None,
     return pairs, present[np.isin(present, state.landmark_ids)]
 
 
-def _on_screen(ie, camera: CameraModel) -> np.ndarray:
+def _on_screen(ie: ImageEllipses, camera: CameraModel) -> np.ndarray:
     a, b, t = ie.axes[:, 0], ie.axes[:, 1], ie.angle
     half_w = np.sqrt((a * np.cos(t)) ** 2 + (b * np.sin(t)) ** 2)
     half_h = np.sqrt((a * np.sin(t)) ** 2 + (b * np.cos(t)) ** 2)
@@ -278,9 +285,9 @@ def _draw_grid(img: np.ndarray, camera: CameraModel, step_m: float = 0.5) -> Non
     p1 = np.concatenate([np.column_stack([xs, np.full_like(xs, ys[-1]), np.zeros_like(xs)]),
                          np.column_stack([np.full_like(ys, xs[-1]), ys, np.zeros_like(ys)])])
     major = np.concatenate([np.isclose(xs, 0.0), np.isclose(ys, 0.0)])
-    base = img[0, 0].astype(int)
-    minor_colour = tuple(int(c) for c in np.clip(base + 14, 0, 255))
-    major_colour = tuple(int(c) for c in np.clip(base + 45, 0, 255))
+    b, g, r = (int(c) for c in img[0, 0])
+    minor_colour = (min(b + 14, 255), min(g + 14, 255), min(r + 14, 255))
+    major_colour = (min(b + 45, 255), min(g + 45, 255), min(r + 45, 255))
     draw.draw_polylines(img, draw.project_segments(camera, p0[~major], p1[~major])[0],
                         minor_colour, 1, cv2.LINE_AA)
     draw.draw_polylines(img, draw.project_segments(camera, p0[major], p1[major])[0],
@@ -352,7 +359,7 @@ def _draw_labels(img: np.ndarray, camera: CameraModel, state: SlamState,
                       colour=settings.colour_features)
 
 
-def _draw_roles(img: np.ndarray, ie, scene: Scene, shown: np.ndarray,
+def _draw_roles(img: np.ndarray, ie: ImageEllipses, scene: Scene, shown: np.ndarray,
                 camera: CameraModel) -> None:
     """'min' / 'mean' / 'max' beside the minmeanmax glyphs."""
     scale = 0.42 * camera.height / 720

@@ -156,7 +156,10 @@ def build_scene(state: SlamState, settings: ViewSettings, *,
     if cluster_ids is not None:
         for c in np.unique(cluster_ids).tolist():
             centroids[int(c)] = xy[cluster_ids == c].mean(axis=0)
-    glyph_args = {"glyph": settings.glyph, "sigma_k": settings.sigma_k, "scale": settings.scale}
+
+    def glyphs_for(Pd: np.ndarray, centres: np.ndarray) -> Ellipsoids:
+        return ellipsoids_from_pd(Pd, centres, glyph=settings.glyph, sigma_k=settings.sigma_k,
+                                  scale=settings.scale)
 
     if selected_missing or n < 2:
         ii = jj = np.zeros(0, dtype=np.int64)
@@ -172,7 +175,7 @@ def build_scene(state: SlamState, settings: ViewSettings, *,
         keys = _pair_keys(ids[ii], ids[jj])
         flags = _flags(keys, violating_pairs)
         mid = 0.5 * (xy[ii] + xy[jj])
-        ell = ellipsoids_from_pd(Pd, mid, **glyph_args)
+        ell = glyphs_for(Pd, mid)
         pair_ids = np.column_stack([ids[ii], ids[jj]]).astype(np.int64).reshape(-1, 2)
         clusters = (np.column_stack([cluster_ids[ii], cluster_ids[jj]]).reshape(-1, 2)
                     if cluster_ids is not None else np.full((len(ii), 2), -1, np.int64))
@@ -197,7 +200,7 @@ def build_scene(state: SlamState, settings: ViewSettings, *,
     start = np.array([centroids[int(a)] for a in stats.clusters[:, 0]]).reshape(-1, 2)
     end = np.array([centroids[int(b)] for b in stats.clusters[:, 1]]).reshape(-1, 2)
     Pd3 = np.concatenate([Pd[stats.min_pair], stats.mean_Pd, Pd[stats.max_pair]])
-    ell0 = ellipsoids_from_pd(Pd3, np.zeros((3 * c, 2)), **glyph_args)
+    ell0 = glyphs_for(Pd3, np.zeros((3 * c, 2)))
     h_min, h_mean, h_max = ell0.h[:c], ell0.h[c:2 * c], ell0.h[2 * c:]
     spread = settings.minmeanmax_spread
     t = np.concatenate([np.full(c, 0.5 - spread), np.full(c, 0.5), np.full(c, 0.5 + spread)])
