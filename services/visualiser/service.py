@@ -38,6 +38,7 @@ from services.visualiser.render import Renderer, side_by_side
 from services.visualiser.series import SeriesStore
 from services.visualiser.settings import ViewSettings
 from services.visualiser.views import (
+    DEFAULT_BOUNDS,
     Eye,
     Rendered,
     grow_bounds,
@@ -147,7 +148,8 @@ class ViewerService:
         self.keys = keys
         self.config = config
         self.default_settings = default_settings or ViewSettings()
-        self.bad = DropCounter(log)
+        self.bad = DropCounter(log)  #: malformed input messages, by input
+        self.failures = DropCounter(log)  #: states that could not be drawn or plotted
         self._stop = threading.Event()
         self._render_wake = threading.Event()
         self._decode_wake = threading.Event()
@@ -309,7 +311,10 @@ class ViewerService:
                 frame = decode(f"frame {cam.name}", raw, CameraFrame.from_bytes, self.bad)
                 if frame is None:
                     continue
-                image = cv2.imdecode(np.frombuffer(frame.data, np.uint8), cv2.IMREAD_COLOR)
+                try:
+                    image = cv2.imdecode(np.frombuffer(frame.data, np.uint8), cv2.IMREAD_COLOR)
+                except cv2.error:  # e.g. empty data
+                    image = None
                 if image is None or image.shape[:2] != (frame.height, frame.width):
                     got = "undecodable JPEG" if image is None else f"{image.shape[1]}×" \
                         f"{image.shape[0]} pixels"
@@ -340,7 +345,10 @@ class ViewerService:
                     self.state, self.state_received = state, raw.received
                     self._state_version = raw.version
                 self.state_rate.tick()
-                self.series.add_state(state, now=now)
+                try:
+                    self.series.add_state(state, now=now)
+                except Exception as exc:  # the plots are optional; the picture is not
+                    self.failures.drop("plots", f"state seq {state.seq}: {exc!r}")
         for raw in self._health_queue.drain():
             health = decode("health", raw, Health.from_bytes, self.bad)
             if health is None:
@@ -419,7 +427,12 @@ class ViewerService:
             view.pending = inputs
             # encoding runs on its own thread, overlapping the next render (throughput);
             # a full queue makes this thread wait: the encoder sets the pace then
-            self._encode_queue.put((view, image, inputs, state, t0))
+            while not self._stop.is_set():
+                try:
+                    self._encode_queue.put((view, image, inputs, state, t0), timeout=0.5)
+                    break
+                except queue.Full:
+                    continue
             produced = True
         return produced
 
@@ -444,7 +457,10 @@ class ViewerService:
             view.rate.tick()
             self.render_ms.append((time.perf_counter() - t0) * 1e3)
             for listener in list(self._listeners):
-                listener()
+                try:
+                    listener()
+                except Exception:  # a broken listener must not stop the pictures
+                    log.exception("viewer listener failed")
 
     def _scene(self, state: SlamState | None,
                cams: list[tuple[str, Registration | None, np.ndarray | None]]
@@ -469,7 +485,7 @@ class ViewerService:
             if state is not None:
                 with self._lock:
                     self._bounds = grow_bounds(self._bounds, state)
-            bounds = self._bounds or (-1.0, -1.0, 4.0, 4.0)
+            bounds = self._bounds or DEFAULT_BOUNDS
             model = CameraModel.top_down(bounds_xy=bounds, width=self.config.map_width,
                                          height=self.config.map_height)
             if view == "stereo":
@@ -489,8 +505,15 @@ class ViewerService:
                 text = eye.note or f"waiting for the state of robot {self.config.robot}"
                 pictures.append(placeholder(eye, text, view.settings))
             else:
-                pictures.append(self.renderer.render(eye.image, state=state, camera=eye.camera,
-                                                     settings=view.settings, health=health))
+                try:
+                    pictures.append(self.renderer.render(
+                        eye.image, state=state, camera=eye.camera, settings=view.settings,
+                        health=health))
+                except Exception as exc:  # keep the picture flowing, say what went wrong
+                    self.failures.drop("render", f"state seq {state.seq}: {exc!r}")
+                    pictures.append(placeholder(
+                        eye, f"cannot draw state seq {state.seq}: {type(exc).__name__}",
+                        view.settings))
         if len(pictures) == 2:
             return side_by_side(pictures[0], pictures[1])
         return np.ascontiguousarray(pictures[0])
@@ -562,6 +585,7 @@ class ViewerService:
             "render_ms_median": float(np.median(self.render_ms)) if self.render_ms else None,
             "views_active": len(active), "clients": len(self._clients),
             "bad_messages": dict(self.bad.counts),
+            "failures": dict(self.failures.counts),
             "recording": sorted(self._recorders),
         }
 

@@ -18,6 +18,7 @@ BOUNDS_STEP_M = 0.5
 #: smallest extent of the map view, m (a robot alone at the origin still gets a floor)
 MIN_EXTENT_M = 2.0
 PLACEHOLDER_SIZE = (1280, 720)
+DEFAULT_BOUNDS = (-1.0, -1.0, 4.0, 4.0)  #: map view before any state, m
 
 
 @dataclass(frozen=True, eq=False)
@@ -44,22 +45,28 @@ class Eye:
 
 def grow_bounds(bounds: tuple[float, float, float, float] | None,
                 state: SlamState) -> tuple[float, float, float, float]:
-    """Map-view bounds (xmin, ymin, xmax, ymax) that only grow, snapped to a grid.
+    """Map-view bounds (xmin, ymin, xmax, ymax) that grow with the map, snapped to a grid.
 
-    Growing only and snapping keep the virtual top-down camera still while the map
-    fills in, instead of zooming with every new landmark or robot step.
+    Growing only and snapping keep the virtual top-down camera still while the map fills
+    in, instead of zooming with every new landmark or robot step. They shrink back only
+    when the map fits in less than half of them both ways (e.g. after one wild estimate),
+    so a single outlier does not leave the view zoomed out for good.
     """
     points = np.vstack([np.asarray(state.landmarks).reshape(-1, 2),
                         np.asarray(state.pose[:2]).reshape(1, 2)])
-    lo, hi = points.min(axis=0), points.max(axis=0)
-    centre = (lo + hi) / 2
-    half = np.maximum((hi - lo) / 2, MIN_EXTENT_M / 2)
-    lo, hi = centre - half, centre + half
-    snapped = (math.floor(lo[0] / BOUNDS_STEP_M) * BOUNDS_STEP_M,
-               math.floor(lo[1] / BOUNDS_STEP_M) * BOUNDS_STEP_M,
-               math.ceil(hi[0] / BOUNDS_STEP_M) * BOUNDS_STEP_M,
-               math.ceil(hi[1] / BOUNDS_STEP_M) * BOUNDS_STEP_M)
+    with np.errstate(over="ignore", invalid="ignore"):
+        lo, hi = points.min(axis=0), points.max(axis=0)
+        centre = lo / 2 + hi / 2
+        half = np.maximum(hi / 2 - lo / 2, MIN_EXTENT_M / 2)
+        lo, hi = (centre - half) / BOUNDS_STEP_M, (centre + half) / BOUNDS_STEP_M
+    if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
+        return bounds or DEFAULT_BOUNDS  # estimates near the float limit: keep the view
+    snapped = (math.floor(lo[0]) * BOUNDS_STEP_M, math.floor(lo[1]) * BOUNDS_STEP_M,
+               math.ceil(hi[0]) * BOUNDS_STEP_M, math.ceil(hi[1]) * BOUNDS_STEP_M)
     if bounds is None:
+        return snapped
+    if (snapped[2] - snapped[0] < 0.5 * (bounds[2] - bounds[0])
+            and snapped[3] - snapped[1] < 0.5 * (bounds[3] - bounds[1])):
         return snapped
     return (min(bounds[0], snapped[0]), min(bounds[1], snapped[1]),
             max(bounds[2], snapped[2]), max(bounds[3], snapped[3]))
@@ -91,6 +98,8 @@ def project_features(eyes: tuple[Eye, ...], landmarks_xy: np.ndarray) -> list[An
     offset = 0
     for eye in eyes:
         if eye.camera is None or len(landmarks_xy) == 0:
+            width = PLACEHOLDER_SIZE[0] if eye.image is None else eye.image.shape[1]
+            offset += eye.camera.width if eye.camera is not None else width
             continue
         points = np.c_[landmarks_xy, np.zeros(len(landmarks_xy))]
         uv, depth = eye.camera.project(points)

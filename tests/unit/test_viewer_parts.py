@@ -1,0 +1,236 @@
+"""Pure parts of the viewer service: intake slots, map bounds, plots' series, parsing, video."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from common.errors import ConfigError
+from common.messages import Health, SlamState
+from services.visualiser.camera_model import CameraModel
+from services.visualiser.intake import Queue, RateMeter, Slot
+from services.visualiser.recording import Recorder, encode_png, recording_name
+from services.visualiser.series import SeriesStore, pair_index
+from services.visualiser.views import Eye, grow_bounds, project_features
+from services.visualiser.web import BadRequest, parse_http, parse_pairs
+
+
+def random_state(n: int, *, seq: int = 1, seed: int = 0, landmarks=None) -> SlamState:
+    rng = np.random.default_rng(seed)
+    A = rng.normal(size=(3 + 2 * n, 3 + 2 * n)) * 0.05
+    P = A @ A.T + 1e-4 * np.eye(3 + 2 * n)
+    xy = rng.uniform(0, 3, (n, 2)) if landmarks is None else np.asarray(landmarks, float)
+    return SlamState(robot="r", seq=seq, stamp=0.1 * seq, step="update",
+                     pose=np.array([1.0, 1.0, 0.0]), landmark_ids=np.arange(100, 100 + n),
+                     landmarks=xy, covariance=P)
+
+
+# -- intake -------------------------------------------------------------------------------
+def test_slot_keeps_the_latest_and_gives_each_payload_once() -> None:
+    wakes: list[int] = []
+    slot = Slot("state", lambda: wakes.append(1))
+    assert slot.take() is None
+    slot.offer(b"a")
+    slot.offer(b"b")
+    raw = slot.take()
+    assert raw is not None and raw.payload == b"b" and raw.version == 2
+    assert slot.take() is None  # taken already
+    assert not slot.offer_if_empty(b"late")  # a live sample came first
+    assert len(wakes) == 2
+    empty = Slot("registration", lambda: None)
+    assert empty.offer_if_empty(b"late")
+    assert empty.take().payload == b"late"  # type: ignore[union-attr]
+
+
+def test_queue_keeps_order_and_drops_the_oldest_when_full() -> None:
+    q = Queue("health", lambda: None, maxlen=3)
+    for k in range(5):
+        q.offer(bytes([k]))
+    assert [r.payload for r in q.drain()] == [b"\x02", b"\x03", b"\x04"]
+    assert q.drain() == []
+    assert q.received_count == 5
+
+
+def test_rate_meter_counts_intervals_in_its_window() -> None:
+    meter = RateMeter(window_s=2.0)
+    for k in range(21):
+        meter.tick(100.0 + k * 0.05)  # 20 Hz for one second
+    assert meter.rate(101.0) == pytest.approx(20.0)
+    assert meter.rate(104.0) == 0.0  # nothing in the last two seconds
+
+
+# -- map bounds ---------------------------------------------------------------------------
+def test_map_bounds_snap_grow_and_hold_still() -> None:
+    first = grow_bounds(None, random_state(3, landmarks=[[0.1, 0.2], [2.3, 0.4], [1.0, 2.7]]))
+    assert first == (0.0, 0.0, 2.5, 3.0)
+    # a small move inside the bounds changes nothing
+    assert grow_bounds(first, random_state(3, landmarks=[[0.2, 0.3], [2.2, 0.4],
+                                                          [1.0, 2.6]])) == first
+    # a new landmark outside grows them, to the grid
+    grown = grow_bounds(first, random_state(3, landmarks=[[0.1, 0.2], [3.2, 0.4],
+                                                          [1.0, 2.7]]))
+    assert grown == (0.0, 0.0, 3.5, 3.0)
+    # a lone robot still gets a floor of at least 2 m
+    lone = grow_bounds(None, random_state(0))
+    assert lone[2] - lone[0] >= 2.0 and lone[3] - lone[1] >= 2.0
+
+
+def test_map_bounds_recover_from_one_wild_estimate() -> None:
+    normal = [[0.1, 0.2], [2.3, 0.4], [1.0, 2.7]]
+    wild = grow_bounds(None, random_state(3, landmarks=[[0.1, 0.2], [2.3, 0.4], [900, 800]]))
+    assert wild[2] >= 900
+    assert grow_bounds(wild, random_state(3, landmarks=normal)) == (0.0, 0.0, 2.5, 3.0)
+    huge = grow_bounds(None, random_state(1, landmarks=[[1e308, -1e308]]))
+    assert all(np.isfinite(huge))
+
+
+# -- series -------------------------------------------------------------------------------
+def test_pair_index_matches_numpy_triu_order() -> None:
+    n = 9
+    first, second = np.triu_indices(n, k=1)
+    for k, (i, j) in enumerate(zip(first, second, strict=True)):
+        assert pair_index(int(i), int(j), n) == k
+
+
+def test_series_sizes_match_an_eigh_oracle_per_pair() -> None:
+    state = random_state(6, seed=3)
+    store = SeriesStore(min_interval_s=0.0)
+    store.add_state(state, now=0.0)
+    pairs = [(100, 105), (104, 101), (102, 103)]
+    data = store.to_json(pairs)
+    P = np.array(state.covariance)
+    for (a, b), entry in zip(pairs, data["pairs"], strict=True):
+        i, j = a - 100, b - 100
+        si, sj = slice(3 + 2 * i, 5 + 2 * i), slice(3 + 2 * j, 5 + 2 * j)
+        Pd = P[si, si] + P[sj, sj] - P[si, sj] - P[sj, si]
+        expected = np.sqrt(np.linalg.eigvalsh(Pd)[-1])
+        assert entry["values"] == [pytest.approx(expected, rel=1e-6)]
+    assert data["state"]["seq"] == [1]
+
+
+def test_series_cluster_min_mean_max_against_brute_force() -> None:
+    xy = [[0, 0], [0.2, 0], [0.1, 0.2], [3, 3], [3.2, 3], [5, 0]]  # three clusters
+    state = random_state(6, seed=5, landmarks=xy)
+    labels = np.array([7, 7, 7, 8, 8, 9])
+    store = SeriesStore(min_interval_s=0.0, cluster=lambda _xy, _ids: labels)
+    store.add_state(state, now=0.0)
+    clusters = {tuple(c["clusters"]): c for c in store.to_json([])["clusters"]}
+    assert set(clusters) == {(7, 8), (7, 9), (8, 9)}
+    P = np.array(state.covariance)
+
+    def pd(i: int, j: int) -> np.ndarray:
+        si, sj = slice(3 + 2 * i, 5 + 2 * i), slice(3 + 2 * j, 5 + 2 * j)
+        return P[si, si] + P[sj, sj] - P[si, sj] - P[sj, si]
+
+    members = [(i, j) for i in range(3) for j in (3, 4)]  # clusters 7 and 8
+    sizes = [np.sqrt(np.linalg.eigvalsh(pd(i, j))[-1]) for i, j in members]
+    mean_pd = np.mean([pd(i, j) for i, j in members], axis=0)
+    c = clusters[(7, 8)]
+    assert c["min"] == [pytest.approx(min(sizes), rel=1e-6)]
+    assert c["max"] == [pytest.approx(max(sizes), rel=1e-6)]
+    assert c["mean"] == [pytest.approx(np.sqrt(np.linalg.eigvalsh(mean_pd)[-1]), rel=1e-6)]
+
+
+def test_series_decimates_in_time_and_restarts_with_a_new_run() -> None:
+    store = SeriesStore(min_interval_s=0.2)
+    assert store.add_state(random_state(3, seq=1), now=10.0)
+    assert not store.add_state(random_state(3, seq=2), now=10.1)
+    assert store.add_state(random_state(3, seq=3), now=10.25)
+    assert store.to_json([])["state"]["seq"] == [1, 3]
+    assert store.add_state(random_state(3, seq=1), now=11.0)  # seq went back: a new run
+    assert store.to_json([])["state"]["seq"] == [1]
+    health = Health(robot="r", seq=1, stamp=0.1, ok=True, suspects=np.zeros(0, np.int64),
+                    statistics={"nis": 1.5})
+    assert store.add_health(health, now=11.0)
+    assert store.to_json([])["health"]["stats"] == {"nis": [1.5]}
+
+
+def test_series_marks_missing_pairs_as_null_and_picks_default_pairs() -> None:
+    store = SeriesStore(min_interval_s=0.0)
+    store.add_state(random_state(2, seq=1), now=0.0)
+    store.add_state(random_state(4, seq=2), now=1.0)  # features 102, 103 appear
+    data = store.to_json([(100, 103), (100, 101)])
+    assert data["pairs"][0]["values"][0] is None and data["pairs"][0]["values"][1] is not None
+    assert store.default_pairs(flagged=[(103, 101)]) == [(101, 103)]
+    chosen = store.default_pairs(selected=102, limit=10)
+    assert len(chosen) == 3 and all(102 in p for p in chosen)
+    ids, sizes = store.latest_sizes()  # type: ignore[misc]
+    biggest = store.default_pairs(limit=1)[0]
+    k = pair_index(biggest[0] - 100, biggest[1] - 100, 4)
+    assert sizes[k] == sizes.max()
+
+
+# -- parsing ------------------------------------------------------------------------------
+def test_parse_pairs_and_http_address() -> None:
+    assert parse_pairs("1-2, 3-4,") == [(1, 2), (3, 4)]
+    assert parse_pairs("") == []
+    for bad in ("1-", "a-b", "1:2", "-1-2"):
+        with pytest.raises(BadRequest):
+            parse_pairs(bad)
+    assert parse_http("127.0.0.1:8080") == ("127.0.0.1", 8080)
+    assert parse_http("[::1]:0") == ("::1", 0)
+    for bad in ("8080", "host:", ":80", "host:99999", "host:http"):
+        with pytest.raises(ConfigError):
+            parse_http(bad)
+
+
+# -- feature picking ----------------------------------------------------------------------
+def test_feature_pixels_in_a_stereo_picture_are_offset_into_the_right_half() -> None:
+    top = CameraModel.top_down(bounds_xy=(0, 0, 3, 3), width=640, height=360)
+    left, right = top.stereo_pair(0.1)
+    xy = np.array([[1.5, 1.5], [50.0, 1.5]])  # the second is far outside the picture
+    single = project_features((Eye("map", top, None, ""),), xy)
+    assert single[0] == pytest.approx([320, 180], abs=1e-6) and single[1] is None
+    pair = project_features((Eye("l", left, None, ""), Eye("r", right, None, "")), xy)
+    uv, _ = left.project(np.array([[1.5, 1.5, 0.0]]))
+    assert pair[0] == pytest.approx(uv[0])  # seen by the left eye first
+    picture = np.zeros((360, 500, 3), np.uint8)  # an unregistered left camera's picture
+    pair = project_features((Eye("l", None, picture, "not registered"),
+                             Eye("r", right, None, "")), xy)
+    uv, _ = right.project(np.array([[1.5, 1.5, 0.0]]))
+    assert pair[0] == pytest.approx([uv[0, 0] + 500, uv[0, 1]])  # after the left picture
+
+
+# -- recording ----------------------------------------------------------------------------
+@pytest.mark.parametrize("codec", ["mp4v", "MJPG"])
+def test_recorder_writes_real_time_video(tmp_path: Path, codec: str) -> None:
+    frame = np.zeros((120, 160, 3), np.uint8)
+    frame[:, :80] = (0, 0, 255)
+    sizes = iter([(120, 160)] * 3 + [(240, 320)] * 1000)  # the view changes size midway
+
+    def source() -> np.ndarray:
+        h, w = next(sizes)
+        return cv2.resize(frame, (w, h))
+
+    name = recording_name("robot1", "tab/1", codec)
+    assert "/" not in name and name.endswith(".mp4" if codec == "mp4v" else ".avi")
+    recorder = Recorder(directory=tmp_path, name=name, fps=25.0, codec=codec, source=source,
+                        settings=lambda: None)
+    recorder.start()
+    time.sleep(0.6)
+    recorder.stop()
+    info = recorder.info()
+    assert not info["recording"] and info["error"] == ""
+    assert 8 <= info["frames"] <= 20  # ~25 fps × 0.6 s, on a busy machine
+    capture = cv2.VideoCapture(str(tmp_path / name))
+    read = 0
+    while True:
+        ok, image = capture.read()
+        if not ok:
+            break
+        assert image.shape == (120, 160, 3)  # later frames scaled to the first size
+        assert image[60, 20, 2] > 200 and image[60, 140, 2] < 60
+        read += 1
+    capture.release()
+    assert read == info["frames"]
+
+
+def test_png_snapshot_round_trips() -> None:
+    image = np.random.default_rng(0).integers(0, 255, (30, 40, 3), dtype=np.uint8)
+    data = encode_png(image)
+    assert data[:4] == b"\x89PNG"
+    assert np.array_equal(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR), image)
