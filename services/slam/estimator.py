@@ -167,6 +167,11 @@ class Estimator:
         return ekf.symmetric(self._L, 3 + 2 * self._n)
 
     @property
+    def pose_covariance(self) -> np.ndarray:
+        """P_vv, the 3×3 robot pose covariance (a copy; O(1), unlike ``covariance``)."""
+        return ekf.symmetric(self._L, 3)
+
+    @property
     def capacity(self) -> int:
         """Landmarks the buffers hold before the next doubling."""
         return self._capacity

@@ -292,6 +292,7 @@ def test_covariance_stays_symmetric_psd_over_1000_random_steps() -> None:
         est.observe(ids=np.array(ids, dtype=np.int64), ranges=rs, bearings=bs, stamp=k)
         P = est.covariance
         assert np.array_equal(P, P.T)
+        assert np.array_equal(est.pose_covariance, P[:3, :3])
         eig = np.linalg.eigvalsh(P)
         worst = min(worst, float(eig[0] / eig[-1]))
     assert est.n >= 20
