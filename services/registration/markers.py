@@ -159,13 +159,21 @@ class DetectorTuning:
 
 # --- "edges" refinement: a pure function over all markers at once -------------------------
 
-def _sample(gray: np.ndarray, points: np.ndarray) -> np.ndarray:
-    """Bilinear intensities at float (x, y) points of any leading shape."""
-    flat = points.reshape(-1, 2).astype(np.float32)
-    # cv2.remap is bilinear to 1/32 px: far below the 0.25 px search step
-    values = cv2.remap(gray, flat[:, :1], flat[:, 1:], cv2.INTER_LINEAR,
-                       borderMode=cv2.BORDER_REPLICATE)
-    return values.reshape(points.shape[:-1]).astype(np.float64)
+_REMAP_MAX_ROWS = 30000  # cv2.remap wants map sides below SHRT_MAX
+
+
+def _sample_lines(gray: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> np.ndarray:
+    """Bilinear intensities at float32 (…, L) coordinates, one row per sampled line."""
+    shape = xs.shape
+    xs2 = xs.reshape(-1, shape[-1])
+    ys2 = ys.reshape(-1, shape[-1])
+    out = np.empty(xs2.shape, np.float32)
+    for r in range(0, xs2.shape[0], _REMAP_MAX_ROWS):
+        # cv2.remap is bilinear to 1/32 px: far below the 0.25 px search step
+        out[r:r + _REMAP_MAX_ROWS] = cv2.remap(gray, xs2[r:r + _REMAP_MAX_ROWS],
+                                               ys2[r:r + _REMAP_MAX_ROWS], cv2.INTER_LINEAR,
+                                               borderMode=cv2.BORDER_REPLICATE)
+    return out.reshape(shape)
 
 
 def _refine_once(gray: np.ndarray, corners: np.ndarray, *, search_px: float,
@@ -177,20 +185,26 @@ def _refine_once(gray: np.ndarray, corners: np.ndarray, *, search_px: float,
     side = end - start
     length = np.linalg.norm(side, axis=-1)  # (m, 4)
     along = side / np.maximum(length, 1e-9)[..., None]
-    normal = np.stack([along[..., 1], -along[..., 0]], axis=-1)  # outward for clockwise corners
+    nx, ny = along[..., 1], -along[..., 0]  # outward normal for clockwise corners
     # ≥ 16 samples per side, one every 8 px on big markers (as AprilTag's refine_edges)
     n_samples = max(16, int(math.ceil(float(length.max()) / 8.0)))
     alpha = (1.0 + np.arange(n_samples)) / (n_samples + 1)  # skip the unreliable corners
     base = start[:, :, None, :] + alpha[None, None, :, None] * side[:, :, None, :]
+    # one line of intensities per sample point along the normal; the gradient at offset t
+    # is I(t + g) − I(t − g), i.e. a difference of samples 2k apart
+    k = max(1, int(round(gradient_px / step_px)))
     offsets = np.arange(-search_px, search_px + 1e-9, step_px)
-    n = normal[:, :, None, None, :]
-    probe = base[:, :, :, None, :] + offsets[None, None, None, :, None] * n
-    gradient = _sample(gray, probe + gradient_px * n) - _sample(gray, probe - gradient_px * n)
+    line = np.arange(-k, len(offsets) + k) * step_px + offsets[0]
+    xs = (base[..., 0, None] + line * nx[:, :, None, None]).astype(np.float32)
+    ys = (base[..., 1, None] + line * ny[:, :, None, None]).astype(np.float32)
+    values = _sample_lines(gray, xs, ys)
+    gradient = (values[..., 2 * k:] - values[..., :-2 * k]).astype(np.float64)
     # dark inside, light outside: a backwards gradient belongs to another edge, drop it
     weight = np.where(gradient > 0.0, gradient * gradient, 0.0)
     total = weight.sum(axis=-1)
     valid = total > 0.0
-    shift = (weight * offsets).sum(axis=-1) / np.where(valid, total, 1.0)
+    shift = (weight @ offsets) / np.where(valid, total, 1.0)
+    normal = np.stack([nx, ny], axis=-1)
     points = base + shift[..., None] * normal[:, :, None, :]  # (m, 4, ns, 2)
 
     count = valid.sum(axis=-1)  # (m, 4)

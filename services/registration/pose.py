@@ -75,10 +75,19 @@ def marker_pose(det: Detection, *, size_m: float, calib: CameraCalibration,
             obj, corners, calib.K, calib.dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
     except cv2.error as exc:
         raise PoseError(f"marker {det.marker_id}: solvePnP failed ({exc.err})") from None
-    if n == 0:
-        raise PoseError(f"marker {det.marker_id}: no pose for corners {corners.tolist()}")
-    best = int(np.argmin(np.ravel(errors)))
-    rvec, tvec = rvecs[best], tvecs[best]
+    # IPPE can return a NaN rotation for one of its two solutions (seen with a rotation of
+    # about 180° about an axis in the image plane): keep the finite ones only
+    finite = [k for k in range(n) if np.all(np.isfinite(rvecs[k])) and np.all(np.isfinite(
+        tvecs[k])) and np.isfinite(np.ravel(errors)[k])]
+    if finite:
+        best = min(finite, key=lambda k: float(np.ravel(errors)[k]))
+        rvec, tvec = rvecs[best], tvecs[best]
+    else:
+        # SQPNP needs no initial guess and does not share IPPE's failure modes
+        ok, rvec, tvec = cv2.solvePnP(obj, corners, calib.K, calib.dist,
+                                      flags=cv2.SOLVEPNP_SQPNP)
+        if not ok:
+            raise PoseError(f"marker {det.marker_id}: no pose for corners {corners.tolist()}")
     if refine:
         # LM on all 4 corners removes IPPE's small algebraic bias (it fits a homography first)
         rvec, tvec = cv2.solvePnPRefineLM(obj, corners, calib.K, calib.dist, rvec.copy(),

@@ -13,6 +13,7 @@ from marker_render import PlacedMarker, look_at, render, true_corners
 
 from common.errors import ConfigError, SourceError
 from common.geometry import T_from_pose2, invert_T, make_T, rot_z, rotation_angle_deg
+from services.registration import markers
 from services.registration.board import (
     BoardMarker,
     MarkerBoard,
@@ -28,6 +29,7 @@ from services.registration.markers import (
     DetectorTuning,
     MarkerDetector,
     mean_detection,
+    refine_corners_edges,
 )
 from services.registration.pose import (
     PoseError,
@@ -155,6 +157,29 @@ def test_downscaled_search_keeps_full_resolution_accuracy() -> None:
     assert [d.marker_id for d in found] == [0, 1, 2, 3]
     for det, p in zip(found, placed, strict=True):
         np.testing.assert_allclose(det.corners_px, true_corners(p, CALIB.K), atol=0.3)
+
+
+def test_edge_refinement_keeps_corners_it_cannot_improve(monkeypatch) -> None:
+    corners = np.array([[[100.0, 100.0], [140.0, 100.0], [140.0, 140.0], [100.0, 140.0]]])
+    blank = np.full((240, 320), 128, np.uint8)  # no edge anywhere: nothing to fit
+    np.testing.assert_array_equal(refine_corners_edges(blank, corners), corners)
+    # the remap is done in row chunks for many markers: chunking must not change results
+    placed = PlacedMarker(5, facing_camera(distance=1.2, tilt_deg=30.0, yaw_deg=20.0), 0.15)
+    image = render(CALIB, [placed], noise_sigma=2.0)
+    whole = MarkerDetector().detect(image)
+    monkeypatch.setattr(markers, "_REMAP_MAX_ROWS", 7)
+    np.testing.assert_array_equal(MarkerDetector().detect(image)[0].corners_px,
+                                  whole[0].corners_px)
+
+
+def test_marker_pose_survives_ippes_nan_solution() -> None:
+    """Raw integer corners of a marker face-up under an 84° camera for which OpenCV 5's
+    IPPE_SQUARE returns one NaN solution (found by benchmarks/bench_detection.py)."""
+    calib = synthetic_calibration(1280, 720, hfov_deg=84.0)
+    det = Detection(2, [[954.0, 307.0], [968.0, 347.0], [928.0, 361.0], [914.0, 321.0]])
+    T, rms = marker_pose(det, size_m=0.1664865858249546, calib=calib)
+    assert np.all(np.isfinite(T)) and 2.5 < T[2, 3] < 3.0 and rms < 1.0
+    assert T[2, 2] < 0.0  # the face, not the back, towards the camera
 
 
 def test_marker_pose_rejects_bad_corners() -> None:
