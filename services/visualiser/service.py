@@ -301,13 +301,21 @@ class ViewerService:
 
     # -- decoding -----------------------------------------------------------------
     def _decode_loop(self) -> None:
+        # decode no faster than the render cap: a 60 Hz camera under a 30 fps cap would
+        # otherwise spend half its decoding on frames nobody draws (latest wins meanwhile)
+        min_interval = 0.9 / self.config.fps
+        last = -float("inf")
         while not self._stop.is_set():
             self._decode_wake.wait(0.5)
+            wait = last + min_interval - time.monotonic()
+            if wait > 0:
+                self._stop.wait(wait)
             self._decode_wake.clear()
             for cam in self._cameras.values():
                 raw = cam.frame_slot.take()
                 if raw is None:
                     continue
+                last = time.monotonic()
                 frame = decode(f"frame {cam.name}", raw, CameraFrame.from_bytes, self.bad)
                 if frame is None:
                     continue
