@@ -376,7 +376,7 @@ def _draw_roles(img: np.ndarray, ie: ImageEllipses, scene: Scene, shown: np.ndar
 def _draw_legend(img: np.ndarray, state: SlamState, scene: Scene, settings: ViewSettings,
                  health: Health | None, glyphs_shown: int, camera: CameraModel) -> None:
     mode_text = {"all": "all pairs", "inter": "inter-cluster pairs",
-                 "minmeanmax": "min/mean/max per cluster pair (size = trace of P_d)"}
+                 "minmeanmax": "min/mean/max per cluster pair (size = sqrt of largest eigenvalue)"}
     if settings.glyph == "sigma":
         glyph_text = f"{settings.sigma_k:g}-sigma ellipsoid of P_d"
     else:

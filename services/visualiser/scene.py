@@ -8,10 +8,11 @@ Modes (SPEC §6, paper §3.2):
   glyphs: the smallest P_d, the element-wise mean P_d and the largest P_d over the
   inter-cluster pairs of that cluster pair.
 
-"Smallest" and "largest" are by the trace of P_d (m², the mean squared error of the
-relative position d_ij). The trace is Loewner-monotone, so a shrinking P_d never looks
-larger, and it is linear, so the mean glyph's trace is the mean of the traces and always
-lies between the min and the max glyph's (a largest eigenvalue would not guarantee that).
+"Smallest" and "largest" are by ``common.geometry.pd_size_m``, √λmax of P_d (the 1-σ major
+semi-axis, m), the one size measure slamlens uses everywhere (monitor, viewer plots, demo).
+It is Loewner-monotone, so a shrinking P_d never looks larger, and it is what the eye reads
+from a glyph: its longest axis. The mean glyph is not ranked and, being an element-wise mean,
+can be rounder and so smaller than the min glyph when the pairs' P_d point different ways.
 
 Placement in ``minmeanmax``: the mean sits at the middle of the centroid line; the min sits
 ``spread`` of the line before it and below it (touching it from beneath), the max
@@ -29,7 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.geometry import all_relative_covariances
+from common.geometry import all_relative_covariances, pd_size_m
 from common.messages import SlamState
 from services.visualiser.glyphs import Ellipsoids, ellipsoids_from_pd
 from services.visualiser.settings import ViewSettings
@@ -39,8 +40,8 @@ ROLE_NAMES = ("pair", "min", "mean", "max")
 
 
 def pair_size(Pd: np.ndarray) -> np.ndarray:
-    """Scalar size of relative covariances (..., 2, 2): the trace, m²."""
-    return Pd[..., 0, 0] + Pd[..., 1, 1]
+    """Scalar size of relative covariances (..., 2, 2): √λmax, m (``pd_size_m``)."""
+    return pd_size_m(Pd)
 
 
 def select_pairs(n: int, *, mode: str, cluster_ids: np.ndarray | None = None,
@@ -75,7 +76,7 @@ class ClusterPairStats:
 
 def min_mean_max(ii: np.ndarray, jj: np.ndarray, Pd: np.ndarray,
                  cluster_ids: np.ndarray) -> ClusterPairStats:
-    """Group inter-cluster pairs by cluster pair; pick min/max by trace; average P_d."""
+    """Group inter-cluster pairs by cluster pair; pick min/max by size; average P_d."""
     ca, cb = cluster_ids[ii], cluster_ids[jj]
     lo, hi = np.minimum(ca, cb), np.maximum(ca, cb)
     inter = lo != hi
@@ -110,7 +111,7 @@ class Scene:
     glyph_role: np.ndarray  #: (G,) ROLE_PAIR / ROLE_MIN / ROLE_MEAN / ROLE_MAX
     glyph_ids: np.ndarray  #: (G, 2) feature ids of the pair shown (−1, −1 for a mean)
     glyph_clusters: np.ndarray  #: (G, 2) cluster ids (−1 when not clustered)
-    glyph_size: np.ndarray  #: (G,) trace of the glyph's P_d, m²
+    glyph_size: np.ndarray  #: (G,) size of the glyph's P_d (√λmax), m
     glyph_violation: np.ndarray  #: (G,) bool
     cluster_ids: np.ndarray | None  #: (n,) stable cluster id per landmark
     centroids: dict[int, np.ndarray]  #: cluster id → centroid (2,), m

@@ -81,7 +81,7 @@ def test_min_mean_max_picks_the_right_pairs() -> None:
     np.testing.assert_allclose(stats.mean_Pd[0], expected_mean)
 
 
-def test_min_mean_max_orders_by_trace_on_random_groups() -> None:
+def test_min_mean_max_orders_by_size_on_random_groups() -> None:
     rng = np.random.default_rng(9)
     n = 12
     clusters = rng.integers(0, 4, n)
@@ -97,15 +97,15 @@ def test_min_mean_max_orders_by_trace_on_random_groups() -> None:
         assert size[stats.min_pair[row]] == size[members].min()
         assert size[stats.max_pair[row]] == size[members].max()
         np.testing.assert_allclose(stats.mean_Pd[row], Pd[members].mean(axis=0))
-        assert size[members].min() <= pair_size(stats.mean_Pd[row]) <= size[members].max()
 
 
-def test_trace_never_grows_when_a_covariance_shrinks() -> None:
+def test_size_is_the_major_sigma_and_never_grows_when_a_covariance_shrinks() -> None:
     rng = np.random.default_rng(2)
     A, B = rng.normal(size=(2, 100, 2, 2))
     small = A @ A.transpose(0, 2, 1)
     big = small + B @ B.transpose(0, 2, 1)  # big ≽ small in the Loewner order
-    assert np.all(pair_size(small) <= pair_size(big))
+    np.testing.assert_allclose(pair_size(small), np.sqrt(np.linalg.eigvalsh(small)[:, 1]))
+    assert np.all(pair_size(small) <= pair_size(big) + 1e-12)
 
 
 def test_all_mode_puts_one_glyph_per_pair_at_its_midpoint() -> None:
@@ -120,7 +120,7 @@ def test_all_mode_puts_one_glyph_per_pair_at_its_midpoint() -> None:
         lam = np.linalg.eigvalsh(Pd)
         assert scene.glyphs.a[k] == pytest.approx(3.0 * np.sqrt(lam[1]))
         assert scene.glyphs.b[k] == pytest.approx(3.0 * np.sqrt(lam[0]))
-        assert scene.glyph_size[k] == pytest.approx(np.trace(Pd))
+        assert scene.glyph_size[k] == pytest.approx(np.sqrt(lam[1]))
 
 
 def test_inter_mode_hides_intra_cluster_pairs() -> None:
@@ -142,7 +142,8 @@ def test_minmeanmax_places_min_below_before_and_max_above_after_the_mean() -> No
     assert z[1] == 0.0
     assert z[0] == pytest.approx(-(h[1] + h[0]))  # hangs just below the mean
     assert z[2] == pytest.approx(h[1] + h[2])  # rests just on top of it
-    assert scene.glyph_size.tolist() == pytest.approx([0.04, 0.0425 * 2, 0.12])
+    # sizes √λmax: min 0.02·I, mean 0.0425·I − [[0, .002], [.002, 0]] (λmax 0.0445), max 0.06·I
+    assert scene.glyph_size.tolist() == pytest.approx(np.sqrt([0.02, 0.0445, 0.06]).tolist())
     lam1, lam2, _ = eig_sym2(np.array([0.0425 * np.eye(2) - np.array([[0, .002], [.002, 0]])]))
     assert scene.glyphs.a[1] == pytest.approx(2.0 * np.sqrt(lam1[0]))
 
