@@ -234,3 +234,25 @@ def test_png_snapshot_round_trips() -> None:
     data = encode_png(image)
     assert data[:4] == b"\x89PNG"
     assert np.array_equal(cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_COLOR), image)
+
+
+# -- configuration ------------------------------------------------------------------------
+def test_viewer_config_from_toml_and_flags(tmp_path: Path) -> None:
+    from common.config import load_settings
+    from services.visualiser.service import ViewerConfig
+
+    path = tmp_path / "viewer.toml"
+    path.write_text('robot = "r2"\ncamera = "head"\nview = "stereo"\nfps = 15\n')
+    config = load_settings(ViewerConfig, path, {"fps": 20.0, "camera": None})
+    assert (config.robot, config.camera, config.view, config.fps) == ("r2", "head", "stereo",
+                                                                      20.0)
+    assert config.cameras == ("head-left", "head-right")
+    assert load_settings(ViewerConfig, None, {}).resolved_view == "map"
+    assert load_settings(ViewerConfig, None, {"camera": "top"}).cameras == ("top",)
+    path.write_text('robots = "r2"\n')
+    with pytest.raises(ConfigError, match="robots"):
+        load_settings(ViewerConfig, path, {})
+    for bad in ({"view": "camera"}, {"jpeg_quality": 101}, {"fps": 0}, {"view": "sideways"},
+                {"camera": "a/b"}):
+        with pytest.raises(ConfigError):
+            load_settings(ViewerConfig, None, bad)
