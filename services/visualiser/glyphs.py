@@ -21,6 +21,8 @@ import numpy as np
 
 from services.visualiser.camera_model import NEAR_M, CameraModel
 
+MIN_MINOR_PX = 0.5  #: thinnest drawn glyph, pixels
+
 
 def eig_sym2(M: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Closed-form eigen-decomposition of symmetric 2x2 matrices (..., 2, 2).
@@ -117,8 +119,10 @@ def project_ellipsoids(ell: Ellipsoids, camera: CameraModel) -> ImageEllipses:
     if camera.has_distortion and g:
         centre, A = _distort_ellipses(camera, centre, A)
     lam1, lam2, angle = eig_sym2(A)
-    valid &= (lam2 > 0) & np.isfinite(lam1)
+    valid &= (lam1 > 0) & np.isfinite(lam1) & np.isfinite(centre).all(axis=1)
     axes = np.sqrt(np.maximum(np.column_stack([lam1, lam2]), 0.0))
+    # A flat glyph (rank-one P_d, e.g. from a broken estimator) still shows, as a thin line.
+    axes[:, 1] = np.maximum(axes[:, 1], MIN_MINOR_PX)
     return ImageEllipses(centre=centre, axes=axes, angle=angle, depth=depth, valid=valid)
 
 

@@ -117,6 +117,19 @@ def test_solid_glyph_seen_straight_down_matches_the_exact_silhouette() -> None:
                                             F * b / np.sqrt(Z**2 - b**2)], rtol=1e-12)
 
 
+def test_a_flat_glyph_from_a_rank_one_pd_is_still_drawn_as_a_line() -> None:
+    Z = 3.0
+    Pd = np.array([np.outer([0.6, 0.8], [0.6, 0.8]) * 0.01])  # λ = 0.01 and 0
+    ell = ellipsoids_from_pd(Pd, np.zeros((1, 2)), glyph="sigma", sigma_k=2.0, scale=1.0)
+    assert ell.b[0] < 1e-6 and ell.h[0] < 1e-6  # zero up to rounding
+    ie = project_ellipsoids(ell, down_camera(Z))
+    assert ie.valid[0]
+    assert ie.axes[0, 0] == pytest.approx(F * 0.2 / Z) and ie.axes[0, 1] == 0.5
+    zero = ellipsoids_from_pd(np.zeros((1, 2, 2)), np.zeros((1, 2)), glyph="sigma",
+                              sigma_k=2.0, scale=1.0)
+    assert not project_ellipsoids(zero, down_camera(Z)).valid[0]  # nothing to draw
+
+
 def surface_points(ell: Ellipsoids, k: int, count: int, rng: np.random.Generator) -> np.ndarray:
     u = rng.normal(size=(count, 3))
     u /= np.linalg.norm(u, axis=1)[:, None]
