@@ -33,6 +33,7 @@ from services.slam.monitor_stats import (
     FeatureWindows,
     WindowTest,
     feature_nees,
+    match_ids,
     pose_nees,
     quadratic_forms_2x2,
 )
@@ -97,6 +98,8 @@ class Monitor:
         self._truths: list[Truth] = []
         self._pending: deque[_Pending] = deque(maxlen=_PENDING)
         self._late: list[Violation] = []
+        self._id_match: tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]] | None = \
+            None
         self._nis.reset()
         self._nees_pose.reset()
         self._nees_features.reset()
@@ -220,7 +223,8 @@ class Monitor:
         P = state.covariance
         out: list[Violation] = []
         ids = state.landmark_ids
-        asym = checks.asymmetry(P, rtol=s.rtol_symmetry, atol=s.atol_growth)
+        asym, corr = checks.structure(P, rtol_symmetry=s.rtol_symmetry,
+                                      rtol_correlation=s.rtol_correlation, atol=s.atol_growth)
         if asym.count:
             k = int(np.argmax(asym.value / asym.bound))
             a, b = asym.index[k]
@@ -229,7 +233,6 @@ class Monitor:
                 value=float(asym.value[k]), bound=float(asym.bound[k]), phase=state.step,
                 detail=f"{asym.count} entries with P_ab ≠ P_ba, worst {_name(ids, a)} / "
                        f"{_name(ids, b)}"))
-        corr = checks.correlation_excess(P, rtol=s.rtol_correlation, atol=s.atol_growth)
         if corr.count:
             k = int(np.argmax(corr.value))
             a, b = corr.index[k]
@@ -268,10 +271,11 @@ class Monitor:
         unchanged = np.array_equal(Pmm_prev, Pmm_cur)
         feats = pair = None
         if not unchanged:
+            delta = Pmm_prev - Pmm_cur
             feats = checks.feature_growth(Pmm_prev, Pmm_cur, rtol=s.rtol_growth,
-                                          atol=s.atol_growth)
+                                          atol=s.atol_growth, delta=delta)
             pair = checks.pair_growth(Pmm_prev, Pmm_cur, rtol=s.rtol_growth,
-                                      atol=s.atol_growth)
+                                      atol=s.atol_growth, delta=delta)
         m = ids.shape[0]
         stats["pairs_checked"] = float(m * (m - 1) // 2)
         stats["pairs_growing"] = float(0 if pair is None else pair.count)
@@ -298,7 +302,8 @@ class Monitor:
         stats["growth_max"] = growth_max
         if (s.check_prediction and state.step == "predict"
                 and state.seq == prev.seq + 1):
-            more, blamed = self._check_prediction(prev, state, pos_prev, pos_cur, ids)
+            more, blamed = self._check_prediction(prev, state, pos_prev, pos_cur, ids,
+                                                  map_unchanged=unchanged)
             out += more
             direct += blamed
         return pairs, direct, out
@@ -310,12 +315,12 @@ class Monitor:
         return np.argpartition(-values, limit - 1)[:limit]
 
     def _check_prediction(self, prev: SlamState, state: SlamState, pos_prev: np.ndarray,
-                          pos_cur: np.ndarray, ids: np.ndarray
+                          pos_cur: np.ndarray, ids: np.ndarray, *, map_unchanged: bool
                           ) -> tuple[list[Violation], list[int]]:
         s = self.settings
         map_changed, cross_wrong, noise = checks.prediction_residuals(
             prev.covariance, state.covariance, prev.pose, state.pose, pos_prev, pos_cur,
-            rtol=s.rtol_prediction, atol=s.atol_growth)
+            rtol=s.rtol_prediction, atol=s.atol_growth, map_unchanged=map_unchanged)
         out: list[Violation] = []
         blamed: list[int] = []
         for k in range(map_changed.count):
@@ -407,8 +412,14 @@ class Monitor:
                         kind="nees", ids=(), step=seq, value=r.mean, bound=_side(r),
                         detail=f"mean pose NEES {r.mean:.3g} over {r.samples} states outside "
                                f"[{r.lo:.3g}, {r.hi:.3g}]"))
-        fids, nees_f = feature_nees(ids, landmarks, blocks, truth.landmark_ids,
-                                    truth.landmarks, condition_max=s.nees_condition_max)
+        cache = self._id_match
+        if cache is None or not (np.array_equal(cache[0], ids)
+                                 and np.array_equal(cache[1], truth.landmark_ids)):
+            # the id sets change rarely: reuse the last match (cheaper than intersect1d)
+            cache = (ids, truth.landmark_ids, match_ids(ids, truth.landmark_ids))
+            self._id_match = cache
+        fids, nees_f = feature_nees(ids, landmarks, blocks, truth.landmarks, cache[2],
+                                    condition_max=s.nees_condition_max)
         for fid, r in self._nees_features.add(fids, nees_f):
             if r.failed:
                 out.append(Violation(

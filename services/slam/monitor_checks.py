@@ -12,6 +12,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import linalg
 from scipy.linalg import lapack
 
 
@@ -30,7 +31,7 @@ class Findings:
         return int(self.value.shape[0])
 
 
-def _empty(width: int = 1, checked: int = 0) -> Findings:
+def _empty(width: int = 1, *, checked: int = 0) -> Findings:
     shape = (0,) if width == 1 else (0, width)
     return Findings(np.zeros(shape, dtype=np.int64), np.zeros(0), np.zeros(0), checked)
 
@@ -77,15 +78,16 @@ def _block_parts(M: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.
 
 
 def feature_growth(Pmm_prev: np.ndarray, Pmm_cur: np.ndarray, *, rtol: float,
-                   atol: float) -> Findings:
+                   atol: float, delta: np.ndarray | None = None) -> Findings:
     """Features whose own block P_ii grew: P_ii(prev) − P_ii(cur) not PSD.
 
-    Both inputs are 2m×2m map blocks of the same landmarks in the same order.
+    Both inputs are 2m×2m map blocks of the same landmarks in the same order; ``delta``
+    is Pmm_prev − Pmm_cur if the caller has it already.
     """
     m = Pmm_prev.shape[0] // 2
     if m == 0:
         return _empty()
-    xx, yy, xy, yx = _block_parts(Pmm_prev - Pmm_cur)
+    xx, yy, xy, yx = _block_parts(Pmm_prev - Pmm_cur if delta is None else delta)
     a, c, b = np.diagonal(xx), np.diagonal(yy), 0.5 * (np.diagonal(xy) + np.diagonal(yx))
     lam = min_eig_2x2(a, b, c)
     d = np.abs(np.diagonal(Pmm_prev))
@@ -95,7 +97,7 @@ def feature_growth(Pmm_prev: np.ndarray, Pmm_cur: np.ndarray, *, rtol: float,
 
 
 def pair_growth(Pmm_prev: np.ndarray, Pmm_cur: np.ndarray, *, rtol: float,
-                atol: float) -> Findings:
+                atol: float, delta: np.ndarray | None = None) -> Findings:
     """Pairs (i < j) whose relative covariance P_d grew in the Loewner order.
 
     D_ij = P_d,ij(prev) − P_d,ij(cur) is linear in P, so it is formed once from
@@ -106,7 +108,7 @@ def pair_growth(Pmm_prev: np.ndarray, Pmm_cur: np.ndarray, *, rtol: float,
     m = Pmm_prev.shape[0] // 2
     if m < 2:
         return _empty(2)
-    xx, yy, xy, yx = _block_parts(Pmm_prev - Pmm_cur)
+    xx, yy, xy, yx = _block_parts(Pmm_prev - Pmm_cur if delta is None else delta)
     dxx, dyy = np.diagonal(xx), np.diagonal(yy)
     dxy = 0.5 * (np.diagonal(xy) + np.diagonal(yx))
     a = dxx[:, None] + dxx[None, :] - 2.0 * xx
@@ -121,40 +123,48 @@ def pair_growth(Pmm_prev: np.ndarray, Pmm_cur: np.ndarray, *, rtol: float,
     rows, cols = np.nonzero(np.triu(bad_mask))
     checked = m * (m - 1) // 2
     if rows.size == 0:
-        return _empty(2, checked)
+        return _empty(2, checked=checked)
     return Findings(np.stack([rows, cols], axis=1), -lam[rows, cols], tol[rows, cols], checked)
 
 
-def asymmetry(P: np.ndarray, *, rtol: float, atol: float) -> Findings:
-    """Entries a < b with |P_ab − P_ba| > rtol·sqrt(|P_aa·P_bb|) + atol."""
-    N = P.shape[0]
-    d = np.sqrt(np.abs(np.diagonal(P)))
-    diff = np.abs(P - P.T)
-    tol = rtol * np.outer(d, d) + atol
-    bad = np.triu(diff > tol, k=1)
-    if not bad.any():
-        return _empty(2, N * (N - 1) // 2)
-    A, B = np.nonzero(bad)
-    return Findings(np.stack([A, B], axis=1), diff[A, B], tol[A, B], N * (N - 1) // 2)
+def structure(P: np.ndarray, *, rtol_symmetry: float, rtol_correlation: float,
+              atol: float) -> tuple[Findings, Findings]:
+    """Symmetry and correlation of one covariance, sharing one pass over P.
 
+    * asymmetry: entries a < b with |P_ab − P_ba| > rtol_symmetry·sqrt(|P_aa·P_bb|) + atol;
+    * correlation: entries a < b with |sym(P)_ab| > sqrt(P_aa·P_bb)·(1 + rtol_correlation)
+      + atol, i.e. |ρ| > 1; the value reported is |ρ| − 1 (a negative variance counts as
+      ρ = ∞, capped to a finite number for the message).
 
-def correlation_excess(P: np.ndarray, *, rtol: float, atol: float) -> Findings:
-    """Entries a < b with |P_ab| > sqrt(P_aa·P_bb)·(1 + rtol) + atol (|ρ| > 1).
-
-    The value reported is |ρ| − 1 (dimensionless); a negative variance counts as ρ = ∞.
+    Both tests are symmetric in (a, b), so the common case (nothing wrong) is decided on
+    the full matrix without extracting a triangle.
     """
     N = P.shape[0]
-    d = np.sqrt(np.maximum(np.diagonal(P), 0.0))
-    scale = np.outer(d, d)
-    absP = np.abs(0.5 * (P + P.T))
-    bad = np.triu(absP > scale * (1.0 + rtol) + atol, k=1)
-    if not bad.any():
-        return _empty(2, N * (N - 1) // 2)
-    A, B = np.nonzero(bad)
-    with np.errstate(divide="ignore"):
-        rho = np.where(scale[A, B] > 0, absP[A, B] / np.maximum(scale[A, B], 1e-300), np.inf)
-    excess = np.minimum(rho - 1.0, 1e300)  # finite for the message
-    return Findings(np.stack([A, B], axis=1), excess, np.full(A.shape, rtol), N * (N - 1) // 2)
+    pairs = N * (N - 1) // 2
+    diag = np.diagonal(P)
+    d = np.sqrt(np.abs(diag))
+    scale = np.multiply.outer(d, d)  # sqrt(|P_aa·P_bb|)
+    diff = np.abs(P - P.T)
+    asym_bad = diff > rtol_symmetry * scale + atol
+    absP = np.abs(P + P.T)
+    absP *= 0.5
+    dpos = np.sqrt(np.maximum(diag, 0.0))
+    corr_bad = absP > np.multiply.outer(dpos, dpos) * (1.0 + rtol_correlation) + atol
+    asym = _empty(2, checked=pairs)
+    if asym_bad.any():
+        A, B = np.nonzero(np.triu(asym_bad, k=1))
+        asym = Findings(np.stack([A, B], axis=1), diff[A, B],
+                        rtol_symmetry * scale[A, B] + atol, pairs)
+    corr = _empty(2, checked=pairs)
+    np.fill_diagonal(corr_bad, False)  # a = b is |ρ| = 1 by definition
+    if corr_bad.any():
+        A, B = np.nonzero(np.triu(corr_bad, k=1))
+        pos = dpos[A] * dpos[B]
+        with np.errstate(divide="ignore"):
+            rho = np.where(pos > 0, absP[A, B] / np.maximum(pos, 1e-300), np.inf)
+        corr = Findings(np.stack([A, B], axis=1), np.minimum(rho - 1.0, 1e300),
+                        np.full(A.shape, rtol_correlation), pairs)
+    return asym, corr
 
 
 def min_eigenvalue_if_indefinite(P: np.ndarray, *, rtol: float,
@@ -173,7 +183,8 @@ def min_eigenvalue_if_indefinite(P: np.ndarray, *, rtol: float,
     _, info = lapack.dpotrf(S_jit, lower=True, clean=False, overwrite_a=True)
     if info == 0:
         return None
-    w, V = np.linalg.eigh(S)
+    # only the smallest eigenpair is needed (LAPACK's subset driver: cheaper than all)
+    w, V = linalg.eigh(S, subset_by_index=[0, 0], check_finite=False)
     if w[0] >= -tol:
         return None
     return float(w[0]), tol, V[:, 0]
@@ -181,7 +192,8 @@ def min_eigenvalue_if_indefinite(P: np.ndarray, *, rtol: float,
 
 def prediction_residuals(P_prev: np.ndarray, P_cur: np.ndarray, pose_prev: np.ndarray,
                          pose_cur: np.ndarray, pos_prev: np.ndarray, pos_cur: np.ndarray, *,
-                         rtol: float, atol: float) -> tuple[Findings, Findings, float | None]:
+                         rtol: float, atol: float, map_unchanged: bool | None = None
+                         ) -> tuple[Findings, Findings, float | None]:
     """Check one predict step without knowing the controls.
 
     For any odometry model whose displacement turns with the heading (SPEC §4's first-order
@@ -194,40 +206,49 @@ def prediction_residuals(P_prev: np.ndarray, P_cur: np.ndarray, pose_prev: np.nd
     * Pvv − Fx·Pvv(prev)·Fxᵀ ≽ 0 (process noise is PSD) → ``noise_min_eig`` (the violating
       smallest eigenvalue) or ``None``.
 
-    ``pos_prev`` / ``pos_cur`` are the positions of the common landmarks in each state.
+    ``pos_prev`` / ``pos_cur`` are the positions of the common landmarks in each state;
+    ``map_unchanged`` is whether their P_mm blocks are bit-equal, if the caller knows.
     """
     dx = float(pose_cur[0] - pose_prev[0])
     dy = float(pose_cur[1] - pose_prev[1])
     Fx = np.array([[1.0, 0.0, -dy], [0.0, 1.0, dx], [0.0, 0.0, 1.0]])
     m = pos_prev.shape[0]
-    d_prev = np.abs(np.diagonal(P_prev))
-    d_cur = np.abs(np.diagonal(P_cur))
+    floor = atol / max(rtol, 1e-300)  # atol expressed in units of the scale below
+    map_changed = cross_wrong = _empty(checked=m)
     if m:
         rows_prev, rows_cur = map_rows(pos_prev), map_rows(pos_cur)
-        Pmm_prev = map_block(P_prev, pos_prev)
-        Pmm_cur = map_block(P_cur, pos_cur)
-        dm = d_prev[rows_prev]
-        # map block: untouched by a predict, so any change beyond rounding is a fault
-        tol_mm = rtol * np.sqrt(np.outer(dm, dm)) + atol
-        over_mm = np.abs(Pmm_cur - Pmm_prev) / tol_mm
-        worst_mm = over_mm.reshape(2 * m, m, 2).max(axis=(0, 2))  # per landmark column
-        changed = np.flatnonzero(worst_mm > 1.0)
-        map_changed = Findings(changed, worst_mm[changed] * rtol, np.full(changed.shape, rtol),
-                               m)
+        dm = np.abs(np.diagonal(P_prev)[rows_prev])
+        if map_unchanged is None:
+            map_unchanged = np.array_equal(map_block(P_prev, pos_prev),
+                                           map_block(P_cur, pos_cur))
+        # map block: untouched by a predict, so bit-equal in a correct filter (fast path);
+        # otherwise each landmark's columns are held to rtol·sqrt(P_aa·P_bb) + atol
+        if not map_unchanged:
+            sq = np.sqrt(dm)
+            rel = np.abs(map_block(P_cur, pos_cur) - map_block(P_prev, pos_prev))
+            rel /= np.multiply.outer(sq, sq) + floor
+            worst_mm = rel.reshape(2 * m, m, 2).max(axis=(0, 2))  # per landmark column
+            changed = np.flatnonzero(worst_mm > rtol)
+            map_changed = Findings(changed, worst_mm[changed], np.full(changed.shape, rtol), m)
         # cross-covariance: P_vm' = Fx·P_vm, residual scaled by the Cauchy-Schwarz bound
         Pvm_prev = P_prev[:3, rows_prev]
-        Pvm_cur = P_cur[:3, rows_cur]
-        resid = np.abs(Pvm_cur - Fx @ Pvm_prev)
-        dv = np.maximum(d_prev[:3], d_cur[:3])
-        scale = np.sqrt(np.outer(dv, dm))
-        rel = resid / (scale + atol / max(rtol, 1e-300))
-        worst_vm = rel.reshape(3, m, 2).max(axis=(0, 2))
+        resid = P_cur[:3, rows_cur] - Pvm_prev
+        resid[0] += dy * Pvm_prev[2]  # − (Fx − I)·P_vm, written out (two rows only)
+        resid[1] -= dx * Pvm_prev[2]
+        np.abs(resid, out=resid)
+        dv = np.maximum(np.abs(np.diagonal(P_prev)[:3]), np.abs(np.diagonal(P_cur)[:3]))
+        resid /= np.sqrt(np.multiply.outer(dv, dm)) + floor
+        worst_vm = resid.reshape(3, m, 2).max(axis=(0, 2))
         wrong = np.flatnonzero(worst_vm > rtol)
-        cross_wrong = Findings(wrong, worst_vm[wrong], np.full(wrong.shape, rtol), m)
-    else:
-        map_changed = cross_wrong = _empty()
-    Q = P_cur[:3, :3] - Fx @ P_prev[:3, :3] @ Fx.T
-    Q = 0.5 * (Q + Q.T)
-    lam = float(np.linalg.eigvalsh(Q)[0])
-    tol_q = rtol * float(np.trace(np.abs(P_cur[:3, :3]))) + atol
+        if wrong.size:
+            cross_wrong = Findings(wrong, worst_vm[wrong], np.full(wrong.shape, rtol), m)
+    Pvv_cur = P_cur[:3, :3]
+    Q = Pvv_cur - Fx @ P_prev[:3, :3] @ Fx.T
+    tol_q = rtol * float(np.abs(np.diagonal(Pvv_cur)).sum()) + atol
+    (a, b, c), (_, d, e), (_, _, f) = (0.5 * (Q + Q.T) + tol_q * np.eye(3)).tolist()
+    # Q + tol·I positive definite (Sylvester's leading minors) ⇒ λ_min(Q) > −tol: done
+    if a > 0 and a * d - b * b > 0 and a * (d * f - e * e) - b * (b * f - c * e) \
+            + c * (b * e - c * d) > 0:
+        return map_changed, cross_wrong, None
+    lam = float(np.linalg.eigvalsh(0.5 * (Q + Q.T))[0])
     return map_changed, cross_wrong, (lam if lam < -tol_q else None)

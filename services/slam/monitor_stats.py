@@ -44,23 +44,41 @@ def quadratic_forms_2x2(e: np.ndarray, S: np.ndarray) -> np.ndarray:
 
 def pose_nees(pose: np.ndarray, Pvv: np.ndarray, true_pose: np.ndarray, *,
               condition_max: float) -> float | None:
-    """NEES of the robot pose (3 dof, heading error wrapped); None if Pvv is unusable."""
-    w, V = np.linalg.eigh(0.5 * (Pvv + Pvv.T))
-    if w[0] <= 0.0 or w[-1] > condition_max * w[0]:
-        return None  # rank-deficient (e.g. the first steps from a zero covariance)
-    e = np.array([pose[0] - true_pose[0], pose[1] - true_pose[1],
-                  float(wrap_angle(pose[2] - true_pose[2]))])
-    y = V.T @ e
-    return float(np.sum(y * y / w))
+    """NEES of the robot pose (3 dof, heading error wrapped); None if Pvv is unusable.
+
+    Closed form eᵀ·adj(P)·e / det(P) in plain floats (a 3×3 LAPACK call costs more in
+    overhead than the arithmetic). Pvv is unusable when tr³/det, an upper bound of its
+    condition number, exceeds ``condition_max`` (e.g. the first steps from a zero initial
+    covariance: rank-deficient, error dominated by linearisation) or it is not PD.
+    """
+    (a, b, c), (_, d, e_), (_, _, f) = (0.5 * (Pvv + Pvv.T)).tolist()
+    A, B, C = d * f - e_ * e_, c * e_ - b * f, b * e_ - c * d  # adjugate (symmetric)
+    D, E, F = a * f - c * c, b * c - a * e_, a * d - b * b
+    det = a * A + b * B + c * C
+    tr = a + d + f
+    if not (a > 0 and F > 0 and det > 0) or tr ** 3 > condition_max * det:
+        return None
+    x = float(pose[0] - true_pose[0])
+    y = float(pose[1] - true_pose[1])
+    t = float(wrap_angle(float(pose[2] - true_pose[2])))
+    q = A * x * x + D * y * y + F * t * t + 2.0 * (B * x * y + C * x * t + E * y * t)
+    return q / det
+
+
+def match_ids(ids: np.ndarray, true_ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Positions in ``ids`` and in ``true_ids`` of the ids present in both."""
+    _, i_est, i_true = np.intersect1d(ids, true_ids, assume_unique=True, return_indices=True)
+    return i_est, i_true
 
 
 def feature_nees(ids: np.ndarray, landmarks: np.ndarray, blocks: np.ndarray,
-                 true_ids: np.ndarray, true_landmarks: np.ndarray, *,
+                 true_landmarks: np.ndarray, matched: tuple[np.ndarray, np.ndarray], *,
                  condition_max: float) -> tuple[np.ndarray, np.ndarray]:
-    """(ids, NEES) of the features that have a truth and a well-conditioned P_ii (2 dof)."""
-    if ids.size == 0 or true_ids.size == 0:
-        return np.zeros(0, dtype=np.int64), np.zeros(0)
-    _, i_est, i_true = np.intersect1d(ids, true_ids, assume_unique=True, return_indices=True)
+    """(ids, NEES) of the features that have a truth and a well-conditioned P_ii (2 dof).
+
+    ``matched`` is :func:`match_ids` of the state's and the truth's landmark ids.
+    """
+    i_est, i_true = matched
     if i_est.size == 0:
         return np.zeros(0, dtype=np.int64), np.zeros(0)
     S = blocks[i_est]

@@ -18,7 +18,7 @@ from services.slam import monitor_checks as checks
 from services.slam.monitor import Monitor
 from services.slam.monitor_blame import Evidence, blame_weights
 from services.slam.monitor_settings import MonitorSettings
-from services.slam.monitor_stats import WindowTest, quadratic_forms_2x2
+from services.slam.monitor_stats import WindowTest, pose_nees, quadratic_forms_2x2
 
 SIGMAS = dict(sigma_v=0.05, sigma_w=0.05, sigma_r=0.05, sigma_b=0.02)
 
@@ -243,6 +243,41 @@ def test_cholesky_fast_path_agrees_with_eigvalsh() -> None:
         assert (got is not None) == expected
         if got is not None:
             assert got[0] == pytest.approx(np.linalg.eigvalsh(P)[0])
+
+
+def test_structure_matches_entrywise_loops() -> None:
+    rng = np.random.default_rng(21)
+    for _ in range(10):
+        N = int(rng.integers(3, 25))
+        P = random_psd(rng, N, rank=int(rng.integers(1, N + 1)))
+        for _ in range(3):  # plant asymmetries and |ρ| > 1 at random entries
+            a, b = rng.choice(N, size=2, replace=False)
+            P[a, b] += rng.choice([0.0, 1e-6, 3.0]) * math.sqrt(P[a, a] * P[b, b] + 1e-12)
+        asym, corr = checks.structure(P, rtol_symmetry=1e-9, rtol_correlation=1e-9, atol=1e-12)
+        want_asym, want_corr = set(), set()
+        for a in range(N):
+            for b in range(a + 1, N):
+                s_ab = math.sqrt(abs(P[a, a] * P[b, b]))
+                if abs(P[a, b] - P[b, a]) > 1e-9 * s_ab + 1e-12:
+                    want_asym.add((a, b))
+                if abs(P[a, b] + P[b, a]) / 2 > s_ab * (1 + 1e-9) + 1e-12:
+                    want_corr.add((a, b))
+        assert {tuple(x) for x in asym.index.tolist()} == want_asym
+        assert {tuple(x) for x in corr.index.tolist()} == want_corr
+
+
+def test_pose_nees_closed_form_matches_solve() -> None:
+    rng = np.random.default_rng(4)
+    for _ in range(50):
+        P = random_psd(rng, 3) * 10.0 ** rng.uniform(-6, 0)
+        pose, truth = rng.normal(size=3), rng.normal(size=3)
+        e = pose - truth
+        e[2] = wrap_angle(e[2])
+        got = pose_nees(pose, P, truth, condition_max=1e10)
+        if np.linalg.cond(P) < 1e6:
+            assert got == pytest.approx(e @ np.linalg.solve(P, e), rel=1e-8)
+    singular = np.diag([1e-3, 1e-3, 0.0])
+    assert pose_nees(np.zeros(3), singular, np.zeros(3), condition_max=1e10) is None
 
 
 def test_quadratic_forms_match_solve() -> None:

@@ -1,0 +1,146 @@
+"""Monitor.check per state at n = 15, 50, 100 landmarks, without and with truth.
+
+States come from the real estimator (SPEC §4 models) on a ring of n landmarks: all are
+initialised from the start pose, then the robot alternates predict and an update of 5
+landmarks, so half the states are predicts (map block untouched: the fast path) and half
+are updates (every pair compared). Target: median ≤ 2 ms per state at n = 100 (a monitor
+keeping up with 100 Hz states). A naive baseline is measured in the same run on the same
+update states: the pair check as a per-pair loop of P_d (common.geometry) and
+numpy.linalg.eigvalsh of the difference; the ratio is naive / ours for that check. The
+machine is shared: run it a few times, quote medians.
+
+    .venv/bin/python benchmarks/bench_monitor.py [--states 200] [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from common.geometry import relative_covariance  # noqa: E402
+from common.messages import SlamState, Truth  # noqa: E402
+from services.slam import monitor_checks as checks  # noqa: E402
+from services.slam.estimator import Estimator, EstimatorSettings  # noqa: E402
+from services.slam.monitor import Monitor  # noqa: E402
+from services.slam.monitor_settings import MonitorSettings  # noqa: E402
+
+
+def make_run(n: int, count: int, seed: int = 0) -> tuple[list[SlamState], list[Truth]]:
+    """``count`` states (after init) of the estimator among n landmarks on a ring."""
+    rng = np.random.default_rng(seed)
+    angles = np.linspace(-0.45 * math.pi, 0.45 * math.pi, n)
+    radii = rng.uniform(2.0, 4.0, n)
+    ids = np.arange(1, n + 1)
+    xy = np.stack([radii * np.cos(angles), radii * np.sin(angles)], axis=1)
+    est = Estimator(EstimatorSettings())
+    pose = np.zeros(3)
+
+    def measure(which: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        d = xy[which] - pose[:2]
+        r = np.hypot(d[:, 0], d[:, 1]) + rng.normal(0, 0.05, which.size)
+        b = np.arctan2(d[:, 1], d[:, 0]) - pose[2] + rng.normal(0, 0.02, which.size)
+        return r, (b + math.pi) % (2 * math.pi) - math.pi
+
+    r, b = measure(np.arange(n))
+    est.observe(ids=ids, ranges=r, bearings=b, stamp=0.0)
+    states: list[SlamState] = [est.to_state(seq=0, stamp=0.0, step="update")]
+    truths: list[Truth] = []
+    dt, v, w = 0.1, 0.1, 0.05
+    for k in range(1, count // 2 + 1):
+        t = k * dt
+        pose = pose + [v * dt * math.cos(pose[2]), v * dt * math.sin(pose[2]), w * dt]
+        est.predict(v=v + rng.normal(0, 0.05), w=w + rng.normal(0, 0.05), dt=dt, stamp=t)
+        states.append(est.to_state(seq=len(states), stamp=t, step="predict"))
+        which = rng.choice(n, size=5, replace=False)
+        r, b = measure(which)
+        rep = est.observe(ids=ids[which], ranges=r, bearings=b, stamp=t)
+        states.append(est.to_state(seq=len(states), stamp=t, step="update", report=rep))
+        truths.append(Truth(robot="robot1", stamp=t, pose=pose, landmark_ids=ids,
+                            landmarks=xy))
+    return states, truths
+
+
+def time_monitor(states: list[SlamState], truths: list[Truth] | None) -> list[float]:
+    """Microseconds of check() (and add_truth() of the state's truth) per state."""
+    monitor = Monitor(MonitorSettings())
+    by_stamp = {} if truths is None else {t.stamp: t for t in truths}
+    out = []
+    for s in states:
+        t0 = time.perf_counter_ns()
+        truth = by_stamp.pop(s.stamp, None)
+        if truth is not None:
+            monitor.add_truth(truth)
+        health = monitor.check(s)
+        out.append((time.perf_counter_ns() - t0) / 1e3)
+        assert health.ok, health.violations  # the benchmark run must be a correct run
+    return out[1:]  # the first state has nothing to compare with
+
+
+def naive_pairs(prev: SlamState, cur: SlamState) -> int:
+    """Per-pair loop: P_d of both states, eigvalsh of the difference."""
+    grown = 0
+    n = prev.n
+    for i in range(n):
+        for j in range(i + 1, n):
+            D = relative_covariance(prev.covariance, i, j) - relative_covariance(
+                cur.covariance, i, j)
+            grown += np.linalg.eigvalsh(D)[0] < -1e-12
+    return grown
+
+
+def ours_pairs(prev: SlamState, cur: SlamState) -> int:
+    pos_p, pos_c = checks.common_landmarks(prev.landmark_ids, cur.landmark_ids)
+    return checks.pair_growth(checks.map_block(prev.covariance, pos_p),
+                              checks.map_block(cur.covariance, pos_c),
+                              rtol=1e-9, atol=1e-12).count
+
+
+def timed(fn, *args) -> float:  # type: ignore[no-untyped-def]
+    t0 = time.perf_counter_ns()
+    fn(*args)
+    return (time.perf_counter_ns() - t0) / 1e3
+
+
+def pct(values: list[float], q: float) -> float:
+    return float(np.percentile(values, q))
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--states", type=int, default=200, help="states per size")
+    parser.add_argument("--quick", action="store_true", help="fewer states, n = 15, 100")
+    args = parser.parse_args()
+    sizes = (15, 100) if args.quick else (15, 50, 100)
+    count = 40 if args.quick else args.states
+    print(f"{'n':>4} {'no truth µs':>20} {'with truth µs':>20} {'pairs ours µs':>14} "
+          f"{'pairs naive µs':>15} {'naive/ours':>10}")
+    print(f"{'':>4} {'median':>9} {'p95':>10} {'median':>9} {'p95':>10}")
+    for n in sizes:
+        states, truths = make_run(n, count)
+        plain = time_monitor(states, None)
+        truth = time_monitor(states, truths)
+        updates = [(states[k - 1], states[k]) for k in range(2, len(states))
+                   if states[k].step == "update"]
+        ours = [timed(ours_pairs, a, b) for a, b in updates]
+        sample = updates[: max(3, min(len(updates), 3000 // n))]
+        naive = [timed(naive_pairs, a, b) for a, b in sample]
+        assert all(naive_pairs(a, b) == ours_pairs(a, b) for a, b in sample[:2])
+        ratio = statistics.median(naive) / statistics.median(ours)
+        print(f"{n:>4} {statistics.median(plain):>9.0f} {pct(plain, 95):>10.0f} "
+              f"{statistics.median(truth):>9.0f} {pct(truth, 95):>10.0f} "
+              f"{statistics.median(ours):>14.0f} {statistics.median(naive):>15.0f} "
+              f"{ratio:>9.0f}×")
+    print("target: median ≤ 2000 µs per state at n = 100 (100 Hz states)")
+
+
+if __name__ == "__main__":
+    main()
