@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -158,6 +159,10 @@ def _estimator_overrides(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _run_estimator(args: argparse.Namespace) -> int:
+    # One BLAS thread unless the user says otherwise: the O(n²) downdate is memory-bound,
+    # and on a shared machine a second BLAS thread waiting for a busy core stalls large
+    # updates by up to 20× (docs/estimator.md). Must happen before numpy is imported.
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
     from services.slam.estimator import EstimatorSettings
     from services.slam.estimator_service import EstimatorService
 

@@ -57,7 +57,7 @@ def run(world: World, *, seed: int, settings: EstimatorSettings | None = None,
     def score(step: str, stamp: float) -> None:
         e = truth_pose[stamp] - est.pose
         e[2] = wrap_angle(e[2])
-        Pvv = est.covariance[:3, :3]
+        Pvv = est.pose_covariance  # the 3x3 block, without building the full matrix
         try:
             value = float(e @ np.linalg.solve(Pvv, e))
         except np.linalg.LinAlgError:
