@@ -42,8 +42,15 @@ class SourceEnded(SourceError):
 
 
 class FrameSource(Protocol):
-    name: str
-    live: bool
+    @property
+    def name(self) -> str:
+        """What it reads, for log lines."""
+        ...
+
+    @property
+    def live(self) -> bool:
+        """True if it paces itself (a device, a stream)."""
+        ...
 
     def read(self) -> Frame | None:
         """The next (stamp s, BGR uint8 image), or None if none is ready now."""

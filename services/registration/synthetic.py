@@ -43,6 +43,7 @@ ROBOT_TOP_BGR = (92, 92, 98)
 HEADING_BGR = (0, 210, 240)
 POST_BGR = ((40, 110, 230), (200, 120, 30), (60, 170, 60), (160, 60, 170), (30, 180, 200))
 LIGHT_DIR = np.array([0.35, -0.45, 0.82]) / np.linalg.norm([0.35, -0.45, 0.82])
+Pose2 = Sequence[float] | np.ndarray  #: planar pose (x m, y m, θ rad)
 QUIET_ZONE_MODULES = 1.5  #: white border around every marker, in marker modules
 NEAR_M = 0.05  #: faces with a vertex closer than this to the camera are not drawn
 
@@ -77,7 +78,7 @@ class ImagingSettings:
     noise_sigma: float = 0.0  #: Gaussian sensor noise, grey levels
     blur_kernel: int = 0  #: Gaussian blur kernel size in pixels (odd; 0 or 1 = none)
     gain: float = 1.0  #: brightness factor
-    offset: float = 0.0  #: brightness offset, grey levels
+    offset: float = 0.0  #: brightness offset, grey levels (rounded to an integer)
     gradient: float = 0.0  #: relative brightness change from the left to the right edge
 
 
@@ -153,7 +154,7 @@ def arena_centre(arena_xy: Sequence[float]) -> tuple[float, float]:
     return ((arena_xy[0] + arena_xy[2]) / 2.0, (arena_xy[1] + arena_xy[3]) / 2.0)
 
 
-def robot_marker_corners_world(pose: Sequence[float], *, size_m: float,
+def robot_marker_corners_world(pose: Pose2, *, size_m: float,
                                offset_xyz: Sequence[float], scale: float = 1.0) -> np.ndarray:
     """World corners (TL, TR, BR, BL as OpenCV orders them) of the robot's marker.
 
@@ -252,7 +253,7 @@ class _Face:
     bgr: tuple[int, int, int]
 
 
-def _cylinder_faces(centre_xy: Sequence[float], radius: float, z0: float, z1: float,
+def _cylinder_faces(centre_xy: Sequence[float] | np.ndarray, radius: float, z0: float, z1: float,
                     side_bgr: tuple[int, int, int], top_bgr: tuple[int, int, int],
                     n: int = 20) -> list[_Face]:
     a = np.linspace(0.0, 2.0 * math.pi, n, endpoint=False)
@@ -358,6 +359,8 @@ class SyntheticCamera:
         self._static: np.ndarray | None = None
         self._posts: list[tuple[float, tuple[int, int, int, int], list[_Face]]] = []
         self._light = self._lighting_map()
+        self._offset = None if imaging.offset == 0.0 else np.full(
+            (self.height, self.width, 3), round(imaging.offset), np.int16)
         self._noise = self._noise_bank()
 
     # -- effects ------------------------------------------------------------------
@@ -386,8 +389,8 @@ class SyntheticCamera:
         im = self.imaging
         if self._light is not None:
             image = cv2.multiply(image, self._light, dtype=cv2.CV_8U)
-        if im.offset != 0.0:
-            image = cv2.add(image, (im.offset, im.offset, im.offset, 0.0))
+        if self._offset is not None:
+            image = cv2.add(image, self._offset, dtype=cv2.CV_8U)
         if im.blur_kernel > 1:
             k = im.blur_kernel | 1  # Gaussian kernels must be odd
             image = cv2.GaussianBlur(image, (k, k), 0)
@@ -484,7 +487,7 @@ class SyntheticCamera:
                             camera_centre=centre)
 
     # -- public -------------------------------------------------------------------
-    def render(self, *, robot_pose: Sequence[float] | None,
+    def render(self, *, robot_pose: Pose2 | None,
                landmarks_xy: np.ndarray | None = None,
                T_world_from_camera: np.ndarray | None = None,
                frame_index: int = 0) -> np.ndarray:

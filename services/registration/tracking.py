@@ -223,6 +223,19 @@ class Registrar:
                            T_camera_from_map=T_camera_from_map, tracked_pose=tracked,
                            T_camera_from_marker=None if found is None else found[0])
 
+    def finish(self) -> FrameResult | None:
+        """Register from the samples collected so far (the source ended before
+        ``register_frames`` were seen); None if there are none."""
+        if not self.collecting or not self._samples:
+            return None
+        T_anchor = self._samples[-1].T_anchor_from_camera
+        self._finalise()
+        assert self.T_anchor_from_map is not None and self.stamp is not None
+        return FrameResult(stamp=self.stamp, status=self._status(False, T_anchor),
+                           marker_seen=False, registered_now=True,
+                           T_camera_from_map=invert_T(T_anchor) @ self.T_anchor_from_map,
+                           tracked_pose=None, T_camera_from_marker=None)
+
     def _status(self, seen: bool, T_anchor_from_camera: np.ndarray | None) -> str:
         if not self.registered:
             return STATUS_WAITING

@@ -1,0 +1,170 @@
+"""Building a :class:`RegistrationService` from :class:`RegistrationSettings`.
+
+Decides the camera(s), their calibration, the frame source, the marker board and the
+registrar, so ``cli.py`` stays a thin shell and tests can build the same service in-process.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Callable
+
+import numpy as np
+
+from common.bus import Bus
+from common.errors import ConfigError, SourceError
+from common.keys import Keys
+from services.registration.board import MarkerBoard, default_board, load_board
+from services.registration.calibration import (
+    CameraCalibration,
+    load_calibration,
+    synthetic_calibration,
+)
+from services.registration.markers import MarkerDetector
+from services.registration.service import CameraPipeline, RegistrationService, TrackerPoses
+from services.registration.settings import RegistrationSettings
+from services.registration.sources import (
+    FrameSource,
+    ReconnectingSource,
+    SyntheticSource,
+    open_capture,
+)
+from services.registration.synthetic import (
+    ImagingSettings,
+    SceneSettings,
+    SyntheticCamera,
+    WorldMarker,
+    arena_centre,
+    fit_hfov_deg,
+    orbit_pose,
+    overhead_pose,
+    stereo_poses,
+)
+from services.registration.tracking import Registrar, RegistrarSettings
+
+log = logging.getLogger(__name__)
+
+HEAD_MOUNTED_HFOV_DEG = 75.0  #: synthetic head-mounted camera when hfov = 0
+
+
+def calibration_for(settings: RegistrationSettings) -> CameraCalibration:
+    """The intrinsics: the calibration file, or (synthetic only) the synthetic camera's."""
+    if settings.calibration:
+        calib = load_calibration(settings.calibration)
+        if settings.synthetic and np.any(calib.dist != 0):
+            log.warning("the synthetic camera renders an ideal pinhole; the distortion in %s "
+                        "is ignored when rendering", settings.calibration)
+        return calib
+    if not settings.synthetic:
+        raise ConfigError("a real camera needs --calibration FILE.yml (see slamlens calibrate)")
+    hfov = settings.hfov
+    if hfov <= 0:
+        hfov = (fit_hfov_deg(settings.width, settings.height, arena_xy=settings.arena,
+                             height_m=settings.camera_height)
+                if settings.mode == "overhead" else HEAD_MOUNTED_HFOV_DEG)
+    return synthetic_calibration(settings.width, settings.height, hfov_deg=hfov)
+
+
+def board_for(settings: RegistrationSettings) -> MarkerBoard:
+    if settings.board:
+        return load_board(settings.board)
+    a = settings.arena
+    return default_board(area_min_xy=a[:2], area_max_xy=a[2:], dictionary=settings.dictionary)
+
+
+def synthetic_scene(settings: RegistrationSettings) -> SceneSettings:
+    return SceneSettings(arena_xy=tuple(settings.arena),  # type: ignore[arg-type]
+                         robot_radius_m=settings.robot_radius, dictionary=settings.dictionary,
+                         marker_id=settings.marker_id, marker_size_m=settings.marker_size,
+                         marker_offset_xyz=tuple(settings.marker_offset),  # type: ignore[arg-type]
+                         seed=settings.seed)
+
+
+def synthetic_sources(settings: RegistrationSettings, calib: CameraCalibration,
+                      board: MarkerBoard | None) -> list[SyntheticSource]:
+    """One synthetic source per camera name (two for stereo), sharing one scene."""
+    scene = synthetic_scene(settings)
+    imaging = ImagingSettings(noise_sigma=settings.noise, blur_kernel=settings.blur,
+                              gain=settings.gain, offset=settings.offset,
+                              gradient=settings.gradient)
+    centre = arena_centre(settings.arena)
+    markers = () if board is None else tuple(
+        WorldMarker(m.marker_id, board.corners_in_world(m.marker_id), board.dictionary)
+        for m in board.markers)
+    names = settings.camera_names()
+    stereo = len(names) == 2
+
+    def pose_fn(index: int) -> Callable[[float], np.ndarray] | None:
+        if settings.mode == "overhead":
+            return None
+
+        def pose_at(stamp: float) -> np.ndarray:
+            T = orbit_pose(stamp, centre_xy=centre, radius_m=settings.orbit_radius,
+                           height_m=settings.orbit_height, period_s=settings.orbit_period)
+            return stereo_poses(T, settings.stereo_baseline)[index] if stereo else T
+        return pose_at
+
+    sources = []
+    for i, name in enumerate(names):
+        pose_at = pose_fn(i)
+        if pose_at is not None:
+            T0 = pose_at(0.0)
+        else:
+            T0 = overhead_pose(centre_xy=centre, height_m=settings.camera_height,
+                               yaw_deg=settings.camera_yaw)
+            if stereo:
+                T0 = stereo_poses(T0, settings.stereo_baseline)[i]
+        camera = SyntheticCamera(calib.K, calib.width, calib.height, T_world_from_camera=T0,
+                                 scene=scene, imaging=imaging, board=markers)
+        sources.append(SyntheticSource(camera, name=f"synthetic camera {name}",
+                                       pose_at=pose_at))
+    return sources
+
+
+def real_source(settings: RegistrationSettings) -> FrameSource:
+    factory = open_capture(settings.source, loop=settings.loop, width=settings.width,
+                           height=settings.height, fps=settings.fps)
+    try:
+        initial: FrameSource | None = factory()
+    except SourceError as exc:
+        log.warning("%s; will keep trying", exc)
+        initial = None
+    return ReconnectingSource(factory, name=f"source {settings.source}", initial=initial,
+                              backoff_max_s=settings.reconnect_max_s)
+
+
+def build_service(bus: Bus, keys: Keys, settings: RegistrationSettings) -> RegistrationService:
+    """Everything ``slamlens registration`` runs, wired to ``bus`` (not started)."""
+    calib = calibration_for(settings)
+    moving = settings.mode == "head-mounted"
+    board = board_for(settings) if moving else None
+    tracker = TrackerPoses() if moving and settings.camera_pose_source == "tracker" else None
+    detector = MarkerDetector(settings.dictionary)
+    registrar_settings = RegistrarSettings(
+        marker_id=settings.marker_id, marker_size_m=settings.marker_size,
+        marker_offset_xyz=tuple(settings.marker_offset),  # type: ignore[arg-type]
+        register_frames=settings.register_frames,
+        still_tolerance_m=settings.still_tolerance_m,
+        still_tolerance_deg=settings.still_tolerance_deg,
+        max_reprojection_error_px=settings.max_reprojection_error_px, moving_camera=moving)
+    synthetic: list[SyntheticSource] = []
+    sources: list[FrameSource]
+    if settings.synthetic:
+        synthetic = synthetic_sources(settings, calib, board)
+        sources = list(synthetic)
+    else:
+        sources = [real_source(settings)]
+    pipelines = []
+    for i, (name, source) in enumerate(zip(settings.camera_names(), sources, strict=True)):
+        pipelines.append(CameraPipeline(
+            bus, keys, camera=name, robot=settings.robot, source=source, calib=calib,
+            detector=detector if i == 0 else MarkerDetector(settings.dictionary),
+            registrar=Registrar(registrar_settings, calib), fps=settings.fps,
+            jpeg_quality=settings.jpeg_quality, moving=moving,
+            board=None if settings.camera_pose_source == "tracker" else board,
+            tracker_pose=(None if tracker is None
+                          else (lambda n=name: tracker.pose_of(n))),  # type: ignore[misc]
+            publish_tracked=i == 0, registration_period_s=settings.registration_period_s))
+    return RegistrationService(bus, keys, robot=settings.robot, base_camera=settings.camera,
+                               pipelines=pipelines, synthetic_sources=synthetic,
+                               tracker=tracker)
