@@ -126,7 +126,8 @@ def _run_calibrate(args: argparse.Namespace) -> int:
 
     images = []
     for name in args.images:
-        image = cv2.imread(name, cv2.IMREAD_COLOR)
+        # check first: OpenCV would add its own warning line for a missing file
+        image = cv2.imread(name, cv2.IMREAD_COLOR) if Path(name).is_file() else None
         if image is None:
             raise ConfigError(f"calibrate: cannot read image {name}")
         images.append(image)

@@ -355,3 +355,55 @@ def test_cli_process_publishes_and_stops_cleanly_on_sigterm(router_endpoint,
         out, err = stop(proc)
     assert proc.returncode == 0, err
     assert "registered" in err
+
+
+def test_head_mounted_with_an_external_tracker(make_client, run_service) -> None:
+    """camera_pose_source = tracker: the camera pose comes from CameraPose messages (here
+    the synthetic camera's true pose, as a perfect tracker would send it)."""
+    client = make_client()
+    registrations = Inbox(Registration, client, KEYS.registration(CAMERA, ROBOT))
+    truth_pub = client.publisher(KEYS.truth(ROBOT))
+    pose_pub = client.publisher(KEYS.camera_pose(CAMERA))
+    period = 600.0  # a slow walk, so the pose and the frame it belongs to barely differ
+    service = run_service(mode="head-mounted", camera_pose_source="tracker",
+                          orbit_period=period, fps=10.0)
+    time.sleep(0.3)
+    assert len(registrations) == 0
+    for stamp in np.arange(0.0, 3.0, 0.1):
+        T_wc = orbit_pose(float(stamp), centre_xy=(0.5, 0.5), period_s=period)
+        pose_pub.put(CameraPose(camera=CAMERA, stamp=float(stamp),
+                                T_world_from_camera=T_wc).to_bytes())
+        truth_pub.put(truth_at((0.0, 0.0, 0.0), float(stamp)).to_bytes())
+        time.sleep(0.1)
+    wait_for(lambda: len(registrations) > 5)
+    for reg in registrations.all()[-5:]:
+        T_wc = orbit_pose(reg.stamp, centre_xy=(0.5, 0.5), period_s=period)
+        dt, dr = pose_error(reg.T_camera_from_map, invert_T(T_wc))
+        assert dt < 0.01 and dr < DEG, (dt, dr)
+    assert service.pipelines[0].stats.camera_poses == 0  # it publishes no pose of its own
+    time.sleep(1.5)  # the tracker went quiet: the registration is stale
+    wait_for(lambda: registrations.last().status == "camera pose lost", timeout=5.0)
+
+
+def test_calibrate_command_writes_a_loadable_calibration(tmp_path: Path) -> None:
+    from services.registration.calibration import load_calibration
+    from tests.procs import REPO
+
+    photos = REPO / "tests" / "fixtures" / "fiducials" / "opencv_aruco"
+    output = tmp_path / "cam.yml"
+    proc = spawn("calibrate", *[str(photos / f"img_0{k}.jpg") for k in range(4)],
+                 "--squares-x", "5", "--squares-y", "7", "--square", "0.04", "--marker", "0.02",
+                 "--dictionary", "aruco_6x6_250", "--output", str(output))
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    assert "RMS reprojection error" in out and str(output) in out
+    rms = float(out.split("RMS reprojection error ")[1].split()[0])
+    assert 0 < rms < 1.0
+    ours = load_calibration(output)
+    reference = load_calibration(photos / "tutorial_camera_charuco.yml")  # same 4 photos
+    np.testing.assert_allclose([ours.fx, ours.fy, ours.cx, ours.cy],
+                               [reference.fx, reference.fy, reference.cx, reference.cy],
+                               rtol=0.05)
+    bad = spawn("calibrate", str(tmp_path / "missing.jpg"), "--output", str(output))
+    out, err = bad.communicate(timeout=60)
+    assert bad.returncode == 1 and err.strip().count("\n") == 0 and "cannot read" in err
