@@ -7,7 +7,8 @@ are updates (every pair compared). Target: median ≤ 2 ms per state at n = 100 
 keeping up with 100 Hz states). A naive baseline is measured in the same run on the same
 update states: the pair check as a per-pair loop of P_d (common.geometry) and
 numpy.linalg.eigvalsh of the difference; the ratio is naive / ours for that check. The
-machine is shared: run it a few times, quote medians.
+machine is shared: run it a few times, quote medians; set OPENBLAS_NUM_THREADS=1 (as the
+monitor service should run) or see the latency of a multi-threaded Cholesky under load.
 
     .venv/bin/python benchmarks/bench_monitor.py [--states 200] [--quick]
 """
@@ -16,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import statistics
 import sys
 import time
@@ -121,6 +123,10 @@ def main() -> None:
     args = parser.parse_args()
     sizes = (15, 100) if args.quick else (15, 50, 100)
     count = 40 if args.quick else args.states
+    threads = os.environ.get("OPENBLAS_NUM_THREADS", "unset")
+    print(f"OPENBLAS_NUM_THREADS={threads} (the PSD test is a LAPACK Cholesky: on a loaded "
+          f"2-core machine multi-threaded OpenBLAS costs ~10× in latency; run the monitor "
+          f"with 1)")
     print(f"{'n':>4} {'no truth µs':>20} {'with truth µs':>20} {'pairs ours µs':>14} "
           f"{'pairs naive µs':>15} {'naive/ours':>10}")
     print(f"{'':>4} {'median':>9} {'p95':>10} {'median':>9} {'p95':>10}")

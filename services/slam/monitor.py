@@ -19,7 +19,9 @@ Checks per state (docs/monitor.md has the full list and the reasons for each tol
 from __future__ import annotations
 
 import bisect
+import dataclasses
 import logging
+import math
 from collections import Counter, deque
 from dataclasses import dataclass, field
 
@@ -111,6 +113,15 @@ class Monitor:
         self._restarts = 0
         self._onset: tuple[int, float] | None = None
 
+    def _restart(self) -> None:
+        """A new run of the estimator: drop what belonged to the old one (not the counts)."""
+        self._pending.clear()
+        self._late = []
+        self._nis.reset()
+        self._nees_pose.reset()
+        self._nees_features.reset()
+        self._evidence.reset()
+
     @property
     def summary(self) -> MonitorSummary:
         """Counts by kind, current suspects, onset and the fault phase guess."""
@@ -167,22 +178,25 @@ class Monitor:
         stats: dict[str, float] = {}
         found: list[Violation] = []
         prev = self._prev
-        if prev is not None and state.seq <= prev.seq:
+        if prev is not None and state.seq < prev.seq:
             log.warning("state seq went back from %d to %d: estimator restarted, new baseline",
                         prev.seq, state.seq)
             self._restarts += 1
+            self._restart()
             prev = None
-        gap = 0 if prev is None else state.seq - prev.seq - 1
+        gap = 0 if prev is None else max(state.seq - prev.seq - 1, 0)
         self._gaps += gap
         stats["gap"] = float(gap)
 
-        found += self._check_alone(state)
         pairs = np.zeros((0, 2), dtype=np.int64)
         direct: list[int] = []
-        if prev is not None:
-            pairs, direct, more = self._check_against(prev, state, stats)
-            found += more
-        found += self._statistics(state, stats)
+        # huge-but-finite covariances may overflow products: the comparisons still decide
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            found += self._check_alone(state)
+            if prev is not None:
+                pairs, direct, more = self._check_against(prev, state, stats)
+                found += more
+            found += self._statistics(state, stats)
         found += self._late
         self._late = []
 
@@ -202,7 +216,8 @@ class Monitor:
         self._states += 1
         return Health(robot=state.robot, seq=state.seq, stamp=state.stamp, ok=not found,
                       suspects=np.asarray(suspects, dtype=np.int64),
-                      violations=tuple(self._cap(found)), statistics=stats)
+                      violations=tuple(_finite(v) for v in self._cap(found)),
+                      statistics={k: v for k, v in stats.items() if math.isfinite(v)})
 
     def _cap(self, found: list[Violation]) -> list[Violation]:
         """At most ``max_violations_per_kind`` per kind, the largest values first."""
@@ -244,9 +259,11 @@ class Monitor:
         neg = checks.min_eigenvalue_if_indefinite(P, rtol=s.rtol_psd, atol=s.atol_growth)
         if neg is not None:
             lam, tol, vec = neg
+            # blame-free, but name the features carrying ≥ 10 % of the negative direction
             weight = vec[3:].reshape(-1, 2) ** 2
             per_feature = weight.sum(axis=1) if weight.size else np.zeros(0)
-            heavy = np.flatnonzero(per_feature >= 0.1 * float(np.sum(vec ** 2)))
+            total = float(np.sum(vec ** 2))
+            heavy = np.flatnonzero(per_feature >= 0.1 * total) if total > 0 else []
             out.append(Violation(
                 kind="psd", ids=tuple(int(ids[i]) for i in heavy), step=state.seq,
                 value=-lam, bound=tol, phase=state.step,
@@ -427,6 +444,16 @@ class Monitor:
                     detail=f"mean NEES of feature {fid} {r.mean:.3g} over {r.samples} states "
                            f"outside [{r.lo:.3g}, {r.hi:.3g}]"))
         return nees_p, nees_f, out
+
+
+def _finite(v: Violation) -> Violation:
+    """Health carries finite numbers only (SPEC §7 decoders reject NaN/∞): clip overflows."""
+    if math.isfinite(v.value) and (v.bound is None or math.isfinite(v.bound)):
+        return v
+    clip = 1e300
+    value = clip if math.isnan(v.value) else max(-clip, min(clip, v.value))
+    bound = None if v.bound is None or math.isnan(v.bound) else max(-clip, min(clip, v.bound))
+    return dataclasses.replace(v, value=value, bound=bound)
 
 
 def _side(r: object) -> float:

@@ -184,10 +184,13 @@ def min_eigenvalue_if_indefinite(P: np.ndarray, *, rtol: float,
     if info == 0:
         return None
     # only the smallest eigenpair is needed (LAPACK's subset driver: cheaper than all)
-    w, V = linalg.eigh(S, subset_by_index=[0, 0], check_finite=False)
-    if w[0] >= -tol:
-        return None
-    return float(w[0]), tol, V[:, 0]
+    try:
+        w, V = linalg.eigh(S, subset_by_index=[0, 0], check_finite=False)
+    except (linalg.LinAlgError, ValueError):  # no convergence (overflowing entries)
+        return -np.inf, tol, np.zeros(N)
+    if not w[0] >= -tol:
+        return float(w[0]), tol, V[:, 0]
+    return None
 
 
 def prediction_residuals(P_prev: np.ndarray, P_cur: np.ndarray, pose_prev: np.ndarray,

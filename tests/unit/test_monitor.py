@@ -497,6 +497,36 @@ def test_seq_going_back_is_a_restart_not_a_violation(correct_run) -> None:
     assert all(h.ok for h in healths) and mon.summary.restarts == 1
 
 
+def test_a_duplicate_state_is_neither_a_restart_nor_an_alarm(correct_run) -> None:
+    states, _ = correct_run
+    mon = Monitor(MonitorSettings())
+    healths = [mon.check(s) for s in (states[100], states[101], states[101], states[102])]
+    assert all(h.ok for h in healths) and mon.summary.restarts == 0
+
+
+def test_a_restart_forgets_the_old_runs_suspects() -> None:
+    states, _ = run(seed=3, steps=120, cross_fault=(1,), onset=2.0)
+    mon = Monitor(MonitorSettings())
+    feed(mon, states)
+    assert mon.summary.suspects == (1,)
+    correct, _ = run(seed=3, steps=20)
+    healths = feed(mon, correct)
+    assert mon.summary.restarts == 1 and healths[-1].suspects.size == 0
+    assert mon.summary.violations["prediction"] > 0  # counts are kept
+
+
+def test_absurd_but_finite_covariances_give_a_decodable_health(correct_run) -> None:
+    states, _ = correct_run
+    base = states[-1]
+    mon = Monitor(MonitorSettings())
+    mon.check(base)
+    P = base.covariance * 1e300
+    P[5, 6] = -P[5, 6]  # and broken: asymmetric, |ρ| > 1 nowhere near representable
+    h = mon.check(with_cov(base, P))
+    assert not h.ok
+    assert Health.from_bytes(h.to_bytes()) == h
+
+
 def test_a_removed_landmark_is_counted_not_alarmed(correct_run) -> None:
     states, _ = correct_run
     s = states[-1]
