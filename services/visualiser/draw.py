@@ -160,7 +160,7 @@ class Cones:
 # -- glyphs -----------------------------------------------------------------------------
 #: level of detail by projected major semi-axis: (below px, shading layers, polygon vertices);
 #: the vertex counts keep the polygon within half a pixel of the true ellipse
-GLYPH_LOD = ((2.5, 1, 12), (7.0, 2, 16), (40.0, 3, 20), (150.0, 5, 40), (np.inf, 8, 96))
+GLYPH_LOD = ((2.5, 1, 12), (20.0, 2, 20), (60.0, 3, 24), (150.0, 5, 40), (np.inf, 8, 96))
 
 
 def shading_profile(layers: int) -> list[tuple[float, float, float]]:
@@ -171,6 +171,8 @@ def shading_profile(layers: int) -> list[tuple[float, float, float]]:
     """
     if layers == 1:
         return [(1.0, 0.8, 0.0)]
+    if layers == 2:
+        return [(1.0, 0.55, 0.0), (0.62, 1.0, 0.1)]
     out = []
     for layer in range(layers):
         t = layer / (layers - 1)
