@@ -263,7 +263,8 @@ class Monitor:
             weight = vec[3:].reshape(-1, 2) ** 2
             per_feature = weight.sum(axis=1) if weight.size else np.zeros(0)
             total = float(np.sum(vec ** 2))
-            heavy = np.flatnonzero(per_feature >= 0.1 * total) if total > 0 else []
+            heavy = (np.flatnonzero(per_feature >= 0.1 * total) if total > 0
+                     else np.zeros(0, dtype=np.int64))
             out.append(Violation(
                 kind="psd", ids=tuple(int(ids[i]) for i in heavy), step=state.seq,
                 value=-lam, bound=tol, phase=state.step,
