@@ -74,13 +74,22 @@ def relative_covariance(P: np.ndarray, i: int, j: int) -> np.ndarray:
 def all_relative_covariances(P: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """P_d for every pair i < j of the first ``n`` landmarks, vectorised.
 
-    Returns ``(I, J, Pd)`` with ``Pd`` of shape (n(n−1)/2, 2, 2).
+    Returns ``(I, J, Pd)`` with ``Pd`` of shape (n(n−1)/2, 2, 2). Only the entries needed
+    are gathered (four element gathers per pair), never a reshaped copy of P_mm.
     """
     first, second = np.triu_indices(n, k=1)
-    M = P[3:3 + 2 * n, 3:3 + 2 * n].reshape(n, 2, n, 2).transpose(0, 2, 1, 3)  # (n, n, 2, 2)
-    diag = M[np.arange(n), np.arange(n)]  # (n, 2, 2)
-    Pij = M[first, second]
-    Pd = diag[first] + diag[second] - Pij - Pij.transpose(0, 2, 1)
+    lm = 3 + 2 * np.arange(n)
+    # each landmark's own 2x2 block (a, b; b, d), then the cross block of each pair
+    a_ = P[lm, lm]
+    b_ = P[lm + 1, lm]
+    d_ = P[lm + 1, lm + 1]
+    r, c = lm[first], lm[second]
+    Pd = np.empty((first.size, 2, 2))
+    Pd[:, 0, 0] = a_[first] + a_[second] - 2.0 * P[r, c]
+    Pd[:, 1, 1] = d_[first] + d_[second] - 2.0 * P[r + 1, c + 1]
+    off = b_[first] + b_[second] - P[r, c + 1] - P[r + 1, c]
+    Pd[:, 0, 1] = off
+    Pd[:, 1, 0] = off
     return first, second, Pd
 
 
