@@ -279,19 +279,39 @@ def _shade(bgr: tuple[int, int, int], normal: np.ndarray) -> tuple[int, int, int
 def _draw_faces(image: np.ndarray, faces: Sequence[_Face], *, K: np.ndarray,
                 T_camera_from_world: np.ndarray, camera_centre: np.ndarray) -> None:
     """Back-face culled, depth-sorted (far first) flat-shaded polygons."""
+    if not faces:
+        return
+    # one projection for every vertex of every face: the per-face work is just fillPoly
+    counts = [len(f.points_world) for f in faces]
+    uv, z = _project(K, T_camera_from_world, np.vstack([f.points_world for f in faces]))
+    bounds = np.cumsum([0, *counts])
     items = []
-    for face in faces:
+    for k, face in enumerate(faces):
         centroid = face.points_world.mean(axis=0)
         if face.normal_world @ (camera_centre - centroid) <= 0:
             continue
-        uv, z = _project(K, T_camera_from_world, face.points_world)
-        if np.any(z < NEAR_M):
+        a, b = bounds[k], bounds[k + 1]
+        if np.any(z[a:b] < NEAR_M):
             continue
-        items.append((float(np.linalg.norm(centroid - camera_centre)), uv, face))
+        items.append((float(np.linalg.norm(centroid - camera_centre)), uv[a:b], face))
     items.sort(key=lambda it: -it[0])
-    for _, uv, face in items:
-        pts = np.round(uv * 16.0).astype(np.int32)  # 4 fractional bits (shift=4)
+    for _, face_uv, face in items:
+        pts = np.round(face_uv * 16.0).astype(np.int32)  # 4 fractional bits (shift=4)
         cv2.fillPoly(image, [pts], _shade(face.bgr, face.normal_world), cv2.LINE_AA, shift=4)
+
+
+def _clip_half_plane(polygon: np.ndarray, line: np.ndarray) -> np.ndarray:
+    """The part of a convex polygon (k, 2) where line · (u, v, 1) ≤ 0 (Sutherland–Hodgman)."""
+    out = []
+    values = polygon @ line[:2] + line[2]
+    for k in range(len(polygon)):
+        p, q = polygon[k], polygon[(k + 1) % len(polygon)]
+        vp, vq = values[k], values[(k + 1) % len(polygon)]
+        if vp <= 0:
+            out.append(p)
+        if (vp <= 0) != (vq <= 0):
+            out.append(p + (q - p) * vp / (vp - vq))
+    return np.array(out).reshape(-1, 2)
 
 
 def floor_texture(scene: SceneSettings) -> tuple[np.ndarray, np.ndarray]:
@@ -358,6 +378,8 @@ class SyntheticCamera:
         self._static_key: tuple[bytes, bytes] | None = None
         self._static: np.ndarray | None = None
         self._posts: list[tuple[float, tuple[int, int, int, int], list[_Face]]] = []
+        self._post_faces_key = b""
+        self._post_faces: list[list[_Face]] = []
         self._light = self._lighting_map()
         self._offset = None if imaging.offset == 0.0 else np.full(
             (self.height, self.width, 3), round(imaging.offset), np.int16)
@@ -413,14 +435,15 @@ class SyntheticCamera:
         image = cv2.warpPerspective(texture, H, (self.width, self.height),
                                     flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
                                     borderValue=CONCRETE_BGR)
-        # pixels whose ray never meets the floor (above the horizon) show the wall
+        # pixels whose ray never meets the floor (above the horizon) show the wall: the
+        # half-plane of the image where the floor's inverse homography has w ≤ 0
         row = np.linalg.inv(H_image_from_floor)[2]
-        corners = np.array([[0, 0, 1], [self.width, 0, 1], [0, self.height, 1],
-                            [self.width, self.height, 1]], float)
-        if np.any(corners @ row <= 0):
-            u, v = np.meshgrid(np.arange(self.width), np.arange(self.height))
-            sky = row[0] * u + row[1] * v + row[2] <= 1e-6
-            image[sky] = WALL_BGR
+        frame = np.array([[-1.0, -1.0], [self.width, -1.0], [self.width, self.height],
+                          [-1.0, self.height]])
+        sky = _clip_half_plane(frame, row / np.abs(row).max())
+        if len(sky) >= 3:
+            cv2.fillPoly(image, [np.round(sky * 16.0).astype(np.int32)], WALL_BGR,
+                         cv2.LINE_AA, shift=4)
         return image
 
     def _build_static(self, T_world_from_camera: np.ndarray, landmarks_xy: np.ndarray) -> None:
@@ -430,12 +453,15 @@ class SyntheticCamera:
             self._draw_marker(image, marker.dictionary, marker.marker_id,
                               np.asarray(marker.corners_world, float), T_cw)
         s = self.scene
+        if self._post_faces_key != landmarks_xy.tobytes():  # a moving camera keeps the posts
+            self._post_faces_key = landmarks_xy.tobytes()
+            self._post_faces = [
+                _cylinder_faces((x, y), s.landmark_radius_m, 0.0, s.landmark_height_m,
+                                POST_BGR[k % len(POST_BGR)], POST_BGR[k % len(POST_BGR)], n=12)
+                for k, (x, y) in enumerate(landmarks_xy)]
         all_faces: list[_Face] = []
         self._posts = []
-        for k, (x, y) in enumerate(landmarks_xy):
-            faces = _cylinder_faces((x, y), s.landmark_radius_m, 0.0, s.landmark_height_m,
-                                    POST_BGR[k % len(POST_BGR)], POST_BGR[k % len(POST_BGR)],
-                                    n=12)
+        for (x, y), faces in zip(landmarks_xy, self._post_faces, strict=True):
             all_faces += faces
             top = np.array([[x, y, s.landmark_height_m]])
             pts = np.vstack([f.points_world for f in faces])
