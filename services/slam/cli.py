@@ -158,11 +158,18 @@ def _estimator_overrides(args: argparse.Namespace) -> dict[str, Any]:
     return _overrides(args, names)
 
 
-def _run_estimator(args: argparse.Namespace) -> int:
-    # One BLAS thread unless the user says otherwise: the O(n²) downdate is memory-bound,
-    # and on a shared machine a second BLAS thread waiting for a busy core stalls large
-    # updates by up to 20× (docs/estimator.md). Must happen before numpy is imported.
+def _one_blas_thread() -> None:
+    """One BLAS thread unless the user says otherwise (set before numpy is imported).
+
+    The estimator's O(n²) downdate is memory-bound and the monitor's Cholesky is small; on
+    a shared machine a second BLAS thread waiting for a busy core stalls them by up to 20×
+    (docs/estimator.md, docs/monitor.md).
+    """
     os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+
+def _run_estimator(args: argparse.Namespace) -> int:
+    _one_blas_thread()
     from services.slam.estimator import EstimatorSettings
     from services.slam.estimator_service import EstimatorService
 
@@ -232,6 +239,7 @@ def _run_serial(args: argparse.Namespace) -> int:
 
 
 def _run_monitor(args: argparse.Namespace) -> int:
+    _one_blas_thread()
     from services.slam.monitor_service import MonitorService
     from services.slam.monitor_settings import MonitorSettings
 
