@@ -81,8 +81,9 @@ def decode_array(
         raise MessageError(message, field, "booleans", str(array.dtype))
     array = np.array(array, dtype=want, order="C")  # own the memory: frombuffer is read-only
 
+    dims: tuple[int, ...] = array.shape
     if len(shape) != array.ndim or any(
-        s is not None and s != d for s, d in zip(shape, array.shape, strict=False)
+        s is not None and s != d for s, d in zip(shape, dims, strict=False)
     ):
         shown = ["n" if s is None else s for s in shape]
         raise MessageError(message, field, f"shape {shown}", str(list(array.shape)))

@@ -149,7 +149,13 @@ class ZenohBus:
         self._lock = threading.Lock()
         self._closed = False
         ref = weakref.ref(self)
-        _at_shutdown(lambda: (b := ref()) is not None and b.close())
+
+        def close_if_alive() -> None:
+            bus = ref()
+            if bus is not None:
+                bus.close()
+
+        _at_shutdown(close_if_alive)
 
     def _keep(self, entity: Any) -> Any:
         with self._lock:

@@ -57,13 +57,13 @@ def _coerce(key: str, value: Any, annotation: Any) -> Any:
             raise ConfigError(f"setting {key!r}: expected a string, got {value!r}")
         return str(value)
     if origin is tuple:
-        items = value
+        items: Any = value
         if isinstance(value, str):
             items = [v.strip() for v in value.split(",") if v.strip()]
         if not isinstance(items, (list, tuple)):
             raise ConfigError(f"setting {key!r}: expected a list, got {value!r}")
-        inner = args[0] if args else str
-        return tuple(_coerce(key, v, inner) for v in items)
+        item_type = args[0] if args else str
+        return tuple(_coerce(key, v, item_type) for v in items)
     return value
 
 

@@ -55,8 +55,11 @@ def _arr(dtype: dict[str, Any], shape: tuple[int | None, ...], doc: str,
     return field(metadata=meta)
 
 
-def _scalar(kind: str, doc: str, **kw: Any) -> Any:
-    return field(metadata={"kind": kind, "doc": doc}, **kw)
+def _scalar(kind: str, doc: str, *, choices: tuple[str, ...] | None = None, **kw: Any) -> Any:
+    meta: dict[str, Any] = {"kind": kind, "doc": doc}
+    if choices is not None:
+        meta["choices"] = choices
+    return field(metadata=meta, **kw)
 
 
 class Message:
@@ -262,8 +265,8 @@ class SlamState(Message):
     robot: str = _scalar("str", "robot name")
     seq: int = _scalar("int", "state sequence number, +1 per event applied")
     stamp: float = _scalar("float", "time of the event applied, s")
-    step: str = field(metadata={"kind": "str", "choices": STEPS,
-                                "doc": "what produced this state: init / predict / update"})
+    step: str = _scalar("str", "what produced this state: init / predict / update",
+                        choices=STEPS)
     pose: np.ndarray = _arr(_F8, (3,), "estimated robot pose (x m, y m, θ rad), map frame")
     landmark_ids: np.ndarray = _arr(_I8, (None,), "landmark ids int64[n], state order")
     landmarks: np.ndarray = _arr(_F8, (None, 2), "estimated landmarks [n,2], m, map frame")
@@ -401,7 +404,7 @@ class CameraFrame(Message):
     camera: str = _scalar("str", "camera name")
     seq: int = _scalar("int", "frame number")
     stamp: float = _scalar("float", "capture time, s")
-    encoding: str = field(metadata={"kind": "str", "choices": ("jpeg",), "doc": "image codec"})
+    encoding: str = _scalar("str", "image codec", choices=("jpeg",))
     width: int = _scalar("int", "pixels")
     height: int = _scalar("int", "pixels")
     data: bytes = _scalar("bytes", "the encoded image")
