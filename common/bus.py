@@ -21,10 +21,9 @@ from __future__ import annotations
 
 import atexit
 import logging
-import queue
 import threading
-import time
 import weakref
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, Protocol
@@ -97,34 +96,56 @@ class Bus(Protocol):
 # ---------------------------------------------------------------------------------
 
 
-class _ZenohChannel:
-    def __init__(self, subscriber: Any) -> None:
-        self._sub = subscriber
+class QueueChannel:
+    """An in-order queue of samples fed by one subscriber callback.
+
+    ``recv`` wakes the moment a sample arrives (no polling). When full, ``push`` either
+    blocks the feeding thread — backpressure through Zenoh to the publisher, nothing lost
+    — or, with ``drop_oldest``, discards the oldest sample (capacity 1 = latest wins).
+    """
+
+    def __init__(self, *, capacity: int, drop_oldest: bool) -> None:
+        self._items: deque[Sample] = deque()
+        self._capacity = max(1, capacity)
+        self._drop_oldest = drop_oldest
+        self._cond = threading.Condition()
         self._closed = False
+        self.dropped = 0
+        self._on_close: Callable[[], None] | None = None
+
+    def push(self, sample: Sample) -> None:
+        with self._cond:
+            while len(self._items) >= self._capacity and not self._closed:
+                if self._drop_oldest:
+                    self._items.popleft()
+                    self.dropped += 1
+                else:
+                    self._cond.wait(0.5)
+            if self._closed:
+                return
+            self._items.append(sample)
+            self._cond.notify_all()
 
     def recv(self, timeout: float | None = None) -> Sample | None:
-        # zenoh handlers have try_recv() and a blocking recv(); poll so close() and
-        # timeouts work without a thread stuck inside the library.
-        deadline = None if timeout is None else time.monotonic() + timeout
-        delay = 0.0002
-        while not self._closed:
-            try:
-                s = self._sub.try_recv()
-            except Exception:  # the channel was closed under us
+        with self._cond:
+            if not self._cond.wait_for(lambda: self._items or self._closed, timeout):
                 return None
-            if s is not None:
-                return Sample(str(s.key_expr), s.payload.to_bytes())
-            if deadline is not None and time.monotonic() >= deadline:
+            if not self._items:
                 return None
-            time.sleep(delay)
-            delay = min(delay * 2, 0.005)
-        return None
+            sample = self._items.popleft()
+            self._cond.notify_all()
+            return sample
 
     def close(self) -> None:
-        if not self._closed:
+        with self._cond:
+            if self._closed:
+                return
             self._closed = True
+            self._items.clear()
+            self._cond.notify_all()
+        if self._on_close is not None:
             try:
-                self._sub.undeclare()
+                self._on_close()
             except Exception:  # already gone with the session
                 pass
 
@@ -186,15 +207,14 @@ class ZenohBus:
 
     def channel(self, key: str, *, latest_wins: bool = False, capacity: int = 4096,
                 drop_oldest: bool = False) -> Channel:
-        handlers = self._zenoh.handlers
-        if latest_wins:
-            handler = handlers.RingChannel(1)
-        elif drop_oldest:
-            handler = handlers.RingChannel(capacity)
-        else:  # a full FIFO blocks the sender: backpressure, nothing lost
-            handler = handlers.FifoChannel(capacity)
-        sub = self.session.declare_subscriber(key, handler)
-        ch = _ZenohChannel(sub)
+        ch = QueueChannel(capacity=1 if latest_wins else capacity,
+                          drop_oldest=latest_wins or drop_oldest)
+
+        def on_sample(sample: Any) -> None:
+            ch.push(Sample(str(sample.key_expr), sample.payload.to_bytes()))
+
+        sub = self.session.declare_subscriber(key, on_sample)
+        ch._on_close = sub.undeclare
         self._keep(ch)
         return ch
 
@@ -231,7 +251,7 @@ class ZenohBus:
             entities, self._entities = self._entities, []
         for entity in reversed(entities):
             try:
-                if isinstance(entity, _ZenohChannel):
+                if isinstance(entity, QueueChannel):
                     entity.close()
                 else:
                     entity.undeclare()
@@ -258,30 +278,6 @@ def _intersects(a: str, b: str) -> bool:
     import zenoh
 
     return bool(zenoh.KeyExpr(a).intersects(zenoh.KeyExpr(b)))
-
-
-class _LocalChannel:
-    def __init__(self, capacity: int, drop_oldest: bool) -> None:
-        self._q: queue.Queue[Sample] = queue.Queue(maxsize=capacity)
-        self._drop_oldest = drop_oldest
-        self.closed = False
-
-    def push(self, sample: Sample) -> None:
-        if self._drop_oldest and self._q.full():
-            try:
-                self._q.get_nowait()
-            except queue.Empty:
-                pass
-        self._q.put(sample)
-
-    def recv(self, timeout: float | None = None) -> Sample | None:
-        try:
-            return self._q.get(timeout=timeout)
-        except queue.Empty:
-            return None
-
-    def close(self) -> None:
-        self.closed = True
 
 
 class InProcessBus:
@@ -313,7 +309,8 @@ class InProcessBus:
 
     def channel(self, key: str, *, latest_wins: bool = False, capacity: int = 4096,
                 drop_oldest: bool = False) -> Channel:
-        ch = _LocalChannel(1 if latest_wins else capacity, latest_wins or drop_oldest)
+        ch = QueueChannel(capacity=1 if latest_wins else capacity,
+                          drop_oldest=latest_wins or drop_oldest)
         self._subs.append((key, ch.push))
         return ch
 
