@@ -121,9 +121,12 @@ def synthetic_sources(settings: RegistrationSettings, calib: CameraCalibration,
     return sources
 
 
-def real_source(settings: RegistrationSettings) -> FrameSource:
-    factory = open_capture(settings.source, loop=settings.loop, width=settings.width,
-                           height=settings.height, fps=settings.fps)
+def real_source(settings: RegistrationSettings,
+                factory: Callable[[], FrameSource] | None = None) -> FrameSource:
+    """The capture source, opened now if it can be, else retried in the background."""
+    if factory is None:
+        factory = open_capture(settings.source, loop=settings.loop, width=settings.width,
+                               height=settings.height, fps=settings.fps)
     try:
         initial: FrameSource | None = factory()
     except SourceError as exc:
@@ -135,6 +138,10 @@ def real_source(settings: RegistrationSettings) -> FrameSource:
 
 def build_service(bus: Bus, keys: Keys, settings: RegistrationSettings) -> RegistrationService:
     """Everything ``slamlens registration`` runs, wired to ``bus`` (not started)."""
+    # a missing path fails first, a missing calibration second, before a device is opened
+    factory = None if settings.synthetic else open_capture(
+        settings.source, loop=settings.loop, width=settings.width, height=settings.height,
+        fps=settings.fps)
     calib = calibration_for(settings)
     moving = settings.mode == "head-mounted"
     board = board_for(settings) if moving else None
@@ -153,7 +160,7 @@ def build_service(bus: Bus, keys: Keys, settings: RegistrationSettings) -> Regis
         synthetic = synthetic_sources(settings, calib, board)
         sources = list(synthetic)
     else:
-        sources = [real_source(settings)]
+        sources = [real_source(settings, factory)]
     pipelines = []
     for i, (name, source) in enumerate(zip(settings.camera_names(), sources, strict=True)):
         pipelines.append(CameraPipeline(

@@ -97,8 +97,12 @@ def registration_settings(args: argparse.Namespace) -> Any:
 
 
 def _run_registration(args: argparse.Namespace) -> int:
+    import cv2
+
     from services.registration.assemble import build_service
 
+    if not args.verbose:  # our own one-line messages say when a camera is missing
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
     settings = registration_settings(args)
     keys = keys_from(args)
     stop = stop_event()

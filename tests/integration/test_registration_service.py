@@ -337,9 +337,9 @@ def test_cli_process_publishes_and_stops_cleanly_on_sigterm(router_endpoint,
     client = make_client()
     registrations = Inbox(Registration, client, KEYS.registration("c1", "r9"))
     frames = Inbox(CameraFrame, client, KEYS.frame("c1"))
-    proc = spawn("registration", "--connect", router_endpoint, "--camera", "c1", "--robot",
-                 "r9", "--source", "synthetic", "--fps", "15", "--width", "960", "--height",
-                 "540", "--marker-offset", "0,0,0.2")
+    proc = spawn("registration", "--config", "deploy/camera_overhead.toml", "--connect",
+                 router_endpoint, "--camera", "c1", "--robot", "r9", "--fps", "15", "--width",
+                 "960", "--height", "540", "--marker-offset", "0,0,0.2")
     try:
         line = proc.stdout.readline()
         assert "registration ready: c1" in line, proc.stderr.read() if proc.poll() else line
@@ -355,6 +355,20 @@ def test_cli_process_publishes_and_stops_cleanly_on_sigterm(router_endpoint,
         out, err = stop(proc)
     assert proc.returncode == 0, err
     assert "registered" in err
+
+
+@pytest.mark.parametrize(("args", "message"), [
+    (("--source", "/nonexistent/clip.avi"), "source /nonexistent/clip.avi does not exist"),
+    (("--source", "0", "--stereo-baseline", "0.1"), "stereo needs --source synthetic"),
+    (("--source", "0"), "a real camera needs --calibration"),
+    (("--mode", "sideways"), "'mode': 'sideways' is not one of"),
+    (("--marker-offset", "0,0"), "expected X,Y,Z"),
+])
+def test_cli_rejects_bad_settings_in_one_line(router_endpoint, args, message) -> None:
+    proc = spawn("registration", "--connect", router_endpoint, *args)
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 1 and err.startswith("slamlens: error:"), err
+    assert message in err and err.strip().count("\n") == 0, err
 
 
 def test_head_mounted_with_an_external_tracker(make_client, run_service) -> None:
