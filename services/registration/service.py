@@ -81,6 +81,7 @@ class PipelineStats:
     tracked: int = 0
     camera_poses: int = 0
     read_errors: int = 0
+    size_mismatches: int = 0  #: frames of another size than the calibration's
     ended: bool = False
     publish_times: collections.deque = dataclasses.field(
         default_factory=lambda: collections.deque(maxlen=600))
@@ -251,6 +252,15 @@ class CameraPipeline:
         return T_world_from_camera
 
     def _process(self, stamp: float, image: np.ndarray) -> None:
+        h, w = image.shape[:2]
+        if (w, h) != (self.calib.width, self.calib.height):
+            # the intrinsics would be wrong for this frame: publish it, never register on it
+            self.stats.size_mismatches += 1
+            if self.stats.size_mismatches == 1:
+                log.error("camera %s: frames are %dx%d but the calibration is for %dx%d; "
+                          "not registering", self.camera, w, h, self.calib.width,
+                          self.calib.height)
+            return
         if self._reregister.is_set():
             self._reregister.clear()
             self.registrar.reset()

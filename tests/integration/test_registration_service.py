@@ -237,6 +237,25 @@ def test_vanished_folder_logs_once_and_keeps_serving_the_registration(
     assert service.pipelines[0].source.failures >= 2  # retried while it was gone
 
 
+def test_frames_of_another_size_than_the_calibration_are_not_registered(
+        tmp_path: Path, make_client, run_service, caplog: pytest.LogCaptureFixture) -> None:
+    folder = tmp_path / "frames"
+    calibration = render_start_frames(folder, 2)
+    for path in folder.iterdir():
+        cv2.imwrite(str(path), cv2.resize(cv2.imread(str(path)), (640, 360)))
+    client = make_client()
+    frames = Inbox(CameraFrame, client, KEYS.frame(CAMERA))
+    time.sleep(0.3)
+    with caplog.at_level(logging.ERROR):
+        service = run_service(source=str(folder), calibration=calibration, loop=True,
+                              fps=20.0)
+        wait_for(lambda: service.pipelines[0].stats.size_mismatches >= 10)
+    assert len(frames) > 0 and frames.last().width == 640  # still shown …
+    assert service.pipelines[0].stats.registrations == 0  # … never registered
+    assert client.get(KEYS.registration(CAMERA, ROBOT)) == []
+    assert sum("calibration is for 1280x720" in r.getMessage() for r in caplog.records) == 1
+
+
 def test_video_file_that_ends_keeps_serving_the_registration(
         tmp_path: Path, make_client, run_service, caplog: pytest.LogCaptureFixture) -> None:
     folder = tmp_path / "frames"
