@@ -141,6 +141,7 @@ class ViewerService:
     """Subscribe, decode, render per distinct settings, hand JPEGs to the web layer."""
 
     MAX_CLIENTS = 256  # settings of the most recently seen browser tabs
+    BURST = 2.0  # render cycles the fps cap lets through back to back after a pause
 
     def __init__(self, bus: Bus, *, keys: Keys, config: ViewerConfig,
                  default_settings: ViewSettings | None = None) -> None:
@@ -385,20 +386,26 @@ class ViewerService:
 
     # -- rendering ------------------------------------------------------------------
     def _render_loop(self) -> None:
-        period = 1.0 / self.config.fps
-        last = -float("inf")
+        # The fps cap is a token bucket (refilled at fps, holding BURST): on average at most
+        # fps pictures per view set, but a camera's timing jitter is absorbed instead of
+        # piling up behind a rigid 1/fps spacing (which drops frames at an equal input rate)
+        rate, burst = self.config.fps, self.BURST
+        tokens, refilled = burst, time.monotonic()
         while not self._stop.is_set():
             self._render_wake.wait(0.5)
             if self._stop.is_set():
                 break
-            wait = last + period - time.monotonic()
-            if wait > 0:  # the fps cap: newer inputs keep arriving meanwhile (latest wins)
-                self._stop.wait(wait)
+            now = time.monotonic()
+            tokens, refilled = min(burst, tokens + (now - refilled) * rate), now
+            if tokens < 1.0:  # newer inputs keep arriving meanwhile (latest wins)
+                self._stop.wait((1.0 - tokens) / rate)
+                now = time.monotonic()
+                tokens, refilled = min(burst, tokens + (now - refilled) * rate), now
             self._render_wake.clear()
-            last = time.monotonic()
             try:
                 self._ingest()
-                self._render_active()
+                if self._render_active():
+                    tokens -= 1.0
             except Exception:  # a rendering bug must not kill the viewer
                 log.exception("render cycle failed")
 
