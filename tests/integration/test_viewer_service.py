@@ -294,6 +294,13 @@ def test_bad_requests_get_a_clear_400_never_a_500(start_viewer) -> None:
         assert status == 400, (path, data, body)
         assert headers["Content-Type"].startswith("application/json")
         assert word in json.loads(body)["error"], body
+    for raw in (b"{not json", b"[1, 2]", b"\xff\xfe"):
+        request = urllib.request.Request(url + "/api/settings?client=t1", data=raw,
+                                         headers={"Content-Type": "application/json"})
+        with pytest.raises(urllib.error.HTTPError) as error:
+            urllib.request.urlopen(request, timeout=10)
+        assert error.value.code == 400
+        assert "JSON object" in json.loads(error.value.read())["error"]
     status, _, body = http(url + "/api/series?pairs=1-x")
     assert status == 400 and "pairs" in json.loads(body)["error"]
     status, _, body = http(url + "/snapshot.png?client=bad%20id")

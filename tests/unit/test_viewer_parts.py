@@ -215,7 +215,7 @@ def test_recorder_writes_real_time_video(tmp_path: Path, codec: str) -> None:
     recorder.stop()
     info = recorder.info()
     assert not info["recording"] and info["error"] == ""
-    assert 8 <= info["frames"] <= 20  # ~25 fps × 0.6 s, on a busy machine
+    assert 5 <= info["frames"] <= 20  # ~25 fps × 0.6 s = 15, fewer on a busy machine
     capture = cv2.VideoCapture(str(tmp_path / name))
     read = 0
     while True:
