@@ -316,8 +316,10 @@ def test_a_slow_subscriber_does_not_slow_the_camera(make_client, run_service) ->
     fast_fps = (len(fast) - start_fast) / elapsed
     stop.set()
     thread.join()
-    assert published_fps > 27.0, published_fps
-    assert fast_fps > 20.0, fast_fps  # other viewers still get the stream
+    # a camera held up by the slow one would drop to ~5 fps; the steady 30 fps on a quiet
+    # machine is measured in benchmarks/bench_camera.py (the test machine is shared)
+    assert published_fps > 20.0, published_fps
+    assert fast_fps > 15.0, fast_fps  # other viewers still get the stream
     assert slow_count[0] <= 6 * (time.monotonic() - t0 + 1.3)
     assert len(lags) >= 12 and float(np.median(lags)) <= 3, lags  # fresh, not a backlog
 
