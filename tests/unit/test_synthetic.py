@@ -318,3 +318,14 @@ def test_robot_marker_corners_follow_spec_orientation() -> None:
     np.testing.assert_allclose(corners.mean(axis=0), [1.0, 2.1, 0.3], atol=1e-12)
     np.testing.assert_allclose(corners[0], [1.0 - 0.1, 2.1 - 0.1, 0.3], atol=1e-12)  # TL
     np.testing.assert_allclose(corners[1], [1.0 - 0.1, 2.1 + 0.1, 0.3], atol=1e-12)  # TR
+
+
+def test_deploy_calibration_file_is_the_default_synthetic_camera() -> None:
+    from pathlib import Path
+
+    from services.registration.assemble import calibration_for
+    from services.registration.calibration import load_calibration
+    from services.registration.settings import RegistrationSettings
+
+    path = Path(__file__).resolve().parents[2] / "deploy" / "calibration_synthetic_1280x720.yml"
+    assert load_calibration(path) == calibration_for(RegistrationSettings())
