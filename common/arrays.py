@@ -30,12 +30,14 @@ def _describe(value: Any) -> str:
 
 
 def decode_array(
-    raw: Any, *, message: str, field: str, dtype: str, shape: Sequence[int | None]
+    raw: Any, *, message: str, field: str, dtype: str, shape: Sequence[int | None],
+    finite: bool = True,
 ) -> np.ndarray:
     """Decode and validate one array field.
 
     ``shape`` entries of ``None`` accept any length along that axis. Float arrays must be
-    finite. Raises :class:`MessageError` naming the field on any mismatch.
+    finite (unless ``finite=False``: the caller checks). Raises :class:`MessageError`
+    naming the field on any mismatch.
     """
     want = np.dtype(dtype)
     if isinstance(raw, dict):
@@ -87,7 +89,7 @@ def decode_array(
     ):
         shown = ["n" if s is None else s for s in shape]
         raise MessageError(message, field, f"shape {shown}", str(list(array.shape)))
-    if want.kind == "f" and not np.all(np.isfinite(array)):
+    if finite and want.kind == "f" and not np.isfinite(array).all():
         raise MessageError(message, field, "finite values", "NaN or infinity")
     array.setflags(write=False)
     return array

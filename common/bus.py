@@ -10,7 +10,8 @@ in-order delivery for estimator input):
 * ``publisher(key)`` is reliable and blocks under congestion (nothing lost);
   ``publisher(key, latest_wins=True)`` drops under congestion (camera frames).
 * ``channel(key)`` is one ordered FIFO queue for everything matching ``key``: events are
-  received in publication order by whoever calls ``recv`` (no racing callbacks);
+  received in publication order by whoever calls ``recv`` (no racing callbacks); an
+  ``accept(key)`` filter drops unwanted keys before their payload is copied;
   ``channel(key, latest_wins=True)`` keeps only the newest sample, and
   ``channel(key, drop_oldest=True)`` keeps the newest ``capacity`` samples (a consumer
   that tolerates gaps never slows the publisher).
@@ -78,7 +79,8 @@ class Bus(Protocol):
     def subscribe(self, key: str, callback: Callback) -> Any: ...
 
     def channel(self, key: str, *, latest_wins: bool = False, capacity: int = 4096,
-                drop_oldest: bool = False) -> Channel: ...
+                drop_oldest: bool = False,
+                accept: Callable[[str], bool] | None = None) -> Channel: ...
 
     def serve_latest(self, key: str, provider: Callable[[], bytes | None]) -> Any: ...
 
@@ -206,12 +208,15 @@ class ZenohBus:
         return self._keep(self.session.declare_subscriber(key, on_sample))
 
     def channel(self, key: str, *, latest_wins: bool = False, capacity: int = 4096,
-                drop_oldest: bool = False) -> Channel:
+                drop_oldest: bool = False,
+                accept: Callable[[str], bool] | None = None) -> Channel:
         ch = QueueChannel(capacity=1 if latest_wins else capacity,
                           drop_oldest=latest_wins or drop_oldest)
 
         def on_sample(sample: Any) -> None:
-            ch.push(Sample(str(sample.key_expr), sample.payload.to_bytes()))
+            sample_key = str(sample.key_expr)
+            if accept is None or accept(sample_key):  # filter before copying the payload
+                ch.push(Sample(sample_key, sample.payload.to_bytes()))
 
         sub = self.session.declare_subscriber(key, on_sample)
         ch._on_close = sub.undeclare
@@ -308,10 +313,16 @@ class InProcessBus:
         return entry
 
     def channel(self, key: str, *, latest_wins: bool = False, capacity: int = 4096,
-                drop_oldest: bool = False) -> Channel:
+                drop_oldest: bool = False,
+                accept: Callable[[str], bool] | None = None) -> Channel:
         ch = QueueChannel(capacity=1 if latest_wins else capacity,
                           drop_oldest=latest_wins or drop_oldest)
-        self._subs.append((key, ch.push))
+
+        def push(sample: Sample) -> None:
+            if accept is None or accept(sample.key):
+                ch.push(sample)
+
+        self._subs.append((key, push))
         return ch
 
     def serve_latest(self, key: str, provider: Callable[[], bytes | None]) -> Any:

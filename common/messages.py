@@ -39,6 +39,7 @@ from common.arrays import (
 from common.errors import MessageError
 
 SCHEMA = 1
+_FIELDS: dict[type, tuple[dataclasses.Field[Any], ...]] = {}
 STEPS = ("init", "predict", "update")
 VIOLATION_KINDS = ("pair", "feature", "symmetry", "psd", "correlation", "nees", "nis",
                    "prediction")
@@ -68,20 +69,38 @@ class Message:
     TYPE: ClassVar[str] = "Message"
 
     # -- construction -------------------------------------------------------------
+    @classmethod
+    def _fields(cls) -> tuple[dataclasses.Field[Any], ...]:
+        """The dataclass fields, computed once per class (this is on every hot path)."""
+        cached = _FIELDS.get(cls)
+        if cached is None:
+            cached = _FIELDS[cls] = dataclasses.fields(cls)  # type: ignore[arg-type]
+        return cached
+
     def __post_init__(self) -> None:
-        for f in dataclasses.fields(self):  # type: ignore[arg-type]
+        for f in self._fields():
             meta = f.metadata
             value = getattr(self, f.name)
             kind = meta.get("kind")
             if kind == "array":
                 if value is None:
                     continue
+                dtype = np.dtype(meta["dtype"])
                 if isinstance(value, np.ndarray) and not value.flags.writeable \
-                        and value.dtype == np.dtype(meta["dtype"]):
-                    array = value
+                        and value.dtype == dtype:
+                    array = value  # already a frozen copy (decoded, or from another message)
                 else:
-                    array = frozen_array(value, meta["dtype"])
-                if meta["dtype"] == "<f8" and not np.all(np.isfinite(array)):
+                    array = frozen_array(value, dtype)
+                shape = meta["shape"]
+                if array.ndim != len(shape) or any(
+                        s is not None and s != d for s, d in zip(shape, array.shape,
+                                                                 strict=True)):
+                    shown = ["n" if s is None else s for s in shape]
+                    raise MessageError(self.TYPE, f.name, f"shape {shown}",
+                                       str(list(array.shape)))
+                # the sum is finite iff every entry is (barring overflow, then check each)
+                if dtype.kind == "f" and array.size and not (
+                        math.isfinite(float(array.sum())) or np.isfinite(array).all()):
                     raise MessageError(self.TYPE, f.name, "finite values", "NaN or infinity")
                 object.__setattr__(self, f.name, array)
             elif kind == "float":
@@ -106,7 +125,7 @@ class Message:
     def __eq__(self, other: object) -> bool:
         if type(other) is not type(self):
             return NotImplemented
-        for f in dataclasses.fields(self):  # type: ignore[arg-type]
+        for f in self._fields():
             a, b = getattr(self, f.name), getattr(other, f.name)
             if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
                 if a is None or b is None or a.shape != b.shape or not np.array_equal(a, b):
@@ -120,7 +139,7 @@ class Message:
     # -- wire format --------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {"schema": SCHEMA}
-        for f in dataclasses.fields(self):  # type: ignore[arg-type]
+        for f in self._fields():
             value = getattr(self, f.name)
             if f.metadata.get("kind") == "array":
                 if value is None:
@@ -157,7 +176,7 @@ class Message:
         if schema != SCHEMA:
             raise MessageError(cls.TYPE, "schema", str(SCHEMA), repr(schema))
         kwargs: dict[str, Any] = {}
-        for f in dataclasses.fields(cls):  # type: ignore[arg-type]
+        for f in cls._fields():
             meta = f.metadata
             if f.name not in raw or raw[f.name] is None:
                 has_default = (f.default is not dataclasses.MISSING
@@ -168,8 +187,10 @@ class Message:
             value = raw[f.name]
             kind = meta.get("kind")
             if kind == "array":
+                # finiteness is checked once, by the constructor
                 value = decode_array(value, message=cls.TYPE, field=f.name,
-                                     dtype=meta["dtype"], shape=cls._wire_shape(f.name, raw))
+                                     dtype=meta["dtype"], shape=cls._wire_shape(f.name, raw),
+                                     finite=False)
             elif kind == "violations":
                 if not isinstance(value, list):
                     raise MessageError(cls.TYPE, f.name, "a list", type(value).__name__)
@@ -186,7 +207,7 @@ class Message:
 
     @classmethod
     def _wire_shape(cls, name: str, raw: Mapping[str, Any]) -> tuple[int | None, ...]:
-        for f in dataclasses.fields(cls):  # type: ignore[arg-type]
+        for f in cls._fields():
             if f.name == name:
                 return tuple(f.metadata["shape"])
         raise KeyError(name)
@@ -298,7 +319,7 @@ class SlamState(Message):
         if self.covariance.shape != (N, N):
             raise MessageError(self.TYPE, "covariance", f"[{N}, {N}] for n = {n}",
                                str(list(self.covariance.shape)))
-        if len(np.unique(self.landmark_ids)) != n:
+        if len(set(self.landmark_ids.tolist())) != n:
             raise MessageError(self.TYPE, "landmark_ids", "distinct ids", "duplicates")
         if self.innovations is not None or self.innovation_covariances is not None:
             k = 0 if self.innovation_ids is None else self.innovation_ids.shape[0]

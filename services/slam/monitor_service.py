@@ -42,7 +42,9 @@ class MonitorService:
         self._lock = threading.Lock()
         self._publisher = bus.publisher(keys.health(robot))
         self._inputs = bus.channel(keys.robot_inputs(robot), capacity=ring_capacity,
-                                   drop_oldest=True)
+                                   drop_oldest=True,
+                                   accept=lambda key: key.endswith(("/state", "/truth",
+                                                                    "/tracked")))
         bus.serve_latest(keys.health(robot), self.latest_bytes)
 
     def latest_bytes(self) -> bytes | None:
