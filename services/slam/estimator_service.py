@@ -14,6 +14,8 @@ import threading
 import time
 from dataclasses import dataclass
 
+import numpy as np
+
 from common.bus import Bus
 from common.drops import DropCounter
 from common.errors import MessageError
@@ -48,8 +50,9 @@ def _warm_up(settings: EstimatorSettings) -> None:
     state = est.to_state(seq=1, stamp=0.2, step="update", report=report)
     SlamState.from_bytes(state.to_bytes())
     Odometry.from_bytes(Odometry(robot="w", stamp=0.0, dt=0.1, v=0.0, w=0.0).to_bytes())
-    Observations.from_bytes(Observations(robot="w", stamp=0.0, ids=[1], ranges=[1.0],
-                                         bearings=[0.0]).to_bytes())
+    Observations.from_bytes(Observations(robot="w", stamp=0.0, ids=np.array([1]),
+                                         ranges=np.array([1.0]),
+                                         bearings=np.array([0.0])).to_bytes())
 
 
 class EstimatorService:
