@@ -257,7 +257,12 @@ async function refreshHealth() {
 }
 
 // ---------------------------------------------------------------- plots
-function plot(canvasElement, title, xs, lines, bands) {
+function plot(canvasElement, title, xs, lines, bands, options) {
+  const log = Boolean(options && options.log);  // log10 y axis (χ² statistics span decades)
+  const ty = (y) => (y === null || y === undefined ? null
+                     : log ? Math.log10(Math.max(y, 1e-4)) : y);
+  lines = lines.map((line) => ({...line, values: line.values.map(ty)}));
+  bands = (bands || []).map((band) => ({...band, lo: band.lo.map(ty), hi: band.hi.map(ty)}));
   const g = canvasElement.getContext("2d");
   const W = canvasElement.width, H = canvasElement.height;
   const L = 56, R = 8, T = 20, B = 20;
@@ -281,8 +286,9 @@ function plot(canvasElement, title, xs, lines, bands) {
   g.strokeStyle = "#555";
   g.strokeRect(L, T, W - L - R, H - T - B);
   g.fillStyle = "#999";
-  g.fillText(y1.toPrecision(3), 2, T + 10);
-  g.fillText(y0.toPrecision(3), 2, H - B);
+  const label = (y) => (log ? Math.pow(10, y) : y).toPrecision(3);
+  g.fillText(label(y1), 2, T + 10);
+  g.fillText(label(y0), 2, H - B);
   g.fillText(`t ${x0.toFixed(1)} … ${x1.toFixed(1)} s`, L, H - 5);
   for (const band of bands || []) {
     g.fillStyle = band.colour;
@@ -320,6 +326,34 @@ function plot(canvasElement, title, xs, lines, bands) {
   }
 }
 
+// The monitor's statistics named PREFIX…, each with its bounds: X_lo / X_hi, or for a
+// window mean "X_window_mean" the bounds "X_window_lo" / "X_window_hi".
+function statLines(stats, prefix) {
+  const lines = [];
+  let k = 0;
+  for (const name of Object.keys(stats)) {
+    if (!name.startsWith(prefix) || name.endsWith("_lo") || name.endsWith("_hi")) continue;
+    const colour = PLOT_COLOURS[k++ % PLOT_COLOURS.length];
+    lines.push({label: name, values: stats[name], colour});
+    const stem = stats[name + "_lo"] ? name : name.replace(/_mean$/, "");
+    for (const suffix of ["_lo", "_hi"]) {
+      if (stats[stem + suffix]) lines.push({values: stats[stem + suffix], colour, dash: true});
+    }
+  }
+  return lines;
+}
+
+// Statistics that are not NEES or NIS (counts, largest growth…): their latest values.
+function showStats(stats) {
+  const parts = [];
+  for (const [name, values] of Object.entries(stats)) {
+    if (name.startsWith("nees") || name.startsWith("nis")) continue;
+    const last = values[values.length - 1];
+    if (last !== null && last !== undefined) parts.push(`${name} ${Number(last).toPrecision(3)}`);
+  }
+  $("stats").textContent = parts.join(" · ");
+}
+
 async function refreshSeries() {
   try {
     const text = $("pairs").value.trim();
@@ -337,18 +371,12 @@ async function refreshSeries() {
     });
     plot($("plot-clusters"), "min / mean / max P_d size per cluster pair", t, lines, bands);
     const stats = data.health.stats;
-    const statLines = [];
-    let k = 0;
-    for (const name of Object.keys(stats)) {
-      if (name.endsWith("_lo") || name.endsWith("_hi")) continue;
-      const colour = PLOT_COLOURS[k++ % PLOT_COLOURS.length];
-      statLines.push({label: name, values: stats[name], colour});
-      for (const suffix of ["_lo", "_hi"]) {
-        if (stats[name + suffix]) statLines.push({values: stats[name + suffix], colour, dash: true});
-      }
+    for (const [prefix, id, title] of [
+      ["nees", "plot-nees", "NEES (with truth) and χ² bounds (dashed), log scale"],
+      ["nis", "plot-nis", "NIS and χ² bounds (dashed), log scale"]]) {
+      plot($(id), title, data.health.t, statLines(stats, prefix), [], {log: true});
     }
-    plot($("plot-stats"), "NEES / NIS and their χ² bounds (dashed)", data.health.t, statLines);
-  } catch (e) { /* next poll */ }
+    showStats(stats);  } catch (e) { /* next poll */ }
 }
 
 // ---------------------------------------------------------------- start
