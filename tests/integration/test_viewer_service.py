@@ -245,6 +245,8 @@ def test_two_clients_with_different_modes_get_different_pictures(start_viewer,
     # the default snapshot (no client) is all pairs (SPEC §9)
     default, _ = snapshot(url)
     assert red_pixels(default, midpoint(0, 1)) >= 40
+    # tab A and the default snapshot have equal settings: they share one rendering
+    assert status_of(url)["views_active"] == 2
 
 
 def test_mjpeg_stream_follows_the_state_and_tags_each_frame(start_viewer, publisher) -> None:
