@@ -353,6 +353,9 @@ class ViewerService:
                         self._bounds = None  # a new run: the map view starts over
                     self.state, self.state_received = state, raw.received
                     self._state_version = raw.version
+                # the path remembers every state taken in, drawn or not: views render
+                # only on demand, and a path started at the first render would be short
+                self.renderer.track(state.robot, state.seq, state.pose[:2])
                 self.state_rate.tick()
                 try:
                     self.series.add_state(state, now=now)

@@ -392,3 +392,25 @@ def test_stereo_views_are_side_by_side(start_viewer, publisher) -> None:
     u, v = midpoint(1, 4)
     assert red_pixels(pair, (u, v)) >= 40  # left eye
     assert red_pixels(pair, (u + WIDTH, v)) >= 40  # right eye
+
+
+def test_the_path_covers_states_received_before_any_view_was_drawn(start_viewer,
+                                                                   publisher) -> None:
+    """The path is remembered from every state taken in, not from the first render."""
+    import dataclasses
+
+    _, url = start_viewer(camera=CAMERA)
+    publisher(KEYS.registration(CAMERA, ROBOT), make_registration().to_bytes())
+    publisher(KEYS.frame(CAMERA), make_frame(1).to_bytes())
+    xs = np.linspace(1.2, 2.8, 17)
+    for k, x in enumerate(xs):
+        state = dataclasses.replace(make_state(k + 1), pose=np.array([x, 0.1, 0.0]))
+        publisher(KEYS.state(ROBOT), state.to_bytes())
+        time.sleep(0.05)
+    wait_until(lambda: (s := status_of(url))["state"] is not None
+               and s["state"]["seq"] == len(xs))
+    image, _ = snapshot(url)  # the first picture drawn of this run
+    green = (image[:, :, 1].astype(int) > 150) & (image[:, :, 0] < 110) & (image[:, :, 2] < 110)
+    for x in (1.3, 1.7, 2.1):  # well behind the robot's final position at x = 2.8
+        u, v = pixel_of(np.array([x, 0.1]))
+        assert green[v - 4:v + 5, u - 4:u + 5].sum() >= 5, x
