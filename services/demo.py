@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from common.bus import ZenohBus
 from common.cli import add_common_flags, setup_logging, stop_event
 from common.errors import MessageError, SlamlensError
 from common.geometry import all_relative_covariances, pd_size_m
@@ -51,6 +52,10 @@ def add_arguments(command: str, parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--fault", default="map-update", help="fault kind with --faulty")
     parser.add_argument("--faulty-features", default=DEFAULT_FAULTY)
     parser.add_argument("--fault-onset", type=float, default=0.0)
+    parser.add_argument("--fault-magnitude", type=float, default=5e-4,
+                        help="spurious variance per update, m² (default 5e-4: the faulty "
+                             "glyphs grow clearly without covering the picture; the "
+                             "estimator's own default, 2e-3, is the figures' stronger fault)")
     parser.add_argument("--no-camera", action="store_true",
                         help="no synthetic camera: the viewer shows the map view")
     parser.add_argument("--duration", type=float, default=0.0,
@@ -137,6 +142,19 @@ class _Summary:
         return text
 
 
+def _wait_alive(bus: ZenohBus, key: str, stop: threading.Event,
+                children: list[_Child], timeout_s: float = 120.0) -> None:
+    """Wait for a service's liveliness token (e.g. the camera) before going on."""
+    deadline = time.monotonic() + timeout_s
+    while not stop.is_set() and time.monotonic() < deadline:
+        if bus.alive(key, timeout=1.0):
+            return
+        for child in children:
+            if child.proc.poll() is not None:
+                return  # the main loop reports it
+        time.sleep(0.2)
+
+
 def run(command: str, args: argparse.Namespace) -> int:
     setup_logging(args, "demo")
     stop = stop_event()
@@ -155,7 +173,8 @@ def run(command: str, args: argparse.Namespace) -> int:
     estimator = ["estimator", "--robot", args.robot, *common]
     if args.faulty:
         estimator += ["--fault", args.fault, "--faulty-features", args.faulty_features,
-                      "--fault-onset", str(args.fault_onset)]
+                      "--fault-onset", str(args.fault_onset),
+                      "--fault-magnitude", str(args.fault_magnitude)]
     plan.append(("estimator", estimator))
     plan.append(("monitor", ["monitor", "--robot", args.robot, *common]))
     camera = None
@@ -168,14 +187,19 @@ def run(command: str, args: argparse.Namespace) -> int:
         if camera:
             viewer += ["--camera", camera]
         plan.append(("viewer", viewer))
-    plan.append(("sim", ["sim", "--robot", args.robot, "--seed", str(args.seed), "--rate",
-                         str(args.rate), "--loops", str(args.loops), *common]))
+    sim = ["sim", "--robot", args.robot, "--seed", str(args.seed), "--rate", str(args.rate),
+           "--loops", str(args.loops), *common]
+    if camera:
+        sim += ["--hold", "3"]  # stand still at the start pose while the camera registers
+    plan.append(("sim", sim))
 
     children: list[_Child] = []
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    bus = None
+    bus: ZenohBus | None = None
     try:
         for name, argv in plan:
+            if name == "sim" and camera and bus is not None:
+                _wait_alive(bus, keys.camera_alive(camera), stop, children)
             path = log_dir / f"{name}.log"
             handle = path.open("w")
             proc = subprocess.Popen([sys.executable, "-m", "services", *argv], env=env,
@@ -183,7 +207,8 @@ def run(command: str, args: argparse.Namespace) -> int:
             children.append(_Child(name, proc, path))
             if name == "router":
                 time.sleep(0.5)  # the others connect to it
-        bus = open_bus(BusSettings(connect=(endpoint,)))
+                bus = open_bus(BusSettings(connect=(endpoint,)))
+        assert bus is not None
         summary = _Summary()
         bus.subscribe(keys.state(args.robot), summary.on_state)
         bus.subscribe(keys.health(args.robot), summary.on_health)
