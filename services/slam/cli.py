@@ -8,9 +8,11 @@ clean close of the Zenoh session.
 from __future__ import annotations
 
 import argparse
+import itertools
 import json
 import logging
 import os
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -35,6 +37,9 @@ class SimSettings:
     anonymous: bool = False  #: withhold landmark ids (id −1) to exercise data association
     wait_for_estimator: bool = True  #: hold the first message until an estimator is alive
     wait_timeout_s: float = field(default=60.0, metadata={"min": 0.0})
+    #: seconds the robot stands at its start pose (truth repeated at 10 Hz) before it
+    #: moves, so that a camera can register the map frame there (paper §3.1)
+    hold_s: float = field(default=0.0, metadata={"min": 0.0})
 
 
 @dataclass(frozen=True)
@@ -81,6 +86,9 @@ def add_arguments(command: str, parser: argparse.ArgumentParser) -> None:
                             help="publish landmark id −1 (estimator associates)")
         parser.add_argument("--no-wait", dest="wait_for_estimator", action="store_false",
                             default=None, help="do not wait for an estimator to be alive")
+        parser.add_argument("--hold", dest="hold_s", type=float,
+                            help="seconds standing at the start pose before moving "
+                                 "(lets a camera register the map frame)")
     elif command == "estimator":
         for flag, text in [("--sigma-v", "odometry speed noise σ, m/s"),
                            ("--sigma-w", "odometry turn-rate noise σ, rad/s"),
@@ -128,7 +136,8 @@ def _run_sim(args: argparse.Namespace) -> int:
     from services.slam.world import load_world
 
     s = load_settings(SimSettings, args.config, _overrides(
-        args, ["robot", "scenario", "seed", "rate", "loops", "anonymous", "wait_for_estimator"]))
+        args, ["robot", "scenario", "seed", "rate", "loops", "anonymous", "wait_for_estimator",
+               "hold_s"]))
     world = load_world(s.scenario)
     sim = Simulator(world, robot=s.robot, seed=s.seed, anonymous=s.anonymous,
                     loops=s.loops or None)
@@ -143,7 +152,15 @@ def _run_sim(args: argparse.Namespace) -> int:
                               f"{s.wait_timeout_s:g} s (use --no-wait to publish anyway)")
         log.info("simulating %s, seed %d, %.0f s of robot time at %s", world.name, s.seed,
                  sim.duration_s, f"{s.rate:g}× real time" if s.rate else "full speed")
-        wall = play(sim.events(), out, stop, rate=s.rate,
+        events = iter(sim.events())
+        first = next(events)  # the Truth at t = 0: the robot at its start pose
+        if s.hold_s:
+            log.info("standing at the start pose for %.1f s", s.hold_s)
+            hold_until = time.monotonic() + s.hold_s
+            while time.monotonic() < hold_until and not stop.is_set():
+                out.publish(first)
+                stop.wait(0.1)
+        wall = play(itertools.chain([first], events), out, stop, rate=s.rate,
                     progress_every_s=10.0 if s.rate and s.rate <= 5 else 0.0)
         log.info("done in %.2f s wall: %s", wall, out.counts)
         print(f"sim done: {json.dumps(out.counts)} in {wall:.2f} s", flush=True)
