@@ -72,19 +72,25 @@ class _Child:
 
 
 def _free_http(host_port: str) -> str:
+    """``host_port`` if its port is free, else (or for port 0) a free port on the host."""
     host, _, port = host_port.rpartition(":")
     with socket.socket() as s:
         try:
+            if int(port) == 0:
+                raise OSError("port 0: pick one")
             s.bind((host, int(port)))
             return host_port
-        except OSError:
+        except (OSError, ValueError):
             s.bind((host, 0))
             return f"{host}:{s.getsockname()[1]}"
 
 
 def _router_endpoint(args: argparse.Namespace) -> str:
     if args.listen:
-        return str(args.listen[0])
+        endpoint = str(args.listen[0])
+        if endpoint.startswith("tcp/") and endpoint.endswith(":0"):
+            return free_tcp_endpoint(endpoint[4:].rsplit(":", 1)[0])
+        return endpoint
     with socket.socket() as s:
         try:
             s.bind(("127.0.0.1", 7447))
