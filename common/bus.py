@@ -23,6 +23,7 @@ from __future__ import annotations
 import atexit
 import logging
 import threading
+import time
 import weakref
 from collections import deque
 from collections.abc import Callable
@@ -91,6 +92,20 @@ class Bus(Protocol):
     def alive(self, key: str, *, timeout: float = 2.0) -> list[str]: ...
 
     def close(self) -> None: ...
+
+
+def pump(channel: Channel, handle: Callable[[str, bytes], object], stop: threading.Event, *,
+         status: Callable[[], None] | None = None, status_every_s: float = 10.0) -> None:
+    """Feed every sample of ``channel`` to ``handle`` in order until ``stop`` is set,
+    calling ``status`` (e.g. a log line) every ``status_every_s`` seconds."""
+    last = time.monotonic()
+    while not stop.is_set():
+        sample = channel.recv(timeout=0.2)
+        if sample is not None:
+            handle(sample.key, sample.payload)
+        if status is not None and time.monotonic() - last >= status_every_s:
+            last = time.monotonic()
+            status()
 
 
 # ---------------------------------------------------------------------------------

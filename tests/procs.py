@@ -35,3 +35,18 @@ def stop(proc: subprocess.Popen, timeout: float = 10.0) -> tuple[str, str]:
         out, err = proc.communicate()
         raise AssertionError(f"{proc.args} did not exit on SIGTERM; stderr:\n{err}") from None
     return out, err
+
+
+def wait_for_line(proc: subprocess.Popen, text: str, timeout: float = 60.0) -> None:
+    """Read a service's stdout until a line contains ``text`` (e.g. "estimator ready")."""
+    import time
+
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        line = proc.stdout.readline() if proc.stdout else ""
+        if text in line:
+            return
+        if proc.poll() is not None:
+            err = proc.stderr.read() if proc.stderr else ""
+            raise AssertionError(f"{proc.args} exited {proc.returncode}: {err}")
+    raise AssertionError(f"{proc.args} never printed {text!r}")

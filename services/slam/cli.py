@@ -12,6 +12,7 @@ import itertools
 import json
 import logging
 import os
+import threading
 import time
 from dataclasses import dataclass, field
 from typing import Any
@@ -130,6 +131,16 @@ def run(command: str, args: argparse.Namespace) -> int:
             "serial": _run_serial, "monitor": _run_monitor}[command](args)
 
 
+def _estimator_ready(out: Any, stop: threading.Event, s: SimSettings | ReplaySettings) -> bool:
+    """Wait (if configured) for the robot's estimator; False if stopped while waiting."""
+    if not s.wait_for_estimator or out.wait_for_estimator(stop, timeout_s=s.wait_timeout_s):
+        return True
+    if stop.is_set():
+        return False
+    raise ConfigError(f"no estimator for robot {s.robot!r} appeared within "
+                      f"{s.wait_timeout_s:g} s (use --no-wait to publish anyway)")
+
+
 def _run_sim(args: argparse.Namespace) -> int:
     from services.slam.drivers import RobotPublisher, play
     from services.slam.sim import Simulator
@@ -145,11 +156,8 @@ def _run_sim(args: argparse.Namespace) -> int:
     bus = open_bus(bus_settings(args))
     try:
         out = RobotPublisher(bus, keys=keys_from(args), robot=s.robot)
-        if s.wait_for_estimator and not out.wait_for_estimator(stop, timeout_s=s.wait_timeout_s):
-            if stop.is_set():
-                return 0
-            raise ConfigError(f"no estimator for robot {s.robot!r} appeared within "
-                              f"{s.wait_timeout_s:g} s (use --no-wait to publish anyway)")
+        if not _estimator_ready(out, stop, s):
+            return 0
         log.info("simulating %s, seed %d, %.0f s of robot time at %s", world.name, s.seed,
                  sim.duration_s, f"{s.rate:g}× real time" if s.rate else "full speed")
         events = iter(sim.events())
@@ -218,11 +226,8 @@ def _run_replay(args: argparse.Namespace) -> int:
     bus = open_bus(bus_settings(args))
     try:
         out = RobotPublisher(bus, keys=keys_from(args), robot=s.robot)
-        if s.wait_for_estimator and not out.wait_for_estimator(stop, timeout_s=s.wait_timeout_s):
-            if stop.is_set():
-                return 0
-            raise ConfigError(f"no estimator for robot {s.robot!r} appeared within "
-                              f"{s.wait_timeout_s:g} s (use --no-wait to publish anyway)")
+        if not _estimator_ready(out, stop, s):
+            return 0
         events = run_.events(start=s.start_s or None,
                              end=(s.start_s + s.duration_s) if s.duration_s else None)
         wall = play(events, out, stop, rate=s.rate, progress_every_s=30.0)

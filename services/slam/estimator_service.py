@@ -11,12 +11,11 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 from dataclasses import dataclass
 
 import numpy as np
 
-from common.bus import Bus
+from common.bus import Bus, pump
 from common.drops import DropCounter
 from common.errors import MessageError
 from common.keys import Keys
@@ -127,16 +126,9 @@ class EstimatorService:
         self.stats.states += 1
         return state
 
-    def run(self, stop: threading.Event, *, status_every_s: float = 10.0) -> None:
+    def run(self, stop: threading.Event) -> None:
         """Apply events until ``stop`` is set."""
-        last = time.monotonic()
-        while not stop.is_set():
-            sample = self._inputs.recv(timeout=0.2)
-            if sample is not None:
-                self.handle(sample.key, sample.payload)
-            now = time.monotonic()
-            if now - last >= status_every_s:
-                last = now
-                log.info("seq %d, %d landmarks, %d odometry, %d observation batches, %d dropped",
-                         self._seq, self.estimator.n, self.stats.odometry,
-                         self.stats.observation_batches, self.drops.total)
+        pump(self._inputs, self.handle, stop, status=lambda: log.info(
+            "seq %d, %d landmarks, %d odometry, %d observation batches, %d dropped",
+            self._seq, self.estimator.n, self.stats.odometry, self.stats.observation_batches,
+            self.drops.total))

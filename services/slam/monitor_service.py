@@ -14,9 +14,8 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 
-from common.bus import Bus
+from common.bus import Bus, pump
 from common.drops import DropCounter
 from common.errors import MessageError
 from common.keys import Keys
@@ -77,14 +76,8 @@ class MonitorService:
         self._publisher.put(payload_out)
         return health
 
-    def run(self, stop: threading.Event, *, status_every_s: float = 10.0) -> None:
-        last = time.monotonic()
-        while not stop.is_set():
-            sample = self._inputs.recv(timeout=0.2)
-            if sample is not None:
-                self.handle(sample.key, sample.payload)
-            now = time.monotonic()
-            if now - last >= status_every_s:
-                last = now
-                log.info("%d states checked, %d violations, suspects %s", self.checked,
-                         self.violations, self.monitor.summary)
+    def run(self, stop: threading.Event) -> None:
+        """Check states until ``stop`` is set."""
+        pump(self._inputs, self.handle, stop, status=lambda: log.info(
+            "%d states checked, %d violations, suspects %s", self.checked, self.violations,
+            self.monitor.summary))

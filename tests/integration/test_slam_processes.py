@@ -13,20 +13,9 @@ import zenoh
 
 from common.keys import Keys
 from common.messages import SlamState
-from tests.procs import spawn, stop
+from tests.procs import spawn, stop, wait_for_line
 
 KEYS = Keys()
-
-
-def _wait_for_line(proc, text: str, timeout: float = 30.0) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        line = proc.stdout.readline()
-        if text in line:
-            return
-        if proc.poll() is not None:
-            raise AssertionError(f"{proc.args} exited early: {proc.stderr.read()}")
-    raise AssertionError(f"{proc.args} never printed {text!r}")
 
 
 class _Collector:
@@ -43,7 +32,7 @@ class _Collector:
 @pytest.fixture
 def estimator(router_endpoint):
     proc = spawn("estimator", "--robot", "r1", "--connect", router_endpoint)
-    _wait_for_line(proc, "estimator ready")
+    wait_for_line(proc, "estimator ready")
     yield proc
     out, err = stop(proc)
     assert proc.returncode == 0, err

@@ -11,21 +11,10 @@ import pytest
 from common.keys import Keys
 from common.messages import Health
 from common.session import BusSettings, free_tcp_endpoint, open_bus
-from tests.procs import REPO, slamlens_cmd, spawn, stop
+from tests.procs import REPO, slamlens_cmd, spawn, stop, wait_for_line
 
 DEPLOY = REPO / "deploy"
 KEYS = Keys()
-
-
-def _ready(proc, text: str, timeout: float = 60.0) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        line = proc.stdout.readline()
-        if text in line:
-            return
-        if proc.poll() is not None:
-            raise AssertionError(f"{proc.args} exited {proc.returncode}: {proc.stderr.read()}")
-    raise AssertionError(f"{proc.args} never said {text!r}")
 
 
 @pytest.fixture
@@ -33,7 +22,7 @@ def router():
     endpoint = free_tcp_endpoint()
     proc = spawn("router", "--zenoh-config", str(DEPLOY / "zenoh-router.json5"),
                  "--listen", endpoint)
-    _ready(proc, "router ready")
+    wait_for_line(proc, "router ready")
     yield endpoint
     stop(proc)
     assert proc.returncode == 0
@@ -48,8 +37,8 @@ def test_paper_run_from_deploy_configs(router, estimator_config, expected_suspec
     lock = threading.Lock()
     bus = open_bus(BusSettings(connect=(router,)))
     try:
-        _ready(est, "estimator ready")
-        _ready(mon, "monitor ready")
+        wait_for_line(est, "estimator ready")
+        wait_for_line(mon, "monitor ready")
 
         def on_health(key: str, payload: bytes) -> None:
             with lock:
@@ -76,7 +65,9 @@ def test_paper_run_from_deploy_configs(router, estimator_config, expected_suspec
         assert len(final) == 1
         latest = Health.from_bytes(final[0].payload)
         if expected_suspects:
-            assert not latest.ok
+            # the last state itself may break nothing (e.g. an empty observation batch);
+            # the stream did, and the suspects are still named at the end
+            assert any(not h.ok for h in seen)
             assert sorted(latest.suspects.tolist()) == expected_suspects
         else:
             assert all(h.ok for h in seen), [h.violations for h in seen if not h.ok][:2]
