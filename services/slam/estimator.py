@@ -46,8 +46,9 @@ class EstimatorSettings:
                                                                min=0.0))
     gate_chi2: float = field(default=9.21, metadata=_doc(
         "id −1: accept the nearest landmark when d² is below this (χ²₂ 99 %)", min=0.0))
-    new_landmark_chi2: float = field(default=13.82, metadata=_doc(
-        "id −1: start a new landmark when the nearest d² is above this (χ²₂ 99.9 %)", min=0.0))
+    new_landmark_chi2: float = field(default=27.63, metadata=_doc(
+        "id −1: start a new landmark when the nearest d² is above this (χ²₂ 1 − 1e-6: "
+        "over thousands of observations a 99.9 % threshold makes duplicates)", min=0.0))
     anonymous_id_base: int = field(default=1_000_000, metadata=_doc(
         "first id given to landmarks found by association (then counting up)", min=0))
     initial_pose: tuple[float, ...] = field(default=(0.0, 0.0, 0.0), metadata=_doc(

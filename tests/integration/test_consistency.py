@@ -83,3 +83,13 @@ def test_faulty_run_grows_exactly_the_pairs_with_faulty_features() -> None:
     assert all(worst[p] < -1e-6 for p in with_faulty)
     assert all(growth[p] <= 0 for p in others)
     assert min(worst[p] for p in others) > -1e-9
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_anonymous_run_maps_each_true_landmark_once(seed: int) -> None:
+    """With every id withheld (−1), association finds the 15 landmarks, no duplicates."""
+    final = run(WORLD, seed=seed, anonymous=True, collect_states=True).states[-1]
+    assert final.n == 15
+    distance = np.linalg.norm(final.landmarks[:, None, :] - WORLD.landmarks_xy[None], axis=2)
+    assert len(set(distance.argmin(axis=1).tolist())) == 15  # one estimate per true landmark
+    assert distance.min(axis=1).max() < 0.15
