@@ -165,14 +165,14 @@ def test_ambiguous_observation_is_discarded_without_changing_state() -> None:
     est = mapped_estimator(rng)
     j = est.index_of(8)
     h, S = dense_S(est, j)
-    # range offset δ with d² = δ²·(S⁻¹)_rr = 11.5, between 9.21 and 13.82
+    # range offset δ with d² = δ²·(S⁻¹)_rr = 11.5, between 9.21 and 27.63
     delta = math.sqrt(11.5 / np.linalg.inv(S)[0, 0])
     before = snapshot(est)
     rep = est.observe(ids=[-1], ranges=[h[0] + delta], bearings=[h[1]], stamp=1.0)
     assert rep.rejected == 1 and rep.ambiguous == 1 and list(rep.assigned_ids) == [-1]
     assert_same(before, snapshot(est))
     # just inside the gate it is a match, just beyond the new-landmark threshold a new one
-    for d2, kind in ((9.0, "match"), (14.5, "new")):
+    for d2, kind in ((9.0, "match"), (20.0, "ambiguous"), (28.5, "new")):
         delta = math.sqrt(d2 / np.linalg.inv(S)[0, 0])
         d = association.mahalanobis_all(est._x, est._L, est.n, z_range=h[0] + delta,
                                         z_bearing=h[1], var_range=SIG_R**2,
@@ -226,7 +226,7 @@ def test_settings_are_validated_at_load() -> None:
     with pytest.raises(ConfigError, match="sigma_range"):
         load_settings(EstimatorSettings, None, {"sigma_range": 0.0})
     with pytest.raises(ConfigError, match="gate_chi2"):
-        load_settings(EstimatorSettings, None, {"gate_chi2": 20.0})
+        load_settings(EstimatorSettings, None, {"gate_chi2": 30.0})
     with pytest.raises(ConfigError, match="unknown"):
         load_settings(EstimatorSettings, None, {"sigma_vv": 1.0})
 
