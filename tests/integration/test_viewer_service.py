@@ -414,3 +414,18 @@ def test_the_path_covers_states_received_before_any_view_was_drawn(start_viewer,
     for x in (1.3, 1.7, 2.1):  # well behind the robot's final position at x = 2.8
         u, v = pixel_of(np.array([x, 0.1]))
         assert green[v - 4:v + 5, u - 4:u + 5].sum() >= 5, x
+
+
+def test_several_viewers_attach_to_the_same_robot(start_viewer, publisher) -> None:
+    """Two viewer services (as on two machines: each its own Zenoh session) see the same
+    robot; a third attaches later and shows the current picture too."""
+    _, url_a = start_viewer()
+    _, url_b = start_viewer()
+    for seq in (1, 2, 3):
+        publisher(KEYS.state(ROBOT), make_state(seq).to_bytes())
+        time.sleep(0.05)
+    for url in (url_a, url_b):
+        wait_until(lambda url=url: (s := status_of(url))["state"] is not None
+                   and s["state"]["seq"] == 3)
+        _, headers = snapshot(url)
+        assert headers["X-State-Seq"] == "3"
