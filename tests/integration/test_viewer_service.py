@@ -418,7 +418,7 @@ def test_the_path_covers_states_received_before_any_view_was_drawn(start_viewer,
 
 def test_several_viewers_attach_to_the_same_robot(start_viewer, publisher) -> None:
     """Two viewer services (as on two machines: each its own Zenoh session) see the same
-    robot; a third attaches later and shows the current picture too."""
+    robot at once (a viewer joining late is tested above)."""
     _, url_a = start_viewer()
     _, url_b = start_viewer()
     for seq in (1, 2, 3):
