@@ -112,10 +112,14 @@ class Renderer:
         return cached[1].copy(), camera
 
     def render(self, image_bgr: np.ndarray | None, *, state: SlamState, camera: CameraModel,
-               settings: ViewSettings, health: Health | None = None) -> np.ndarray:
+               settings: ViewSettings, health: Health | None = None,
+               reference_pose: np.ndarray | None = None) -> np.ndarray:
         """A new BGR uint8 picture: ``image_bgr`` (or the map view's floor) with the state.
 
         The camera is rescaled if the image's size differs from the camera's.
+        ``reference_pose`` (x, y, θ in the map frame) is an independent measurement of the
+        robot — the camera-tracked pose or the simulator's truth — drawn as a white ring
+        joined to the estimate, with the position error written beside it.
         """
         img, camera = (self._floor_image(camera, settings) if image_bgr is None
                        else _canvas(image_bgr, camera))
@@ -179,6 +183,8 @@ class Renderer:
                 cone_sets[s].draw(img, i)
 
         # 3. overlays
+        if settings.robot and reference_pose is not None:
+            _draw_reference(img, camera, state.pose, np.asarray(reference_pose, float), px)
         if settings.health:
             _draw_health(img, camera, state, scene, glyphs, line_polys, line_index, suspects,
                          settings, px)
@@ -321,6 +327,27 @@ def _draw_heading(img: np.ndarray, camera: CameraModel, pose: np.ndarray,
     uv, _ = camera.project(np.column_stack([xy, np.full(len(xy), 0.002)]))
     if np.isfinite(uv).all():
         cv2.fillPoly(img, [draw.fixed(uv)], settings.colour_heading, cv2.LINE_AA, draw.SHIFT)
+
+
+REFERENCE_COLOUR = (255, 255, 255)  # BGR: the independent pose is white, the estimate green
+
+
+def _draw_reference(img: np.ndarray, camera: CameraModel, estimate: np.ndarray,
+                    reference: np.ndarray, px: int) -> None:
+    """The independently measured robot pose: a ring, a line to the estimate, the error."""
+    uv, _ = camera.project(np.array([[reference[0], reference[1], 0.0],
+                                     [estimate[0], estimate[1], 0.0]]))
+    if not np.isfinite(uv).all():
+        return
+    ref_px = tuple(int(c) for c in draw.fixed(uv[:1])[0])
+    est_px = tuple(int(c) for c in draw.fixed(uv[1:])[0])
+    cv2.line(img, ref_px, est_px, REFERENCE_COLOUR, px, cv2.LINE_AA, draw.SHIFT)
+    cv2.circle(img, ref_px, (9 * px) << draw.SHIFT, REFERENCE_COLOUR, 2 * px, cv2.LINE_AA,
+               draw.SHIFT)
+    error_cm = 100.0 * float(np.hypot(*(reference[:2] - estimate[:2])))
+    u, v = (int(c) for c in uv[0])
+    cv2.putText(img, f"tracked: {error_cm:.1f} cm", (u + 12 * px, v - 12 * px),
+                cv2.FONT_HERSHEY_SIMPLEX, 0.45 * px, REFERENCE_COLOUR, px, cv2.LINE_AA)
 
 
 def _draw_health(img: np.ndarray, camera: CameraModel, state: SlamState, scene: Scene,

@@ -29,7 +29,7 @@ from common.bus import Bus
 from common.drops import DropCounter
 from common.errors import ConfigError
 from common.keys import Keys, check_name
-from common.messages import CameraFrame, Health, Registration, SlamState
+from common.messages import CameraFrame, Health, Registration, SlamState, Truth
 from services.visualiser.camera_model import CameraModel
 from services.visualiser.clusters import ClusterTracker, cluster_labels
 from services.visualiser.intake import Queue, RateMeter, Slot, decode
@@ -49,6 +49,7 @@ from services.visualiser.views import (
 log = logging.getLogger("slamlens.viewer")
 
 VIEWS = ("auto", "camera", "map", "stereo")
+TRACKED_MAX_AGE_S = 0.5  #: a tracked pose further than this from the state's stamp is not drawn
 
 
 @dataclass(frozen=True)
@@ -156,6 +157,9 @@ class ViewerService:
         self._decode_wake = threading.Event()
         self._lock = threading.RLock()
         self._state_slot = Slot("state", self._render_wake.set)
+        # the camera-tracked robot pose (issue 3): drawn beside the estimate when current
+        self._tracked_slot = Slot("tracked", lambda: None)
+        self.tracked: Truth | None = None
         self._health_queue = Queue("health", self._render_wake.set)
         self._cameras = {c: _Camera(c, Slot(f"frame {c}", self._decode_wake.set),
                                     Slot(f"registration {c}", self._render_wake.set))
@@ -201,6 +205,7 @@ class ViewerService:
         k, robot = self.keys, self.config.robot
         self.bus.subscribe(k.state(robot), _store(self._state_slot.offer))
         self.bus.subscribe(k.health(robot), _store(self._health_queue.offer))
+        self.bus.subscribe(k.tracked(robot), _store(self._tracked_slot.offer))
         for cam in self._cameras.values():
             self.bus.subscribe(k.frame(cam.name), _store(cam.frame_slot.offer))
             self.bus.subscribe(k.registration(cam.name, robot),
@@ -361,6 +366,12 @@ class ViewerService:
                     self.series.add_state(state, now=now)
                 except Exception as exc:  # the plots are optional; the picture is not
                     self.failures.drop("plots", f"state seq {state.seq}: {exc!r}")
+        raw_tracked = self._tracked_slot.take()
+        if raw_tracked is not None:
+            tracked = decode("tracked", raw_tracked, Truth.from_bytes, self.bad)
+            if tracked is not None:
+                with self._lock:
+                    self.tracked = tracked
         for raw in self._health_queue.drain():
             health = decode("health", raw, Health.from_bytes, self.bad)
             if health is None:
@@ -515,6 +526,14 @@ class ViewerService:
             self._eyes = tuple(eyes)
         return self._eyes
 
+    def _reference_for(self, state: SlamState) -> np.ndarray | None:
+        """The tracked pose measured within 0.5 s of the state's stamp, if any."""
+        with self._lock:
+            tracked = self.tracked
+        if tracked is None or abs(tracked.stamp - state.stamp) > TRACKED_MAX_AGE_S:
+            return None
+        return tracked.pose
+
     def _compose(self, view: _View, eyes: tuple[Eye, ...], state: SlamState | None,
                  health: Health | None) -> np.ndarray:
         pictures = []
@@ -526,7 +545,7 @@ class ViewerService:
                 try:
                     pictures.append(self.renderer.render(
                         eye.image, state=state, camera=eye.camera, settings=view.settings,
-                        health=health))
+                        health=health, reference_pose=self._reference_for(state)))
                 except Exception as exc:  # keep the picture flowing, say what went wrong
                     self.failures.drop("render", f"state seq {state.seq}: {exc!r}")
                     pictures.append(placeholder(

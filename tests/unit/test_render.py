@@ -276,3 +276,24 @@ def test_pick_feature_and_side_by_side() -> None:
     left, right = np.zeros((720, 1280, 3), np.uint8), np.full((360, 640, 3), 7, np.uint8)
     both = side_by_side(left, right)
     assert both.shape == (720, 2560, 3) and both[0, 2000, 0] == 7
+
+
+def test_reference_pose_is_a_white_ring_joined_to_the_estimate() -> None:
+    camera = top_down()
+    state = paper_state(pose=(0.5, 0.2, 0.8))
+    settings = ViewSettings(ellipsoids=False, lines=False, features=False, legend=False)
+    plain = Renderer().render(None, state=state, camera=camera, settings=settings)
+    reference = np.array([0.9, 0.2, 0.8])  # 40 cm from the estimate
+    img = Renderer().render(None, state=state, camera=camera, settings=settings,
+                            reference_pose=reference)
+    (u, v), (ue, ve) = (camera.project(np.array([[0.9, 0.2, 0.0], [0.5, 0.2, 0.0]]))[0]
+                        .round().astype(int))
+    white = (img.min(axis=2) > 180) & (plain.min(axis=2) <= 180)  # anti-aliased: not 255
+    ring = white[v - 14:v + 15, u - 14:u + 15]
+    assert ring.sum() > 20  # a ring around the reference
+    assert not white[v - 3:v + 4, u - 3:u + 4].all()  # hollow, the floor shows inside
+    mid_u, mid_v = (u + ue) // 2, (v + ve) // 2
+    assert white[mid_v - 2:mid_v + 3, mid_u - 2:mid_u + 3].any()  # the line to the estimate
+    hidden = Renderer().render(None, state=state, camera=camera,
+                               settings=settings.replace(robot=False), reference_pose=reference)
+    assert not ((hidden.min(axis=2) > 180) & (plain.min(axis=2) <= 180)).any()
