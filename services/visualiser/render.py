@@ -113,13 +113,15 @@ class Renderer:
 
     def render(self, image_bgr: np.ndarray | None, *, state: SlamState, camera: CameraModel,
                settings: ViewSettings, health: Health | None = None,
-               reference_pose: np.ndarray | None = None) -> np.ndarray:
+               reference_pose: np.ndarray | None = None,
+               reference_estimate: np.ndarray | None = None) -> np.ndarray:
         """A new BGR uint8 picture: ``image_bgr`` (or the map view's floor) with the state.
 
         The camera is rescaled if the image's size differs from the camera's.
         ``reference_pose`` (x, y, θ in the map frame) is an independent measurement of the
         robot — the camera-tracked pose or the simulator's truth — drawn as a white ring
-        joined to the estimate, with the position error written beside it.
+        joined to the estimate of the same instant (``reference_estimate``; the state's own
+        pose if not given), with the position error written beside it.
         """
         img, camera = (self._floor_image(camera, settings) if image_bgr is None
                        else _canvas(image_bgr, camera))
@@ -184,7 +186,9 @@ class Renderer:
 
         # 3. overlays
         if settings.robot and reference_pose is not None:
-            _draw_reference(img, camera, state.pose, np.asarray(reference_pose, float), px)
+            estimate = state.pose if reference_estimate is None else reference_estimate
+            _draw_reference(img, camera, np.asarray(estimate, float),
+                            np.asarray(reference_pose, float), px)
         if settings.health:
             _draw_health(img, camera, state, scene, glyphs, line_polys, line_index, suspects,
                          settings, px)

@@ -49,7 +49,10 @@ from services.visualiser.views import (
 log = logging.getLogger("slamlens.viewer")
 
 VIEWS = ("auto", "camera", "map", "stereo")
-TRACKED_MAX_AGE_S = 0.5  #: a tracked pose further than this from the state's stamp is not drawn
+#: the newest tracked pose is compared with the estimate of the state nearest its stamp,
+#: if one is within this (s): the robot moves, so only the same instant is a fair comparison
+#: (the camera's pose lags the newest state by its capture and detection time)
+TRACKED_MATCH_S = 0.06
 
 
 @dataclass(frozen=True)
@@ -160,6 +163,7 @@ class ViewerService:
         # the camera-tracked robot pose (issue 3): drawn beside the estimate when current
         self._tracked_slot = Slot("tracked", lambda: None)
         self.tracked: Truth | None = None
+        self._estimates: deque[tuple[float, np.ndarray]] = deque(maxlen=240)
         self._health_queue = Queue("health", self._render_wake.set)
         self._cameras = {c: _Camera(c, Slot(f"frame {c}", self._decode_wake.set),
                                     Slot(f"registration {c}", self._render_wake.set))
@@ -361,6 +365,8 @@ class ViewerService:
                 # the path remembers every state taken in, drawn or not: views render
                 # only on demand, and a path started at the first render would be short
                 self.renderer.track(state.robot, state.seq, state.pose[:2])
+                with self._lock:
+                    self._estimates.append((state.stamp, state.pose))
                 self.state_rate.tick()
                 try:
                     self.series.add_state(state, now=now)
@@ -526,17 +532,21 @@ class ViewerService:
             self._eyes = tuple(eyes)
         return self._eyes
 
-    def _reference_for(self, state: SlamState) -> np.ndarray | None:
-        """The tracked pose measured within 0.5 s of the state's stamp, if any."""
+    def _reference(self) -> tuple[np.ndarray, np.ndarray] | tuple[None, None]:
+        """(newest tracked pose, the estimate of the state nearest its stamp), if any."""
         with self._lock:
-            tracked = self.tracked
-        if tracked is None or abs(tracked.stamp - state.stamp) > TRACKED_MAX_AGE_S:
-            return None
-        return tracked.pose
+            tracked, estimates = self.tracked, list(self._estimates)
+        if tracked is None or not estimates:
+            return None, None
+        stamp, pose = min(estimates, key=lambda e: abs(e[0] - tracked.stamp))
+        if abs(stamp - tracked.stamp) > TRACKED_MATCH_S:
+            return None, None
+        return tracked.pose, pose
 
     def _compose(self, view: _View, eyes: tuple[Eye, ...], state: SlamState | None,
                  health: Health | None) -> np.ndarray:
         pictures = []
+        reference, estimate = self._reference()
         for eye in eyes:
             if state is None or eye.camera is None:
                 text = eye.note or f"waiting for the state of robot {self.config.robot}"
@@ -545,7 +555,8 @@ class ViewerService:
                 try:
                     pictures.append(self.renderer.render(
                         eye.image, state=state, camera=eye.camera, settings=view.settings,
-                        health=health, reference_pose=self._reference_for(state)))
+                        health=health, reference_pose=reference,
+                        reference_estimate=estimate))
                 except Exception as exc:  # keep the picture flowing, say what went wrong
                     self.failures.drop("render", f"state seq {state.seq}: {exc!r}")
                     pictures.append(placeholder(
