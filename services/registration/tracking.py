@@ -19,7 +19,6 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from common.geometry import invert_T, make_T, rotation_angle_deg
@@ -27,7 +26,6 @@ from services.registration.calibration import CameraCalibration
 from services.registration.markers import Detection, mean_detection
 from services.registration.pose import (
     PoseError,
-    T_from_rvec_tvec,
     T_marker_from_map,
     marker_object_points,
     marker_pose,
@@ -79,32 +77,6 @@ def average_transforms(Ts: Sequence[np.ndarray]) -> np.ndarray:
     return make_T(U @ D @ Vt, np.mean([T[:3, 3] for T in Ts], axis=0))
 
 
-def robust_marker_pose(det: Detection, *, size_m: float, calib: CameraCalibration
-                       ) -> tuple[np.ndarray, float]:
-    """:func:`marker_pose`, cross-checked with SQPNP + LM; the lower RMS wins.
-
-    OpenCV 5.0's IPPE_SQUARE misses the true pose when the corners are (almost) exactly
-    consistent with one, as a noise-free synthetic frame of a face-on marker makes them:
-    both of its solutions are off (~0.27 px RMS, 20-30° of tilt) and LM stays in that
-    valley. SQPNP is globally optimal and costs tens of microseconds.
-    """
-    T, rms = marker_pose(det, size_m=size_m, calib=calib)
-    obj = marker_object_points(size_m)
-    corners = np.asarray(det.corners_px, dtype=np.float64).reshape(4, 2)
-    try:
-        ok, rvec, tvec = cv2.solvePnP(obj, corners, calib.K, calib.dist,
-                                      flags=cv2.SOLVEPNP_SQPNP)
-        if ok:
-            rvec, tvec = cv2.solvePnPRefineLM(obj, corners, calib.K, calib.dist, rvec, tvec)
-            T_alt = T_from_rvec_tvec(rvec, tvec)
-            rms_alt = reprojection_rms(obj, corners, T_camera_from_object=T_alt, calib=calib)
-            if np.all(np.isfinite(T_alt)) and T_alt[2, 3] > 0 and rms_alt < rms:
-                return T_alt, rms_alt
-    except cv2.error:  # keep IPPE's answer
-        pass
-    return T, rms
-
-
 @dataclass(frozen=True, eq=False)
 class _Sample:
     stamp: float
@@ -143,7 +115,7 @@ class Registrar:
         if len(mine) != 1:  # absent, or two markers with the robot's id: ambiguous
             return None
         try:
-            T_cm, rms = robust_marker_pose(mine[0], size_m=self.settings.marker_size_m,
+            T_cm, rms = marker_pose(mine[0], size_m=self.settings.marker_size_m,
                                            calib=self.calib)
         except PoseError:
             self.rejected_poses += 1
@@ -185,7 +157,7 @@ class Registrar:
                                     for s in samples):
             try:
                 det = mean_detection([s.detection for s in samples])
-                T_cm, _ = robust_marker_pose(det, size_m=self.settings.marker_size_m,
+                T_cm, _ = marker_pose(det, size_m=self.settings.marker_size_m,
                                              calib=self.calib)
                 return T0 @ T_cm @ self._T_marker_from_map
             except PoseError:
