@@ -6,7 +6,8 @@ scouting is switched off, so nothing leaves the endpoints the user named.
 
 With no file and no endpoints, a service connects as a client to the default router at
 ``tcp/127.0.0.1:7447`` (what ``slamlens router`` listens on), again with multicast
-scouting off: slamlens never talks to the network unless told to.
+scouting off: slamlens never talks to the network unless told to. A client waits up to
+10 s for its router to appear, so services may be started in any order.
 """
 
 from __future__ import annotations
@@ -23,6 +24,7 @@ from common.errors import BusError, ConfigError
 log = logging.getLogger(__name__)
 
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
+ROUTER_WAIT_MS = 10_000  #: how long a client waits for its router before giving up
 
 
 @dataclass(frozen=True)
@@ -77,6 +79,9 @@ def build_config(settings: BusSettings):  # -> zenoh.Config
             conf.insert_json5("listen/endpoints", json.dumps(listen))
         if explicit:
             conf.insert_json5("scouting/multicast/enabled", "false")
+        if mode == "client" and not settings.zenoh_config:
+            # services may start before their router (the demo, a reboot): wait for it
+            conf.insert_json5("connect/timeout_ms", f"{{client: {ROUTER_WAIT_MS}}}")
         for key, value in settings.extra.items():
             conf.insert_json5(key, value)
     except Exception as exc:

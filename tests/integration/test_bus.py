@@ -83,3 +83,30 @@ def test_explicit_endpoints_turn_multicast_off() -> None:
     conf = build_config(BusSettings(listen=("tcp/127.0.0.1:7448",)))
     assert conf.get_json("mode") == '"peer"'
     assert conf.get_json("listen/endpoints") == '["tcp/127.0.0.1:7448"]'
+
+
+def test_a_client_waits_for_a_router_that_starts_later() -> None:
+    import threading
+
+    from common.session import BusSettings, free_tcp_endpoint, open_bus, router_settings
+
+    endpoint = free_tcp_endpoint()
+    routers = []
+    starter = threading.Timer(1.5, lambda: routers.append(open_bus(router_settings([endpoint]))))
+    starter.start()
+    started = time.monotonic()
+    client = open_bus(BusSettings(connect=(endpoint,)))
+    try:
+        assert time.monotonic() - started >= 1.0  # it really waited for the router
+        other = open_bus(BusSettings(connect=(endpoint,)))
+        got = []
+        client.subscribe("t/late", lambda k, p: got.append(p))
+        time.sleep(0.3)
+        other.publisher("t/late").put(b"hello")
+        assert _wait(lambda: got == [b"hello"])
+        other.close()
+    finally:
+        starter.join()
+        client.close()
+        for r in routers:
+            r.close()
