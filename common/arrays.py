@@ -8,6 +8,7 @@ Every array a message holds is a read-only, C-contiguous copy.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import Any
 
@@ -59,12 +60,14 @@ def decode_array(
         if not isinstance(data, (bytes, bytearray, memoryview)):
             raise MessageError(message, field, "data as bytes", type(data).__name__)
         wire = np.dtype(wire_dtype)
-        count = int(np.prod(wire_shape)) if wire_shape else 1
+        count = math.prod(wire_shape)
         if len(data) != count * wire.itemsize:
             raise MessageError(message, field,
                                f"{count * wire.itemsize} data bytes for shape {list(wire_shape)}",
                                f"{len(data)} bytes")
-        array = np.frombuffer(bytes(data), dtype=wire).reshape(wire_shape)
+        # a read-only view of the (immutable) bytes: no copy when the dtype is the field's
+        array = np.frombuffer(data if isinstance(data, bytes) else bytes(data),
+                              dtype=wire).reshape(wire_shape)
     elif isinstance(raw, (list, tuple)):
         try:
             array = np.asarray(raw)
@@ -76,12 +79,15 @@ def decode_array(
     else:
         raise MessageError(message, field, "an array map or list", type(raw).__name__)
 
-    if want.kind in "iu" and array.dtype.kind == "f":
-        if array.size and not np.all(np.isfinite(array) & (array == np.round(array))):
-            raise MessageError(message, field, "integers", "non-integral values")
-    if want.kind == "b" and array.dtype.kind not in "bui":
-        raise MessageError(message, field, "booleans", str(array.dtype))
-    array = np.array(array, dtype=want, order="C")  # own the memory: frombuffer is read-only
+    if array.dtype != want:
+        if want.kind in "iu" and array.dtype.kind == "f":
+            if array.size and not np.all(np.isfinite(array) & (array == np.round(array))):
+                raise MessageError(message, field, "integers", "non-integral values")
+        if want.kind == "b" and array.dtype.kind not in "bui":
+            raise MessageError(message, field, "booleans", str(array.dtype))
+        array = np.array(array, dtype=want, order="C")
+    elif not array.flags.c_contiguous or array.flags.writeable:
+        array = np.array(array, dtype=want, order="C")  # a list's array: own, then freeze
 
     dims: tuple[int, ...] = array.shape
     if len(shape) != array.ndim or any(
