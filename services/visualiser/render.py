@@ -431,8 +431,13 @@ def _draw_legend(img: np.ndarray, state: SlamState, scene: Scene, settings: View
         row += [(f"{c}", cluster_colour(int(c))) for c in ids[:12]]
         rows.append(row)
     if settings.health and health is not None:
-        if health.ok and not health.violations:
+        if health.ok and not health.violations and not health.suspects.size:
             rows.append([("health: OK", None)])
+        elif health.ok and not health.violations:
+            # this state broke nothing, but the monitor still blames features from before
+            suspects = ", ".join(str(s) for s in health.suspects.tolist())
+            rows.append([(f"health: suspects {suspects} (no violation in this state)",
+                          settings.colour_violation)])
         else:
             suspects = ", ".join(str(s) for s in health.suspects.tolist()) or "none"
             rows.append([(f"health: {len(health.violations)} violations, suspects {suspects}",

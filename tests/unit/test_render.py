@@ -297,3 +297,19 @@ def test_reference_pose_is_a_white_ring_joined_to_the_estimate() -> None:
     hidden = Renderer().render(None, state=state, camera=camera,
                                settings=settings.replace(robot=False), reference_pose=reference)
     assert not ((hidden.min(axis=2) > 180) & (plain.min(axis=2) <= 180)).any()
+
+
+def test_legend_keeps_naming_suspects_on_a_state_without_violations() -> None:
+    """Health is per state: a predict step may break nothing while suspects stand."""
+    camera = top_down()
+    state = paper_state()
+    settings = ViewSettings(ellipsoids=False, lines=False)
+    ok = Health(robot="robot1", seq=state.seq, stamp=state.stamp, ok=True,
+                suspects=np.zeros(0, np.int64))
+    blamed = Health(robot="robot1", seq=state.seq, stamp=state.stamp, ok=True,
+                    suspects=np.array([3]))
+    clean = Renderer().render(None, state=state, camera=camera, settings=settings, health=ok)
+    flagged = Renderer().render(None, state=state, camera=camera, settings=settings,
+                                health=blamed)
+    legend = (slice(0, 160), slice(0, 640))
+    assert is_magenta(flagged[legend]).sum() > is_magenta(clean[legend]).sum() + 20
