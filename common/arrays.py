@@ -101,6 +101,14 @@ def decode_array(
     return array
 
 
+def values_equal(a: Any, b: Any) -> bool:
+    """Equality for dataclass fields that may hold arrays (``==`` on arrays is elementwise)."""
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return (a is not None and b is not None and a.shape == b.shape
+                and bool(np.array_equal(a, b)))
+    return bool(a == b)
+
+
 def frozen_array(value: Any, dtype: str | np.dtype) -> np.ndarray:
     """A read-only C-contiguous copy, for message construction from Python values."""
     array = np.array(value, dtype=dtype, order="C")

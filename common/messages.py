@@ -35,6 +35,7 @@ from common.arrays import (
     decode_array,
     encode_array,
     frozen_array,
+    values_equal,
 )
 from common.errors import MessageError
 
@@ -125,14 +126,8 @@ class Message:
     def __eq__(self, other: object) -> bool:
         if type(other) is not type(self):
             return NotImplemented
-        for f in self._fields():
-            a, b = getattr(self, f.name), getattr(other, f.name)
-            if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
-                if a is None or b is None or a.shape != b.shape or not np.array_equal(a, b):
-                    return False
-            elif a != b:
-                return False
-        return True
+        return all(values_equal(getattr(self, f.name), getattr(other, f.name))
+                   for f in self._fields())
 
     __hash__ = None  # type: ignore[assignment]
 

@@ -28,7 +28,7 @@ from typing import Any
 
 import numpy as np
 
-from common.arrays import frozen_array
+from common.arrays import frozen_array, values_equal
 from common.config import settings_from_mapping
 from common.errors import ConfigError
 
@@ -104,16 +104,8 @@ class World:
     def __eq__(self, other: object) -> bool:
         if not isinstance(other, World):
             return NotImplemented
-        for name in self.__dataclass_fields__:
-            if name == "source":
-                continue
-            a, b = getattr(self, name), getattr(other, name)
-            if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
-                if a is None or b is None or a.shape != b.shape or not np.array_equal(a, b):
-                    return False
-            elif a != b:
-                return False
-        return True
+        return all(values_equal(getattr(self, name), getattr(other, name))
+                   for name in self.__dataclass_fields__ if name != "source")
 
     __hash__ = None  # type: ignore[assignment]
 
