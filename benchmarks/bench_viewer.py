@@ -21,7 +21,6 @@ import argparse
 import http.client
 import math
 import os
-import statistics
 import subprocess
 import sys
 import threading
@@ -33,7 +32,7 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from bench_render import overhead_camera, paper_like_state  # noqa: E402
+from bench_render import median_ms, overhead_camera, paper_like_state  # noqa: E402
 
 from common.keys import Keys  # noqa: E402
 from common.messages import CameraFrame, Registration, SlamState  # noqa: E402
@@ -72,17 +71,6 @@ def moving_state(base: SlamState, seq: int) -> SlamState:
     return SlamState(robot=ROBOT, seq=seq, stamp=0.01 * seq, step="update", pose=pose,
                      landmark_ids=base.landmark_ids, landmarks=base.landmarks,
                      covariance=base.covariance)
-
-
-def median_ms(fn: Callable[[], object], repeat: int, warmup: int = 3) -> float:
-    for _ in range(warmup):
-        fn()
-    times = []
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return 1e3 * statistics.median(times)
 
 
 # ------------------------------------------------------------------------------ processes

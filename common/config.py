@@ -67,18 +67,21 @@ def _coerce(key: str, value: Any, annotation: Any) -> Any:
     return value
 
 
+def read_toml(path: str | Path, *, what: str = "config file") -> dict[str, Any]:
+    """A TOML file as a dict; ConfigError naming ``what`` and the file if missing or bad."""
+    p = Path(path)
+    try:
+        return tomllib.loads(p.read_text())
+    except FileNotFoundError:
+        raise ConfigError(f"{what} {p} does not exist") from None
+    except tomllib.TOMLDecodeError as exc:
+        raise ConfigError(f"{what} {p} is not valid TOML: {exc}") from None
+
+
 def load_settings(cls: type[T], path: str | Path | None = None,
                   overrides: Mapping[str, Any] | None = None) -> T:
     """Build ``cls`` from a TOML file and flag overrides (see module docstring)."""
-    values: dict[str, Any] = {}
-    if path:
-        p = Path(path)
-        try:
-            values = tomllib.loads(p.read_text())
-        except FileNotFoundError:
-            raise ConfigError(f"config file {p} does not exist") from None
-        except tomllib.TOMLDecodeError as exc:
-            raise ConfigError(f"config file {p} is not valid TOML: {exc}") from None
+    values: dict[str, Any] = read_toml(path) if path else {}
     for key, value in (overrides or {}).items():
         if value is not None:
             values[key.replace("-", "_")] = value

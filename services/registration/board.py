@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import logging
 import math
-import tomllib
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +24,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from common.config import read_toml
 from common.errors import ConfigError
 from common.geometry import invert_T, make_T, transform_points
 from services.registration.calibration import CameraCalibration
@@ -167,14 +167,7 @@ def board_from_mapping(data: dict[str, Any], *, source: str = "board") -> Marker
 
 def load_board(path: str | Path) -> MarkerBoard:
     """A board from its TOML file (format in the module docstring)."""
-    p = Path(path)
-    try:
-        data = tomllib.loads(p.read_text())
-    except FileNotFoundError:
-        raise ConfigError(f"board file {p} does not exist") from None
-    except tomllib.TOMLDecodeError as exc:
-        raise ConfigError(f"board file {p} is not valid TOML: {exc}") from None
-    return board_from_mapping(data, source=str(p))
+    return board_from_mapping(read_toml(path, what="board file"), source=str(Path(path)))
 
 
 def camera_pose_from_board(detections: Iterable[Detection], board: MarkerBoard,
