@@ -82,6 +82,9 @@ def build_config(settings: BusSettings):  # -> zenoh.Config
         if mode == "client" and not settings.zenoh_config:
             # services may start before their router (the demo, a reboot): wait for it
             conf.insert_json5("connect/timeout_ms", f"{{client: {ROUTER_WAIT_MS}}}")
+        # the advanced publishers of SPEC §7a need timestamps (off by default in client
+        # mode); they also give the estimator its publication order (HLC per session)
+        conf.insert_json5("timestamping/enabled", "true")
         for key, value in settings.extra.items():
             conf.insert_json5(key, value)
     except Exception as exc:
