@@ -1,7 +1,8 @@
 """Pieces every service's ``cli.py`` shares: common flags, logging, stop signals, errors.
 
 Common flags (SPEC §9): ``--connect ENDPOINT`` (repeatable), ``--listen ENDPOINT``,
-``--zenoh-config FILE``, ``--prefix``, ``--config FILE``, plus ``-v``/``-q`` for logging.
+``--zenoh-config FILE``, ``--prefix``, ``--config FILE``, ``--secure DIR --name NAME``
+(SPEC §7b: mutual TLS with that identity), plus ``-v``/``-q`` for logging.
 """
 
 from __future__ import annotations
@@ -30,6 +31,11 @@ def add_common_flags(parser: argparse.ArgumentParser, *, config: bool = True) ->
     g.add_argument("--zenoh-config", metavar="FILE",
                    help="Zenoh JSON5 config file (flags override it)")
     g.add_argument("--prefix", default=DEFAULT_PREFIX, help="key prefix (default: slamlens)")
+    g.add_argument("--secure", metavar="DIR",
+                   help="mutual TLS with an identity of the authority in DIR (slamlens certs); "
+                        "endpoints must then be tls/HOST:PORT (default tls/127.0.0.1:7447)")
+    g.add_argument("--name", metavar="NAME",
+                   help="the identity in --secure DIR to use, e.g. robot-r1 (docs/security.md)")
     if config:
         parser.add_argument("--config", metavar="FILE",
                             help="TOML file with this service's settings (flags override it)")
@@ -39,7 +45,8 @@ def add_common_flags(parser: argparse.ArgumentParser, *, config: bool = True) ->
 
 def bus_settings(args: argparse.Namespace) -> BusSettings:
     return BusSettings(connect=tuple(args.connect), listen=tuple(args.listen),
-                       zenoh_config=args.zenoh_config)
+                       zenoh_config=args.zenoh_config, secure=getattr(args, "secure", None),
+                       name=getattr(args, "name", None), prefix=args.prefix)
 
 
 def keys_from(args: argparse.Namespace) -> Keys:

@@ -40,3 +40,8 @@ class BusError(SlamlensError):
 
 class SourceError(SlamlensError):
     """A data source (camera, dataset, serial port) failed or is malformed."""
+
+
+class SecurityError(SlamlensError):
+    """A certificate, key or identity is missing, malformed or not of this authority
+    (the file and the reason are named in the message)."""

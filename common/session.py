@@ -8,22 +8,33 @@ With no file and no endpoints, a service connects as a client to the default rou
 ``tcp/127.0.0.1:7447`` (what ``slamlens router`` listens on), again with multicast
 scouting off: slamlens never talks to the network unless told to. A client waits up to
 10 s for its router to appear, so services may be started in any order.
+
+A router listens where ``--listen`` says, else where its Zenoh config file says, else on
+``tcp/127.0.0.1:7447``: flags override only what they name.
+
+``--secure DIR --name NAME`` (SPEC §7b) makes every link mutual TLS with that identity and,
+on a router, enforces the roles of every identity in DIR (:mod:`common.security`); the
+default endpoint is then ``tls/127.0.0.1:7447`` and a ``tcp/`` endpoint is an error.
 """
 
 from __future__ import annotations
 
 import json
 import logging
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from common.bus import ZenohBus
 from common.errors import BusError, ConfigError
+from common.keys import DEFAULT_PREFIX
 
 log = logging.getLogger(__name__)
 
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
+DEFAULT_SECURE_ROUTER = "tls/127.0.0.1:7447"
 ROUTER_WAIT_MS = 10_000  #: how long a client waits for its router before giving up
 
 
@@ -36,6 +47,9 @@ class BusSettings:
     zenoh_config: str | None = None  #: path of a Zenoh JSON5 config file
     mode: str | None = None  #: "client", "peer" or "router"; derived when None
     extra: dict[str, str] = field(default_factory=dict)  #: raw JSON5 inserts, key → value
+    secure: str | None = None  #: directory of the certificate authority (SPEC §7b)
+    name: str | None = None  #: identity in ``secure`` (certificate common name)
+    prefix: str = DEFAULT_PREFIX  #: key prefix the router's access control protects
 
 
 def _check_endpoint(endpoint: str) -> str:
@@ -45,10 +59,28 @@ def _check_endpoint(endpoint: str) -> str:
     return endpoint
 
 
+def effective_endpoints(conf: Any, section: str, mode: str | None) -> list[str]:
+    """The ``connect``/``listen`` endpoints ``conf`` would use in ``mode`` (Zenoh allows a
+    list or a map from mode to list)."""
+    raw = json.loads(conf.get_json(f"{section}/endpoints") or "[]")
+    if isinstance(raw, dict):
+        raw = raw.get(mode or "peer", [])
+    return [str(e) for e in raw or []]
+
+
+def _sets_listen(conf: Any) -> bool:
+    """Whether ``conf`` (a user's file) names listen endpoints rather than Zenoh's default."""
+    import zenoh
+
+    return conf.get_json("listen/endpoints") != zenoh.Config().get_json("listen/endpoints")
+
+
 def build_config(settings: BusSettings):  # -> zenoh.Config
     """The ``zenoh.Config`` for ``settings`` (see module docstring for the precedence)."""
     import zenoh
 
+    if bool(settings.secure) != bool(settings.name):
+        raise ConfigError("--secure DIR and --name NAME go together")
     if settings.zenoh_config:
         path = Path(settings.zenoh_config)
         if not path.is_file():
@@ -56,15 +88,19 @@ def build_config(settings: BusSettings):  # -> zenoh.Config
         try:
             conf = zenoh.Config.from_file(str(path))
         except Exception as exc:
-            raise ConfigError(f"Zenoh config file {path} is invalid: {exc}") from None
+            raise ConfigError(f"Zenoh config file {path} is invalid: {zenoh_reason(exc)}") from None
     else:
         conf = zenoh.Config()
 
+    default_router = DEFAULT_SECURE_ROUTER if settings.secure else DEFAULT_ROUTER
     connect = [_check_endpoint(e) for e in settings.connect]
     listen = [_check_endpoint(e) for e in settings.listen]
     explicit = bool(connect or listen)
+    if settings.mode == "router" and not listen and not _sets_listen(conf):
+        listen = [default_router]  # neither flag nor file says where: loopback only
+        explicit = True
     if not settings.zenoh_config and not explicit and settings.mode != "router":
-        connect = [DEFAULT_ROUTER]
+        connect = [default_router]
         explicit = True
 
     mode = settings.mode
@@ -88,8 +124,28 @@ def build_config(settings: BusSettings):  # -> zenoh.Config
         for key, value in settings.extra.items():
             conf.insert_json5(key, value)
     except Exception as exc:
-        raise ConfigError(f"bad Zenoh setting: {exc}") from None
+        raise ConfigError(f"bad Zenoh setting: {zenoh_reason(exc)}") from None
+    if settings.secure and settings.name:
+        from common import security
+
+        security.apply(conf, directory=settings.secure, name=settings.name,
+                       prefix=settings.prefix, mode=mode or json.loads(conf.get_json("mode")))
     return conf
+
+
+def listen_endpoints(settings: BusSettings) -> list[str]:
+    """Where a session opened with ``settings`` listens (the flags', else the file's)."""
+    conf = build_config(settings)
+    return effective_endpoints(conf, "listen", json.loads(conf.get_json("mode")) or "peer")
+
+
+_RUST_LOCATION = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")
+
+
+def zenoh_reason(exc: BaseException) -> str:
+    """A Zenoh error as one readable line: without the Rust source locations it carries."""
+    text = _RUST_LOCATION.sub("", str(exc)).strip()
+    return " ".join(text.split())
 
 
 def open_bus(settings: BusSettings) -> ZenohBus:
@@ -100,8 +156,16 @@ def open_bus(settings: BusSettings) -> ZenohBus:
     try:
         session = zenoh.open(conf)
     except Exception as exc:
-        where = ", ".join(settings.connect or settings.listen) or "the configured endpoints"
-        raise BusError(f"cannot open a Zenoh session on {where}: {exc}") from None
+        mode = json.loads(conf.get_json("mode")) or "peer"
+        where = ", ".join(effective_endpoints(conf, "connect", mode)
+                          or effective_endpoints(conf, "listen", mode)) or "no endpoint"
+        reason = zenoh_reason(exc)
+        if "Unable to connect to any of" in reason:
+            hint = (" (or it refused this identity's certificate: see the router's log)"
+                    if settings.secure else "")
+            raise BusError(f"no Zenoh router answered at {where}: is `slamlens router` "
+                           f"running there?{hint}") from None
+        raise BusError(f"cannot open a Zenoh session on {where}: {reason}") from None
     return ZenohBus(session)
 
 
@@ -114,7 +178,10 @@ def free_tcp_endpoint(host: str = "127.0.0.1") -> str:
         return f"tcp/{host}:{s.getsockname()[1]}"
 
 
-def router_settings(listen: Sequence[str], zenoh_config: str | None = None) -> BusSettings:
-    """Settings of an in-process router listening on ``listen``."""
-    return BusSettings(listen=tuple(listen) or (DEFAULT_ROUTER,), zenoh_config=zenoh_config,
-                       mode="router")
+def router_settings(listen: Sequence[str], zenoh_config: str | None = None, *,
+                    secure: str | None = None, name: str | None = None,
+                    prefix: str = DEFAULT_PREFIX) -> BusSettings:
+    """Settings of an in-process router listening on ``listen`` (else where the Zenoh
+    config file says, else on loopback: see :func:`build_config`)."""
+    return BusSettings(listen=tuple(listen), zenoh_config=zenoh_config, mode="router",
+                       secure=secure, name=name, prefix=prefix)

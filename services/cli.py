@@ -26,6 +26,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "viewer": ("services.visualiser.cli", "the AR renderer and its web viewers"),
     "figures": ("services.visualiser.cli", "regenerate the paper's Figs. 3-8 into docs/"),
     "demo": ("services.demo", "all of it on one machine, with a browser link"),
+    "certs": ("services.certs", "create or extend the certificate authority of SPEC §7b"),
 }
 
 
