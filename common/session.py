@@ -179,9 +179,10 @@ def free_tcp_endpoint(host: str = "127.0.0.1") -> str:
 
 
 def router_settings(listen: Sequence[str], zenoh_config: str | None = None, *,
-                    secure: str | None = None, name: str | None = None,
-                    prefix: str = DEFAULT_PREFIX) -> BusSettings:
+                    connect: Sequence[str] = (), secure: str | None = None,
+                    name: str | None = None, prefix: str = DEFAULT_PREFIX) -> BusSettings:
     """Settings of an in-process router listening on ``listen`` (else where the Zenoh
-    config file says, else on loopback: see :func:`build_config`)."""
-    return BusSettings(listen=tuple(listen), zenoh_config=zenoh_config, mode="router",
-                       secure=secure, name=name, prefix=prefix)
+    config file says, else on loopback: see :func:`build_config`) and linked to the
+    routers at ``connect``."""
+    return BusSettings(listen=tuple(listen), connect=tuple(connect), zenoh_config=zenoh_config,
+                       mode="router", secure=secure, name=name, prefix=prefix)

@@ -2,7 +2,8 @@
 
 There is no router binary to install: a Python Zenoh session opened in ``router`` mode
 routes for every client and peer that connects to it. It listens where ``--listen`` says,
-else where ``--zenoh-config FILE`` says, else on ``tcp/127.0.0.1:7447`` (loopback only).
+else where ``--zenoh-config FILE`` says, else on ``tcp/127.0.0.1:7447`` (loopback only),
+and ``--connect ENDPOINT`` links it to another router (e.g. the robot's to the workstation's).
 
 With ``--secure DIR --name router-X`` it serves mutual TLS only and enforces the roles of
 every identity in DIR (SPEC §7b, :mod:`common.security`); what it refuses shows in its log
@@ -30,8 +31,8 @@ def add_arguments(command: str, parser: argparse.ArgumentParser) -> None:
 
 def run(command: str, args: argparse.Namespace) -> int:
     setup_logging(args, "router")
-    settings = router_settings(args.listen, args.zenoh_config, secure=args.secure,
-                               name=args.name, prefix=args.prefix)
+    settings = router_settings(args.listen, args.zenoh_config, connect=args.connect,
+                               secure=args.secure, name=args.name, prefix=args.prefix)
     conf = build_config(settings)  # every flag and file checked before anything opens
     acl = json.loads(conf.get_json("access_control"))
     if args.print_acl:
@@ -43,6 +44,9 @@ def run(command: str, args: argparse.Namespace) -> int:
     bus = open_bus(settings)
     try:
         endpoints = effective_endpoints(conf, "listen", "router")
+        links = effective_endpoints(conf, "connect", "router")
+        if links:
+            log.info("linking to the router(s) at %s", ", ".join(links))
         if settings.secure:
             names = [s["id"] for s in acl.get("subjects", [])]
             log.info("router %s listening on %s (mutual TLS); roles enforced for %s",

@@ -10,7 +10,8 @@ standard output) and a reader thread turns Zenoh's lines into the router's log:
 * a TLS connection refused (a certificate of another authority, a plain TCP client on a TLS
   port): one warning with Zenoh's reason;
 * a client whose certificate names no identity the router knows;
-* any other Zenoh warning or error, without its Rust source location.
+* any other Zenoh warning or error, without its Rust source location (with ``RUST_LOG``
+  set, every line Zenoh writes at the levels it names).
 
 Nothing here ever blocks Zenoh: the reader only parses, hands lines to a bounded queue and
 counts what it had to drop when the router's own log cannot keep up.
@@ -39,8 +40,10 @@ _PIPE_BYTES = 1 << 20  # room for bursts of trace lines while the reader is desc
 _QUEUE = 1000  # log records waiting for the router's log; more are counted and dropped
 
 _ANSI = re.compile(r"\x1b\[[0-9;]*m")
+# time, level, [thread name], ThreadId(n), [spans{…}:], target: message
 _LINE = re.compile(r"^\S+Z\s+(?P<level>TRACE|DEBUG|INFO|WARN|ERROR)\s+(?:\S+\s+)?"
-                   r"ThreadId\((?P<thread>\d+)\)\s+(?P<target>[\w:]+):\s(?P<text>.*)$")
+                   r"ThreadId\((?P<thread>\d+)\)\s+(?:.*?[\s:])?"
+                   r"(?P<target>zenoh\w*(?:::\w+)*):\s(?P<text>.*)$")
 _DECISION = re.compile(r"(?:Using cached result: )?(?P<zid>[0-9a-f]+)(?: on (?P<subject>\S+))? is "
                        r"(?P<verdict>authorized|unauthorized) to (?P<what>.+?) on (?P<key>\S+)$")
 _NAME = re.compile(r"CertCommonName\(([^)]*)\)")
@@ -71,7 +74,8 @@ class DenialCounts:
 class ZenohLogReader:
     """Parses Zenoh's log lines (see module docstring); feed it with :meth:`line`."""
 
-    def __init__(self, emit: logging.Logger = log) -> None:
+    def __init__(self, emit: logging.Logger = log, *, verbose: bool = False) -> None:
+        self.verbose = verbose  # RUST_LOG asked for Zenoh's own lines: pass them on
         self.denials = DenialCounts()
         self._emit = emit
         self._last_decision: dict[str, re.Match[str] | None] = {}
@@ -107,6 +111,8 @@ class ZenohLogReader:
             self._refused(self._last_decision.pop(thread, None))
             return
         if level in ("TRACE", "DEBUG", "INFO"):
+            if self.verbose:
+                self._record(logging.INFO, f"zenoh {level.lower()} {target}: {_clean(body)}")
             return
         if target.startswith("zenoh_link_tls") and ("alert" in body or "corrupt" in body
                                                     or "certificate" in body.lower()):
@@ -167,7 +173,7 @@ class ZenohLog:
     first Zenoh session opens; the log can be initialised once per process)."""
 
     def __init__(self, *, access_control: bool) -> None:
-        self.reader = ZenohLogReader()
+        self.reader = ZenohLogReader(verbose="RUST_LOG" in os.environ)
         self._directives = BASE_DIRECTIVES + (f",{ACL_DIRECTIVES}" if access_control else "")
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
