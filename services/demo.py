@@ -26,7 +26,7 @@ import numpy as np
 
 from common.bus import ZenohBus
 from common.cli import add_common_flags, setup_logging, stop_event
-from common.errors import MessageError, SlamlensError
+from common.errors import ConfigError, MessageError, SlamlensError
 from common.geometry import all_relative_covariances, pd_size_m
 from common.keys import Keys
 from common.messages import Health, SlamState
@@ -163,6 +163,10 @@ def _wait_alive(bus: ZenohBus, key: str, stop: threading.Event,
 
 
 def run(command: str, args: argparse.Namespace) -> int:
+    if args.secure or args.name:
+        raise ConfigError("the demo runs every service on loopback without TLS; for a secure "
+                          "set-up start the services with their own identities "
+                          "(docs/security.md)")
     setup_logging(args, "demo")
     stop = stop_event()
     keys = Keys(args.prefix)

@@ -123,7 +123,7 @@ class ZenohLogReader:
 
     def _refused(self, decision: re.Match[str] | None) -> None:
         if decision is None or decision["verdict"] != "unauthorized":
-            what = ("a client of no known identity", "send", "anything")
+            what = ("a client of no known identity", "send messages", "any key")
         else:
             name = self._names.get(decision["zid"], f"zenoh id {decision['zid']}")
             what = (name, decision["what"], decision["key"])

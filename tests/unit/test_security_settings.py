@@ -179,3 +179,9 @@ def test_zenoh_errors_lose_their_rust_locations() -> None:
            "orchestrator.rs:388.")
     assert zenoh_reason(RuntimeError(raw)) == (
         "Unable to connect to any of [Single(tcp/127.0.0.1:1)]. Timeout!")
+
+
+def test_a_router_links_to_the_routers_it_is_told_to() -> None:
+    conf = build_config(router_settings([], connect=["tcp/10.0.0.2:7447"]))
+    assert effective_endpoints(conf, "connect", "router") == ["tcp/10.0.0.2:7447"]
+    assert effective_endpoints(conf, "listen", "router") == ["tcp/127.0.0.1:7447"]
