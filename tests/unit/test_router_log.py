@@ -116,3 +116,21 @@ def test_spans_between_thread_and_target_are_understood() -> None:
                 "zenoh::net::runtime::region: return=Ok(North)\n")
     reader.emit_pending(0)
     assert out == [(logging.INFO, "zenoh debug zenoh::net::runtime::region: return=Ok(North)")]
+
+
+def test_chunks_of_allowed_decisions_are_skipped_but_the_one_before_a_drop_is_kept() -> None:
+    reader, out = _reader()
+    allowed = _line(9, ACL, f"Using cached result: {ZID_V} is authorized to Put (egress) on "
+                            "slamlens/robot/r1/state").encode()
+    names = _line(8, ACL, f"{_subject(ZID_R2, 'robot-r2')} is authorized to Declare "
+                          "Subscriber (ingress) on slamlens/robot/r2/state").encode()
+    refusal = _line(8, ACL, f"Using cached result: {ZID_R2} is unauthorized to Put (ingress) "
+                            "on slamlens/robot/r1/odometry").encode()
+    drop = _line(8, ICP, "Msg intercepted!").encode()
+    reader.feed(names)
+    reader.feed(allowed * 500 + refusal[:40])  # a line split across reads
+    reader.feed(refusal[40:])  # a chunk of nothing but decisions: skipped
+    reader.feed(allowed * 3 + drop)
+    reader.emit_pending(0)
+    assert out == [(logging.WARNING, "refused: robot-r2 may not Put (ingress) on "
+                                     "slamlens/robot/r1/odometry (dropped; repeats are counted)")]
