@@ -230,6 +230,9 @@ def _cert_pem(cert) -> bytes:
 
 def _load_or_create_ca(directory: Path, report: list[str]):
     cert_path, key_path = directory / CA_CERT, directory / CA_KEY
+    if cert_path.exists() and not key_path.exists():
+        raise SecurityError(f"{directory} holds {CA_CERT} but not {CA_KEY}: identities are "
+                            "issued on the machine that keeps the authority's key")
     if cert_path.exists() or key_path.exists():
         ca_cert, ca_key = load_cert(cert_path), load_key(key_path)
         if ca_cert.public_key().public_numbers() != ca_key.public_key().public_numbers():

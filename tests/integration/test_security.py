@@ -26,7 +26,7 @@ from common.bus import ZenohBus
 from common.certs import extend_authority
 from common.errors import BusError, SecurityError
 from common.session import BusSettings, free_tcp_endpoint, open_bus
-from tests.procs import REPO, slamlens_cmd, spawn, wait_for_line
+from tests.procs import REPO, Output, slamlens_cmd, spawn
 
 NAMES = ["router-ws", "robot-r1", "robot-r2", "camera-overhead", "monitor-r1", "viewer-lab"]
 STATE = "slamlens/robot/r1/state"
@@ -37,36 +37,18 @@ class RouterProcess:
     """A `slamlens router` process whose log is collected as it is written."""
 
     def __init__(self, *args: str) -> None:
-        self.proc = spawn("router", *args)
-        self.lines: list[str] = []
-        self._cond = threading.Condition()
-        wait_for_line(self.proc, "router ready", timeout=30)
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
+        self.output = Output(spawn("router", *args))
+        self.output.wait("router ready", timeout=30)
 
-    def _read(self) -> None:
-        assert self.proc.stderr is not None
-        for line in self.proc.stderr:
-            with self._cond:
-                self.lines.append(line.rstrip("\n"))
-                self._cond.notify_all()
+    @property
+    def lines(self) -> list[str]:
+        return self.output.stderr
 
     def wait_log(self, text: str, timeout: float = 10.0) -> str:
-        with self._cond:
-            if not self._cond.wait_for(lambda: any(text in x for x in self.lines), timeout):
-                raise AssertionError(f"router never logged {text!r}; log:\n"
-                                     + "\n".join(self.lines))
-            return next(x for x in self.lines if text in x)
+        return self.output.wait(text, stream="stderr", timeout=timeout)
 
     def close(self) -> None:
-        if self.proc.poll() is None:
-            self.proc.terminate()
-        self.proc.wait(timeout=10)
-        self._reader.join(timeout=5)
-        for pipe in (self.proc.stdout, self.proc.stderr):
-            if pipe is not None:
-                pipe.close()
-        assert self.proc.returncode == 0, "\n".join(self.lines)
+        assert self.output.stop() == 0, "\n".join(self.lines)
 
 
 @pytest.fixture(scope="module")

@@ -145,3 +145,11 @@ def test_a_mismatched_ca_key_is_refused(tmp_path) -> None:
     (tmp_path / "a" / "ca.key").write_bytes((tmp_path / "b" / "ca.key").read_bytes())
     with pytest.raises(SecurityError, match=r"ca\.key is not the key of .*ca\.pem"):
         extend_authority(tmp_path / "a", ["robot-r2"])
+
+
+def test_a_copy_without_the_authority_key_cannot_issue(tmp_path) -> None:
+    extend_authority(tmp_path, ["robot-r1"])
+    (tmp_path / "ca.key").unlink()  # as on a robot, which only got ca.pem
+    with pytest.raises(SecurityError, match="holds ca.pem but not ca.key"):
+        extend_authority(tmp_path, ["robot-r2"])
+    assert not (tmp_path / "robot-r2.pem").exists()
