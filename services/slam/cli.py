@@ -103,6 +103,9 @@ def add_arguments(command: str, parser: argparse.ArgumentParser) -> None:
         parser.add_argument("--fault", help="plant a documented fault: map-update, "
                             "cross-covariance (docs/estimator.md)")
         parser.add_argument("--faulty-features", help="feature ids the fault acts on: ID,ID")
+        parser.add_argument("--checkpoint", metavar="DIR",
+                            help="crash recovery: save the map in DIR (atomically, at least "
+                                 "once a second) and resume it from there on a restart")
     elif command == "replay":
         parser.add_argument("path", help="dataset folder (e.g. ../shared/data/mrclam6)")
         parser.add_argument("--format", help="dataset format (mrclam)")
@@ -168,18 +171,31 @@ def _run_sim(args: argparse.Namespace) -> int:
             while time.monotonic() < hold_until and not stop.is_set():
                 out.publish(first)
                 stop.wait(0.1)
+        if s.rate == 0 and s.wait_for_estimator:
+            out.pace_on_estimator()
         wall = play(itertools.chain([first], events), out, stop, rate=s.rate,
                     progress_every_s=10.0 if s.rate and s.rate <= 5 else 0.0)
-        log.info("done in %.2f s wall: %s", wall, out.counts)
-        print(f"sim done: {json.dumps(out.counts)} in {wall:.2f} s", flush=True)
+        _finish("sim", out, stop, wall)
     finally:
         bus.close()
     return 0
 
 
+def _finish(name: str, out: Any, stop: threading.Event, wall: float) -> None:
+    """The driver's final line: what it published, and whether the estimator applied it."""
+    applied = ""
+    if out.pacer is not None and not stop.is_set():
+        applied = (", all applied by the estimator" if out.pacer.drain(stop)
+                   else ", NOT all applied by the estimator within 10 s")
+    verb = "stopped" if stop.is_set() else "done"
+    log.info("%s in %.2f s wall: %s", verb, wall, out.counts)
+    print(f"{name} {verb}: {json.dumps(out.counts)} in {wall:.2f} s{applied}", flush=True)
+
+
 def _estimator_overrides(args: argparse.Namespace) -> dict[str, Any]:
     names = ["robot", "sigma_v", "sigma_w", "sigma_range", "sigma_bearing", "gate_chi2",
-             "new_landmark_chi2", "fault", "faulty_features", "fault_magnitude", "fault_onset"]
+             "new_landmark_chi2", "fault", "faulty_features", "fault_magnitude", "fault_onset",
+             "checkpoint"]
     return _overrides(args, names)
 
 
@@ -208,7 +224,7 @@ def _run_estimator(args: argparse.Namespace) -> int:
         log.info("estimator for %s ready%s", settings.robot, fault)
         print("estimator ready", flush=True)
         service.run(stop)
-        log.info("stopped: %s, %d dropped", service.stats, service.drops.total)
+        print(f"estimator stopped: {json.dumps(service.summary())}", flush=True)
     finally:
         bus.close()
     return 0
@@ -230,8 +246,10 @@ def _run_replay(args: argparse.Namespace) -> int:
             return 0
         events = run_.events(start=s.start_s or None,
                              end=(s.start_s + s.duration_s) if s.duration_s else None)
+        if s.rate == 0 and s.wait_for_estimator:
+            out.pace_on_estimator()
         wall = play(events, out, stop, rate=s.rate, progress_every_s=30.0)
-        print(f"replay done: {json.dumps(out.counts)} in {wall:.2f} s", flush=True)
+        _finish("replay", out, stop, wall)
     finally:
         bus.close()
     return 0
@@ -253,7 +271,8 @@ def _run_serial(args: argparse.Namespace) -> int:
         print("serial ready", flush=True)
         for message in link.messages(stop):
             out.publish(message)
-        log.info("serial stopped: published %s, parser %s", out.counts, link.stats)
+        print(f"serial stopped: published {json.dumps(out.counts)}, parser {link.stats}",
+              flush=True)
     finally:
         link.close()
         bus.close()
@@ -274,6 +293,7 @@ def _run_monitor(args: argparse.Namespace) -> int:
         service = MonitorService(bus, keys=keys_from(args), robot=robot, settings=settings)
         print("monitor ready", flush=True)
         service.run(stop)
+        print(f"monitor stopped: {json.dumps(service.summary())}", flush=True)
     finally:
         bus.close()
     return 0

@@ -66,6 +66,23 @@ class EstimatorSettings:
         "stamp (s) from which the fault acts (0 = from the start)"))
     publish_innovations: bool = field(default=True, metadata=_doc(
         "put each update's innovations and S into the state (for the monitor's NIS)"))
+    # -- delivery (SPEC §7a; the service, not the filter) --------------------------------
+    checkpoint: str = field(default="", metadata=_doc(
+        "folder for crash-recovery checkpoints (written atomically at least once a second "
+        "and at exit; a restart with the same folder continues the same map); '' = none"))
+    checkpoint_interval_s: float = field(default=1.0, metadata=_doc(
+        "seconds between checkpoints", min=0.01))
+    input_gap_wait_s: float = field(default=2.0, metadata=_doc(
+        "seconds an input that arrived out of order waits for the missing ones before "
+        "they are counted lost", min=0.0))
+    input_history_s: float = field(default=60.0, metadata=_doc(
+        "when resuming from a checkpoint, seconds of the drivers' cached inputs asked for",
+        min=0.0))
+    state_cache: int = field(default=10_000, metadata=_doc(
+        "states kept for subscribers that recover what they missed (at most "
+        "state_cache_mb of them)", min=1))
+    state_cache_mb: float = field(default=256.0, metadata=_doc(
+        "memory the state cache may hold, MB", min=1.0))
 
     def __post_init__(self) -> None:
         if not (self.sigma_range > 0 and self.sigma_bearing > 0):
@@ -260,7 +277,9 @@ class Estimator:
             assigned_ids=_frozen(assigned, np.int64), rejected=rejected, ambiguous=ambiguous)
 
     def to_state(self, *, seq: int, stamp: float, step: str,
-                 report: ObserveReport | None = None) -> SlamState:
+                 report: ObserveReport | None = None, epoch: int = 0,
+                 input_stamp: float | None = None,
+                 origin_stamp: float | None = None) -> SlamState:
         """The current state as a SlamState message (covariance materialised once)."""
         n = self._n
         cov = ekf.symmetric(self._L, 3 + 2 * n)
@@ -275,7 +294,38 @@ class Estimator:
                 extra["innovation_covariances"] = report.innovation_covariances
         return SlamState(robot=self.settings.robot, seq=seq, stamp=stamp, step=step,
                          pose=self.pose, landmark_ids=self.landmark_ids,
-                         landmarks=self.landmarks, covariance=cov, **extra)
+                         landmarks=self.landmarks, covariance=cov, epoch=epoch,
+                         input_stamp=input_stamp, origin_stamp=origin_stamp, **extra)
+
+    # -- checkpoints -------------------------------------------------------------------
+    @property
+    def next_anonymous_id(self) -> int:
+        """The id the next landmark found by association gets (kept by checkpoints)."""
+        return self._next_anonymous
+
+    def restore(self, state: SlamState, *, next_anonymous_id: int | None = None) -> None:
+        """Continue from ``state`` (a checkpoint): the same map, bit for bit.
+
+        The buffers get the capacity an uninterrupted run would have by now (16 doubled
+        as needed), so that every later BLAS call sees the same layout.
+        """
+        n = state.n
+        capacity = _INITIAL_CAPACITY
+        while capacity < n:
+            capacity *= 2
+        size, N = 3 + 2 * capacity, 3 + 2 * n
+        self._x = np.zeros(size)
+        self._x[0:3] = state.pose
+        self._x[3:N] = state.landmarks.reshape(-1)
+        self._L = np.zeros((size, size))
+        self._L[:N, :N] = state.covariance  # only the lower triangle is read (ekf.py)
+        self._ws = ekf.Workspace.for_capacity(size)
+        self._capacity = capacity
+        self._n = n
+        self._ids = [int(i) for i in state.landmark_ids]
+        self._index = {lid: k for k, lid in enumerate(self._ids)}
+        self._next_anonymous = (self.settings.anonymous_id_base if next_anonymous_id is None
+                                else int(next_anonymous_id))
 
     # -- internals ---------------------------------------------------------------------
     @staticmethod

@@ -62,6 +62,9 @@ class MonitorSettings:
     stays a suspect for 0.4 half-lives; a split blame of 1/2 alone is not enough) ..."""
     suspect_ratio: float = field(default=0.1, metadata={"min": 0.0})
     """... and at least this fraction of the strongest suspect's evidence."""
+    clear_after: int = field(default=200, metadata={"min": 1})
+    """A violation stands (and keeps the verdict) until this many further states were checked
+    without it; a fault also stands while any suspect is named (docs/monitor.md)."""
     max_violations_per_kind: int = field(default=20, metadata={"min": 1})
     """Health lists at most this many violations per kind (the largest); counts are in the
     statistics (``pairs_growing`` …) and the blame uses all of them."""
