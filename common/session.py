@@ -114,7 +114,10 @@ def free_tcp_endpoint(host: str = "127.0.0.1") -> str:
         return f"tcp/{host}:{s.getsockname()[1]}"
 
 
-def router_settings(listen: Sequence[str], zenoh_config: str | None = None) -> BusSettings:
-    """Settings of an in-process router listening on ``listen``."""
-    return BusSettings(listen=tuple(listen) or (DEFAULT_ROUTER,), zenoh_config=zenoh_config,
-                       mode="router")
+def router_settings(listen: Sequence[str], zenoh_config: str | None = None, *,
+                    connect: Sequence[str] = ()) -> BusSettings:
+    """Settings of an in-process router listening on ``listen`` and linked to the routers
+    at ``connect`` (a robot's router connects to the workstation's: traffic between
+    services on the robot never crosses the link)."""
+    return BusSettings(listen=tuple(listen) or (DEFAULT_ROUTER,), connect=tuple(connect),
+                       zenoh_config=zenoh_config, mode="router")

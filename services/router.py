@@ -22,11 +22,13 @@ def add_arguments(command: str, parser: argparse.ArgumentParser) -> None:
 def run(command: str, args: argparse.Namespace) -> int:
     setup_logging(args, "router")
     stop = stop_event()
-    bus = open_bus(router_settings(args.listen, args.zenoh_config))
+    bus = open_bus(router_settings(args.listen, args.zenoh_config, connect=args.connect))
     try:
-        log.info("router listening on %s", ", ".join(args.listen or ["tcp/127.0.0.1:7447"]))
+        log.info("router listening on %s%s", ", ".join(args.listen or ["tcp/127.0.0.1:7447"]),
+                 f", linked to {', '.join(args.connect)}" if args.connect else "")
         print("router ready", flush=True)
         stop.wait()
     finally:
         bus.close()
+    print("router stopped", flush=True)
     return 0
