@@ -12,7 +12,7 @@ from __future__ import annotations
 import json
 import time
 
-from tests.netns import Hosts, curl_json, two_hosts  # noqa: F401  (fixture)
+from tests.netns import Hosts, curl_json
 from tests.procs import Service, spawn, stop
 
 ROBOT = "robot1"
