@@ -99,6 +99,10 @@ def mrclam(*, with_consumers: bool) -> dict:
         t0 = time.monotonic()
         replay = spawn("replay", str(MRCLAM), "--format", "mrclam", "--robot-index", "1",
                        "--rate", "0", "--connect", ep)
+        replay_cpu = 0.0
+        while replay.poll() is None:  # its CPU, read while it still runs
+            replay_cpu = replay.cpu_seconds() or replay_cpu
+            time.sleep(0.2)
         out, err = replay.communicate(timeout=1800)
         counts = _final_json(out, "replay done: ")
         total = counts["Odometry"] + counts["Observations"]
@@ -112,7 +116,10 @@ def mrclam(*, with_consumers: bool) -> dict:
         first_stamp, last_stamp = _dataset_span()
         result = {"inputs": total, "replay_s": replay_s, "wall_s": wall,
                   "realtime_x": (last_stamp - first_stamp) / wall,
-                  "all_applied": "all applied" in out}
+                  "all_applied": "all applied" in out,
+                  "cpu_s": {"replay": replay_cpu, "estimator": est.cpu_seconds(),
+                            "router": router.cpu_seconds(),
+                            "monitor": mon.cpu_seconds() if mon else None}}
         if with_consumers:
             assert rec is not None
             result["recorded"] = len(rec.seqs)
@@ -128,6 +135,10 @@ def mrclam(*, with_consumers: bool) -> dict:
         result["estimator"] = _final_json(est_out, "estimator stopped: ")
         stop(router)
     return result
+
+
+def _cpu(result: dict) -> str:
+    return ", ".join(f"{k} {v:.1f}" for k, v in result["cpu_s"].items() if v is not None)
 
 
 _SPAN: tuple[float, float] | None = None
@@ -215,13 +226,15 @@ def main() -> None:
     if 1 in parts:
         base = mrclam(with_consumers=False)
         print(f"MRCLAM robot 1, replay + estimator alone: {base['inputs']} inputs in "
-              f"{base['wall_s']:.1f} s = {base['realtime_x']:.1f}x real time")
+              f"{base['wall_s']:.1f} s = {base['realtime_x']:.1f}x real time; CPU s "
+              f"{_cpu(base)}")
         runs = [mrclam(with_consumers=True) for _ in range(args.repeats)]
         for r in runs:
             print(f"  with monitor + recorder: {r['wall_s']:.1f} s = {r['realtime_x']:.1f}x "
                   f"real time; replay done after {r['replay_s']:.1f} s; all applied "
                   f"{r['all_applied']}; recorded {r['recorded']}/{r['inputs'] + 1}; checked up "
-                  f"to seq {r['checked_up_to']}; monitor lost {r['monitor']['lost']}")
+                  f"to seq {r['checked_up_to']}; monitor lost {r['monitor']['lost']}; CPU s "
+                  f"{_cpu(r)}")
         med = statistics.median(r["realtime_x"] for r in runs)
         print(f"target 1: median {med:.1f}x real time (target >= 30x); "
               f"ratio to the estimator alone {med / base['realtime_x']:.2f}")

@@ -91,6 +91,14 @@ class Service:
             t.join(timeout=5.0)
         return "".join(self.out), "".join(self.err)
 
+    def cpu_seconds(self) -> float | None:
+        """User + system CPU seconds the process has used so far (None once it is gone)."""
+        try:
+            fields = Path(f"/proc/{self.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            return None
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
     # -- waiting on what it says -------------------------------------------------------
     def wait_for_line(self, text: str, timeout: float = 60.0) -> str:
         """The first line from now on containing ``text``; AssertionError after

@@ -266,13 +266,13 @@ class Monitor:
             self._onset = (state.seq, state.stamp)
         self._prev = state
         self._states += 1
-        verdict = self._verdict.update(state.seq, found, suspects)
+        verdict = self._verdict.update(state.seq, [_finite(v) for v in found], suspects)
         return Health(robot=state.robot, seq=state.seq, stamp=state.stamp, ok=not found,
                       suspects=np.asarray(suspects, dtype=np.int64),
                       violations=tuple(_finite(v) for v in self._cap(found)),
                       statistics={k: v for k, v in stats.items() if math.isfinite(v)},
                       verdict=verdict, verdict_since=self._verdict.since,
-                      standing=tuple(_finite(v) for v in self._verdict.standing()))
+                      standing=self._verdict.standing())
 
     def _cap(self, found: list[Violation]) -> list[Violation]:
         """At most ``max_violations_per_kind`` per kind, the largest values first."""

@@ -28,6 +28,7 @@ from common.messages import Violation
 FAULT_KINDS = ("pair", "feature", "prediction", "symmetry", "psd", "correlation")
 TUNING_KINDS = ("nees", "nis")
 VERDICTS = ("ok", "fault", "tuning")
+_RANK = {k: i for i, k in enumerate(FAULT_KINDS + TUNING_KINDS)}
 #: the verdict in words, as every view shows it
 WORDS = {"ok": "ok", "fault": "estimator fault",
          "tuning": "inconsistent tuning or model mismatch"}
@@ -39,6 +40,7 @@ class _Standing:
     last: int  #: seq where last seen
     count: int  #: states it was seen in
     worst: Violation  #: the largest value seen
+    shown: Violation | None = None  #: as listed (rebuilt only when it changed)
 
 
 class Verdict:
@@ -51,6 +53,7 @@ class Verdict:
 
     def reset(self) -> None:
         self._standing: dict[tuple[str, tuple[int, ...]], _Standing] = {}
+        self._listed: tuple[Violation, ...] | None = ()  #: None: to be rebuilt
         self.verdict = "ok"
         self.since: int | None = None  #: seq where the current verdict began
 
@@ -62,11 +65,14 @@ class Verdict:
             if s is None:
                 self._standing[key] = _Standing(first=seq, last=seq, count=1, worst=v)
             else:
-                s.last, s.count = seq, s.count + 1
+                s.last, s.count, s.shown = seq, s.count + 1, None
                 if v.value > s.worst.value:
                     s.worst = v
-        for key in [k for k, s in self._standing.items() if seq - s.last > self.clear_after]:
+            self._listed = None
+        expired = [k for k, s in self._standing.items() if seq - s.last > self.clear_after]
+        for key in expired:
             del self._standing[key]
+            self._listed = None
         kinds = {k for k, _ in self._standing}
         if kinds & set(FAULT_KINDS) or suspects:
             verdict = "fault"
@@ -81,11 +87,16 @@ class Verdict:
     def standing(self) -> tuple[Violation, ...]:
         """The standing violations, faults first then the largest, each once with the
         seq where it began (``first_step``) and how many states showed it."""
-        rank = {k: i for i, k in enumerate(FAULT_KINDS + TUNING_KINDS)}
+        if self._listed is not None:  # nothing changed since the last state: on a hot path
+            return self._listed
         items = sorted(self._standing.values(),
-                       key=lambda s: (rank.get(s.worst.kind, 99), -s.worst.value))
-        return tuple(dataclasses.replace(s.worst, step=s.last, first_step=s.first,
-                                         count=s.count) for s in items[:self.max_listed])
+                       key=lambda s: (_RANK.get(s.worst.kind, 99), -s.worst.value))
+        for s in items[:self.max_listed]:
+            if s.shown is None:
+                s.shown = dataclasses.replace(s.worst, step=s.last, first_step=s.first,
+                                              count=s.count)
+        self._listed = tuple(s.shown for s in items[:self.max_listed])  # type: ignore[misc]
+        return self._listed
 
     @property
     def standing_count(self) -> int:
