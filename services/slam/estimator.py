@@ -16,7 +16,7 @@ from typing import Any
 
 import numpy as np
 
-from common.errors import ConfigError
+from common.errors import ConfigError, EstimationError
 from common.messages import SlamState
 from services.slam import association, ekf, faults
 
@@ -86,7 +86,7 @@ class EstimatorSettings:
         try:
             faults.make_fault(self.fault, self.faulty_features, magnitude=self.fault_magnitude,
                               onset=self.fault_onset)
-        except ValueError as exc:
+        except ConfigError as exc:
             raise ConfigError(f"settings 'fault'/'faulty_features'/'fault_magnitude': {exc}") \
                 from None
 
@@ -184,10 +184,10 @@ class Estimator:
     # -- events ------------------------------------------------------------------------
     def predict(self, *, v: float, w: float, dt: float, stamp: float) -> None:
         """Apply one odometry step (v m/s, w rad/s held for dt s). Refuses NaN and dt < 0
-        with ValueError, leaving the state unchanged."""
+        with EstimationError, leaving the state unchanged."""
         ekf.check_finite_inputs(v=v, w=w, dt=dt, stamp=stamp)
         if dt < 0:
-            raise ValueError(f"dt must be ≥ 0, got {dt!r}")
+            raise EstimationError(f"dt must be ≥ 0, got {dt!r}")
         fault = self._fault
         if fault is not None and fault.kind == faults.CROSS_COVARIANCE and fault.active(stamp):
             faults.predict_without_cross_covariance(
@@ -202,7 +202,7 @@ class Estimator:
 
         A known id updates, an unknown id is initialised (and not also used to update), id
         −1 is associated (:mod:`services.slam.association`). Malformed input (NaN, negative
-        range, ids < −1, mismatched lengths) raises ValueError before anything changes.
+        range, ids < −1, mismatched lengths) raises EstimationError before anything changes.
         """
         id_list, range_list, bearing_list = self._check_batch(ids, ranges, bearings, stamp)
         observed: list[int] = []
@@ -286,23 +286,23 @@ class Estimator:
         ekf.check_finite_inputs(stamp=stamp)
         ids_a = np.asarray(ids)
         if ids_a.ndim != 1 or (ids_a.size and ids_a.dtype.kind not in "iu"):
-            raise ValueError(f"ids must be a 1-D integer array, got dtype {ids_a.dtype} "
+            raise EstimationError(f"ids must be a 1-D integer array, got dtype {ids_a.dtype} "
                              f"shape {ids_a.shape}")
         ranges_a = np.asarray(ranges, dtype=np.float64)
         bearings_a = np.asarray(bearings, dtype=np.float64)
         if ranges_a.shape != ids_a.shape or bearings_a.shape != ids_a.shape:
-            raise ValueError(f"ids, ranges and bearings must have the same length, got "
+            raise EstimationError(f"ids, ranges and bearings must have the same length, got "
                              f"{ids_a.shape}, {ranges_a.shape}, {bearings_a.shape}")
         id_list: list[int] = ids_a.tolist()
         range_list: list[float] = ranges_a.tolist()
         bearing_list: list[float] = bearings_a.tolist()
         if not (all(map(math.isfinite, range_list)) and all(map(math.isfinite, bearing_list))):
-            raise ValueError("ranges and bearings must be finite (NaN or infinity received)")
+            raise EstimationError("ranges and bearings must be finite (NaN or infinity received)")
         if id_list:
             if min(range_list) < 0:
-                raise ValueError("ranges must be ≥ 0")
+                raise EstimationError("ranges must be ≥ 0")
             if min(id_list) < -1:
-                raise ValueError(f"ids must be ≥ −1, got {min(id_list)}")
+                raise EstimationError(f"ids must be ≥ −1, got {min(id_list)}")
         return id_list, range_list, bearing_list
 
     def _log_refused(self, lid: int, exc: Exception) -> None:

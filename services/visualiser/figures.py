@@ -35,6 +35,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from common.errors import RenderError
 from common.geometry import invert_T
 from common.messages import Odometry, SlamState, Truth
 from services.visualiser.camera_model import CameraModel
@@ -112,7 +113,7 @@ def simulate(settings: FigureSettings, *, faulty: bool) -> tuple[Snapshot, Snaps
         if start is None and state.n == world.n_landmarks:
             start = last
     if start is None or last is None:
-        raise RuntimeError("the simulated run never mapped every feature")
+        raise RenderError("the simulated run never mapped every feature")
     return start, last
 
 
