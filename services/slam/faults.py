@@ -31,9 +31,8 @@ import numpy as np
 
 from common.errors import ConfigError
 from services.slam import ekf
+from services.slam.settings import CROSS_COVARIANCE, FAULT_KINDS, MAP_UPDATE, NONE
 
-NONE, MAP_UPDATE, CROSS_COVARIANCE = "none", "map-update", "cross-covariance"
-FAULT_KINDS = (NONE, MAP_UPDATE, CROSS_COVARIANCE)
 DEFAULT_MAGNITUDE = {
     MAP_UPDATE: 2e-3,  # m² per update batch: σ grows ~4.5 cm in 1 s of 10 Hz batches
     CROSS_COVARIANCE: 1.0,  # fraction of the propagation Fx·P_v,f − P_v,f left out

@@ -30,7 +30,6 @@ import numpy as np
 from common.messages import Health, SlamState, Truth, Violation
 from services.slam import monitor_checks as checks
 from services.slam.monitor_blame import Evidence, blame_weights
-from services.slam.monitor_settings import MonitorSettings
 from services.slam.monitor_stats import (
     FeatureWindows,
     WindowTest,
@@ -39,6 +38,7 @@ from services.slam.monitor_stats import (
     pose_nees,
     quadratic_forms_2x2,
 )
+from services.slam.settings import MonitorSettings
 
 log = logging.getLogger(__name__)
 

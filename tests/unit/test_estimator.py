@@ -11,7 +11,8 @@ from common.config import load_settings
 from common.errors import ConfigError, EstimationError
 from common.messages import SlamState
 from services.slam import association, ekf
-from services.slam.estimator import Estimator, EstimatorSettings
+from services.slam.estimator import Estimator
+from services.slam.settings import EstimatorSettings
 
 SIG_R, SIG_B = 0.05, 0.02
 
