@@ -28,6 +28,7 @@ class Command:
     help: str  #: one line, for ``slamlens --help`` and the command's own
     settings: str = ""  #: "module:Class" of its settings (flags + TOML keys); "" = none
     bus: bool = True  #: takes the common bus flags (--connect, --listen, --zenoh-config …)
+    config: bool = True  #: its settings may come from --config FILE (False: flags only)
 
     def settings_class(self) -> type | None:
         if not self.settings:
@@ -74,7 +75,8 @@ def command_parser(name: str) -> argparse.ArgumentParser:
     if cls is not None:
         add_flags(parser, cls, title=f"{name} settings (also TOML keys of --config)",
                   groups=groups)
-    add_common_flags(parser, bus=command.bus, config=cls is not None, groups=groups)
+    add_common_flags(parser, bus=command.bus, config=cls is not None and command.config,
+                     groups=groups)
     return parser
 
 

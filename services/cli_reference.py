@@ -120,11 +120,12 @@ def reference() -> str:
             continue
         doc = (cls.__doc__ or "").strip().split("\n\n")[0].replace("\n", " ")
         out += [f"Settings: `{cls.__module__}.{cls.__name__}` — {doc}", ""]
-        sections = _rows(cls, toml=True)
-        for group, rows in sections:
+        if not command.config:
+            out += ["Flags only (no `--config`).", ""]
+        for group, rows in _rows(cls, toml=command.config):
             if group:
                 out += [f"*{group}*", ""]
-            out += [*_table(rows, toml=True), ""]
+            out += [*_table(rows, toml=command.config), ""]
         out.pop()
     return "\n".join(out) + "\n"
 

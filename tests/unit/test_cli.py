@@ -17,7 +17,7 @@ import pytest
 from common.cli import BusFlags, LogFlags, bus_flags, bus_settings, keys_from, log_flags
 from common.config import settings_from_args
 from common.errors import ConfigError
-from services.cli import COMMANDS, command_parser, main
+from services.cli import COMMANDS, Command, command_parser, main
 from services.cli_reference import DOC, reference
 from services.registration.settings import CalibrateSettings, RegistrationSettings
 from services.settings import DemoSettings, FigureSettings
@@ -304,3 +304,11 @@ def test_help_does_not_load_numpy_or_opencv() -> None:
                          text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[]"
+
+
+def test_a_command_can_take_its_settings_from_flags_only(monkeypatch) -> None:
+    monkeypatch.setitem(COMMANDS, "flagsonly", Command(
+        "services.router", "x", "services.slam.settings:SerialSettings", config=False))
+    options = _options(command_parser("flagsonly"))
+    assert "--port" in options and "--config" not in options
+    assert "Flags only (no `--config`)." in reference()
