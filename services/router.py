@@ -1,7 +1,8 @@
 """``slamlens router``: the Zenoh library's own router, run in-process.
 
 There is no router binary to install: a Python Zenoh session opened in ``router`` mode
-routes for every client and peer that connects to it.
+routes for every client and peer that connects to it. It has no settings of its own (no
+``--config``): Zenoh's configuration is ``--zenoh-config FILE``, with ``--listen`` over it.
 """
 
 from __future__ import annotations
@@ -9,23 +10,21 @@ from __future__ import annotations
 import argparse
 import logging
 
-from common.cli import add_common_flags, setup_logging, stop_event
+from common.cli import bus_flags, setup_logging, stop_event
 from common.session import open_bus, router_settings
 
 log = logging.getLogger("slamlens.router")
 
 
-def add_arguments(command: str, parser: argparse.ArgumentParser) -> None:
-    add_common_flags(parser, config=False)
-
-
 def run(command: str, args: argparse.Namespace) -> int:
     setup_logging(args, "router")
     stop = stop_event()
-    bus = open_bus(router_settings(args.listen, args.zenoh_config, connect=args.connect))
+    flags = bus_flags(args)
+    bus = open_bus(router_settings(flags.listen, flags.zenoh_config or None,
+                                   connect=flags.connect))
     try:
-        log.info("router listening on %s%s", ", ".join(args.listen or ["tcp/127.0.0.1:7447"]),
-                 f", linked to {', '.join(args.connect)}" if args.connect else "")
+        log.info("router listening on %s%s", ", ".join(flags.listen or ["tcp/127.0.0.1:7447"]),
+                 f", linked to {', '.join(flags.connect)}" if flags.connect else "")
         print("router ready", flush=True)
         stop.wait()
     finally:

@@ -53,8 +53,13 @@ class Checkpoint:
     def from_bytes(cls, payload: bytes, *, path: Path) -> Checkpoint:
         try:
             raw = msgpack.unpackb(payload, raw=False, strict_map_key=False)
-            if not isinstance(raw, dict) or raw.get("format") != FORMAT:
-                raise ValueError(f"not a format-{FORMAT} checkpoint")
+        except Exception as exc:
+            raise CheckpointError(f"checkpoint {path} is unreadable ({type(exc).__name__}); "
+                                  "move it away to start a new map") from None
+        if not isinstance(raw, dict) or raw.get("format") != FORMAT:
+            raise CheckpointError(f"checkpoint {path} is not a format-{FORMAT} checkpoint; "
+                                  "move it away to start a new map")
+        try:
             return cls(robot=str(raw["robot"]), state=bytes(raw["state"]),
                        positions={str(k): dict(v) for k, v in raw["positions"].items()},
                        next_anonymous_id=int(raw["next_anonymous_id"]),

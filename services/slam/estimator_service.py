@@ -26,12 +26,13 @@ import numpy as np
 
 from common.bus import Bus, Sample
 from common.drops import DropCounter
-from common.errors import MessageError
+from common.errors import EstimationError, MessageError
 from common.keys import Keys
 from common.messages import Observations, Odometry, SlamState
 from services.slam import checkpoint as ckpt
-from services.slam.estimator import Estimator, EstimatorSettings
+from services.slam.estimator import Estimator
 from services.slam.input_order import Input, InputOrder
+from services.slam.settings import EstimatorSettings
 
 log = logging.getLogger("slamlens.estimator")
 
@@ -196,7 +197,7 @@ class EstimatorService:
                 self._origin_stamp = message.stamp
             self.stats.observation_batches += 1
             return self._publish(stamp=message.stamp, step="update", report=report)
-        except ValueError as exc:  # the estimator refused the input (NaN, bad control…)
+        except EstimationError as exc:  # the estimator refused the input (NaN, bad control…)
             self.stats.refused += 1
             self.drops.drop(item.leaf, f"refused: {exc}")
         return None

@@ -31,7 +31,6 @@ from common.geometry import compose2, inverse2, transform2
 from common.messages import Health, SlamState, Truth, Violation
 from services.slam import monitor_checks as checks
 from services.slam.monitor_blame import Evidence, blame_weights
-from services.slam.monitor_settings import MonitorSettings
 from services.slam.monitor_stats import (
     FeatureWindows,
     WindowTest,
@@ -41,6 +40,7 @@ from services.slam.monitor_stats import (
     quadratic_forms_2x2,
 )
 from services.slam.monitor_verdict import Verdict
+from services.slam.settings import MonitorSettings
 
 log = logging.getLogger(__name__)
 

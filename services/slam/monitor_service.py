@@ -30,8 +30,8 @@ from common.errors import MessageError
 from common.keys import Keys
 from common.messages import Health, SlamState, Truth
 from services.slam.monitor import Monitor
-from services.slam.monitor_settings import MonitorSettings
 from services.slam.monitor_verdict import WORDS
+from services.slam.settings import MonitorSettings
 
 log = logging.getLogger("slamlens.monitor")
 

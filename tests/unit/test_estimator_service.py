@@ -16,8 +16,9 @@ from common.bus import InProcessBus, Sample
 from common.keys import Keys
 from common.messages import Observations, Odometry, SlamState
 from services.slam import checkpoint as ckpt
-from services.slam.estimator import Estimator, EstimatorSettings
+from services.slam.estimator import Estimator
 from services.slam.estimator_service import EstimatorService
+from services.slam.settings import EstimatorSettings
 from services.slam.sim import Simulator
 from services.slam.world import load_world
 
