@@ -97,16 +97,19 @@ class Message:
             rows = []
             for f in cls._fields():
                 m = f.metadata
+                shape = tuple(m.get("shape", ()))
                 rows.append((f.name, m.get("kind"),
                              np.dtype(m["dtype"]) if m.get("kind") == "array" else None,
-                             tuple(m.get("shape", ())), bool(m.get("optional")),
-                             m.get("range", _INT64), m.get("choices")))
+                             (shape, len(shape),
+                              tuple((i, n) for i, n in enumerate(shape) if n is not None)),
+                             bool(m.get("optional")), m.get("range", _INT64), m.get("choices")))
             plan = _PLANS[cls] = tuple(rows)
         return plan
 
     def __post_init__(self) -> None:
         setattr_ = object.__setattr__
-        for name, kind, dtype, shape, optional, (low, high), choices in self._plan():
+        for name, kind, dtype, (shape, ndim, fixed), optional, (low, high), choices \
+                in self._plan():
             value = getattr(self, name)
             if kind == "float":
                 if type(value) is not float or not math.isfinite(value):
@@ -135,12 +138,10 @@ class Message:
                     array = value  # already a frozen copy (decoded, or from another message)
                 else:
                     array = frozen_array(value, dtype)
-                if array.ndim != len(shape) or any(
-                        s is not None and s != d for s, d in zip(shape, array.shape,
-                                                                 strict=True)):
+                dims = array.shape
+                if len(dims) != ndim or any(dims[i] != n for i, n in fixed):
                     shown = ["n" if s is None else s for s in shape]
-                    raise MessageError(self.TYPE, name, f"shape {shown}",
-                                       str(list(array.shape)))
+                    raise MessageError(self.TYPE, name, f"shape {shown}", str(list(dims)))
                 # the sum is finite iff every entry is (barring overflow, then check each)
                 if dtype.kind == "f" and array.size and not (
                         math.isfinite(float(array.sum())) or np.isfinite(array).all()):
@@ -215,7 +216,7 @@ class Message:
         if schema != SCHEMA:
             raise MessageError(cls.TYPE, "schema", str(SCHEMA), repr(schema))
         kwargs: dict[str, Any] = {}
-        for (name, kind, dtype, shape, _opt, _rng, _ch), has_default in zip(
+        for (name, kind, dtype, (shape, _, _), _opt, _rng, _ch), has_default in zip(
                 cls._plan(), cls._defaults(), strict=True):
             value = raw.get(name)
             if value is None:
