@@ -120,7 +120,7 @@ def test_latest_wins_channel_drops_backlog(make_client) -> None:
     pub = a.publisher("t/frame")
     for i in range(200):
         pub.put(str(i).encode())
-    time.sleep(0.5)
+    assert _wait(lambda: ch.received == 200)  # type: ignore[attr-defined]
     first = ch.recv(timeout=2.0)
     assert first is not None and int(first.payload) == 199
     assert ch.recv(timeout=0.2) is None
@@ -131,7 +131,9 @@ def test_get_and_liveliness(make_client) -> None:
     latest = {"v": b"one"}
     a.serve_latest("t/robot/r/state", lambda: latest["v"])
     a.declare_alive("t/robot/r/alive/estimator")
-    time.sleep(0.3)
+    # the token is declared after the queryable on the same session: once it is seen,
+    # the queryable is known too
+    assert _wait(lambda: b.alive("t/robot/*/alive/estimator", timeout=0.5) != [])
     assert [s.payload for s in b.get("t/robot/r/state")] == [b"one"]
     latest["v"] = b"two"
     assert [s.payload for s in b.get("t/robot/r/state")] == [b"two"]
@@ -178,7 +180,7 @@ def test_a_client_waits_for_a_router_that_starts_later() -> None:
         other = open_bus(BusSettings(connect=(endpoint,)))
         got = []
         client.subscribe("t/late", lambda k, p: got.append(p))
-        time.sleep(0.3)
+        assert other.wait_for_subscriber("t/late")
         other.publisher("t/late").put(b"hello")
         assert _wait(lambda: got == [b"hello"])
         other.close()
