@@ -28,7 +28,8 @@ import numpy as np
 import scipy
 
 from services.slam import ekf
-from services.slam.estimator import Estimator, EstimatorSettings
+from services.slam.estimator import Estimator
+from services.slam.settings import EstimatorSettings
 
 SIG = EstimatorSettings()
 VAR_V, VAR_W = SIG.sigma_v ** 2, SIG.sigma_w ** 2

@@ -31,9 +31,9 @@ sys.path.insert(0, str(REPO))
 from common.geometry import relative_covariance  # noqa: E402
 from common.messages import SlamState, Truth  # noqa: E402
 from services.slam import monitor_checks as checks  # noqa: E402
-from services.slam.estimator import Estimator, EstimatorSettings  # noqa: E402
+from services.slam.estimator import Estimator  # noqa: E402
 from services.slam.monitor import Monitor  # noqa: E402
-from services.slam.monitor_settings import MonitorSettings  # noqa: E402
+from services.slam.settings import EstimatorSettings, MonitorSettings  # noqa: E402
 
 
 def make_run(n: int, count: int, seed: int = 0) -> tuple[list[SlamState], list[Truth]]:

@@ -17,6 +17,8 @@ import numpy as np
 from common.errors import MessageError
 
 _WIRE_DTYPES = {"<f8", "<f4", "<i8", "<i4", "|u1", "<u1", "|b1"}
+#: no message field has more axes; a deeper shape is refused before numpy sees it
+MAX_DIMS = 4
 
 
 def encode_array(array: np.ndarray, dtype: str) -> dict[str, Any]:
@@ -49,7 +51,7 @@ def decode_array(
         except KeyError as exc:
             raise MessageError(message, field, "array map with dtype, shape, data",
                                f"missing {exc.args[0]!r}") from None
-        if wire_dtype not in _WIRE_DTYPES:
+        if not isinstance(wire_dtype, str) or wire_dtype not in _WIRE_DTYPES:
             raise MessageError(message, field, "little-endian dtype such as '<f8'",
                                _describe(wire_dtype))
         if not isinstance(wire_shape, (list, tuple)) or not all(
@@ -57,6 +59,10 @@ def decode_array(
         ):
             raise MessageError(message, field, "shape as a list of non-negative ints",
                                _describe(wire_shape))
+        if len(wire_shape) != len(shape):
+            shown = ["n" if s is None else s for s in shape]
+            raise MessageError(message, field, f"shape {shown}",
+                               f"{len(wire_shape)} dimensions")
         if not isinstance(data, (bytes, bytearray, memoryview)):
             raise MessageError(message, field, "data as bytes", type(data).__name__)
         wire = np.dtype(wire_dtype)
@@ -69,11 +75,19 @@ def decode_array(
         array = np.frombuffer(data if isinstance(data, bytes) else bytes(data),
                               dtype=wire).reshape(wire_shape)
     elif isinstance(raw, (list, tuple)):
+        depth = 0
+        inner: Any = raw
+        while isinstance(inner, (list, tuple)) and depth <= MAX_DIMS:
+            depth += 1
+            inner = inner[0] if inner else None
+        if depth > MAX_DIMS:
+            raise MessageError(message, field, f"at most {MAX_DIMS} nested lists",
+                               "a deeper list")
         try:
             array = np.asarray(raw)
-        except ValueError:
+        except (ValueError, TypeError, OverflowError):
             raise MessageError(message, field, "a rectangular list of numbers",
-                               "a ragged list") from None
+                               "a ragged or mixed list") from None
         if array.size and array.dtype.kind not in "biuf":
             raise MessageError(message, field, "numbers", f"elements of kind {array.dtype}")
     else:
@@ -83,6 +97,8 @@ def decode_array(
         if want.kind in "iu" and array.dtype.kind == "f":
             if array.size and not np.all(np.isfinite(array) & (array == np.round(array))):
                 raise MessageError(message, field, "integers", "non-integral values")
+            if array.size and float(np.max(np.abs(array))) >= 2.0 ** 63:
+                raise MessageError(message, field, "64-bit integers", "values beyond ±2⁶³")
         if want.kind == "b" and array.dtype.kind not in "bui":
             raise MessageError(message, field, "booleans", str(array.dtype))
         array = np.array(array, dtype=want, order="C")
@@ -121,7 +137,7 @@ def check_finite(message: str, field: str, value: float) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)):
         raise MessageError(message, field, "a number", type(value).__name__)
     number = float(value)
-    if not np.isfinite(number):
+    if not math.isfinite(number):
         raise MessageError(message, field, "a finite number", repr(number))
     return number
 

@@ -1,21 +1,29 @@
 """The small bus interface every service talks to, over Zenoh or in-process.
 
 Services never touch ``zenoh`` directly: they take a :class:`Bus`. :class:`ZenohBus` is the
-real transport; :class:`InProcessBus` exists only for pure unit tests of a service's logic
-(integration tests always use real Zenoh sessions on loopback).
+real transport; :class:`InProcessBus` runs a service's logic inside one process for unit
+tests (integration tests always use real Zenoh sessions on loopback).
 
-Delivery kinds (STYLE: latest-wins for frames, a queryable for the latest state, reliable
-in-order delivery for estimator input):
+Delivery (SPEC §7a: producers never wait for consumers, and nothing is lost):
 
-* ``publisher(key)`` is reliable and blocks under congestion (nothing lost);
-  ``publisher(key, latest_wins=True)`` drops under congestion (camera frames).
-* ``channel(key)`` is one ordered FIFO queue for everything matching ``key``: events are
-  received in publication order by whoever calls ``recv`` (no racing callbacks); an
-  ``accept(key)`` filter drops unwanted keys before their payload is copied;
-  ``channel(key, latest_wins=True)`` keeps only the newest sample, and
-  ``channel(key, drop_oldest=True)`` keeps the newest ``capacity`` samples (a consumer
-  that tolerates gaps never slows the publisher).
+* Every publisher uses congestion control *drop*: a slow or stalled consumer never blocks
+  ``put``. ``publisher(key, cache=N)`` is a ``zenoh.ext`` advanced publisher that keeps its
+  last ``N`` samples, sends heartbeats (sample-miss detection) and announces itself
+  (publisher detection), so a consumer that needs everything can recover what congestion,
+  a link cut or a restart made it miss. ``publisher(key, latest_wins=True)`` is best
+  effort and express (camera frames).
+* ``channel(key)`` is one ordered queue for everything matching ``key``: events are
+  received in arrival order by whoever calls ``recv`` (no racing callbacks). Its Zenoh
+  callback only appends to the queue and returns: it never waits. The queue is bounded by
+  memory (``max_bytes``), counted and reported, never by making Zenoh wait.
+  ``channel(key, recover=True)`` is an advanced subscriber: samples missed from an
+  advanced publisher come back from its cache, in order per publisher, and what could not
+  be recovered is counted in ``lost``; ``history_s`` also fetches what the publishers
+  cached before the subscriber existed. ``channel(key, latest_wins=True)`` keeps only the
+  newest sample (a consumer that only draws the present).
 * ``serve_latest(key, provider)`` answers ``get`` with whatever ``provider()`` returns now.
+* Each :class:`Sample` carries its Zenoh timestamp (``source``: the publishing session,
+  ``time``: its hybrid logical clock, NTP64), which orders one session's publications.
 """
 
 from __future__ import annotations
@@ -33,6 +41,12 @@ from typing import Any, Protocol
 log = logging.getLogger(__name__)
 
 Callback = Callable[[str, bytes], None]
+
+DEFAULT_QUEUE_BYTES = 1 << 30  #: 1 GiB of payloads waiting in one channel, then drop oldest
+_LOST_LOG_EVERY = 1000
+#: period of an advanced publisher's heartbeat (s): how soon a subscriber notices that the
+#: newest samples went missing (after a link cut) and asks the cache for them
+HEARTBEAT_S = 0.5
 
 
 def _at_shutdown(fn: Callable[[], object]) -> None:
@@ -58,6 +72,11 @@ class Sample:
 
     key: str
     payload: bytes
+    #: the publishing session's timestamp id (hex), when the sample carries a timestamp
+    source: str | None = None
+    #: the publication time as NTP64 (hybrid logical clock of ``source``: strictly
+    #: increasing over that session's publications, on every key)
+    time: int | None = None
 
 
 class Publisher(Protocol):
@@ -69,19 +88,37 @@ class Channel(Protocol):
         """Next sample, or None after ``timeout`` seconds (or when closed)."""
         ...
 
+    @property
+    def backlog(self) -> int:
+        """Samples received and not yet taken."""
+        ...
+
+    @property
+    def dropped(self) -> int:
+        """Samples discarded on purpose (latest wins) or for lack of memory."""
+        ...
+
+    @property
+    def lost(self) -> int:
+        """Samples a recovering channel knows it missed and could not get back."""
+        ...
+
     def close(self) -> None: ...
 
 
 class Bus(Protocol):
     """What a service needs from the transport."""
 
-    def publisher(self, key: str, *, latest_wins: bool = False) -> Publisher: ...
+    def publisher(self, key: str, *, latest_wins: bool = False, cache: int = 0,
+                  cache_bytes: int | None = None) -> Publisher: ...
 
     def subscribe(self, key: str, callback: Callback) -> Any: ...
 
-    def channel(self, key: str, *, latest_wins: bool = False, capacity: int = 4096,
-                drop_oldest: bool = False,
+    def channel(self, key: str, *, latest_wins: bool = False, recover: bool = False,
+                history_s: float = 0.0, max_bytes: int = DEFAULT_QUEUE_BYTES,
                 accept: Callable[[str], bool] | None = None) -> Channel: ...
+
+    def wait_for_subscriber(self, key: str, *, timeout: float = 10.0) -> bool: ...
 
     def serve_latest(self, key: str, provider: Callable[[], bytes | None]) -> Any: ...
 
@@ -114,34 +151,74 @@ def pump(channel: Channel, handle: Callable[[str, bytes], object], stop: threadi
 
 
 class QueueChannel:
-    """An in-order queue of samples fed by one subscriber callback.
+    """An in-order queue of samples fed by a subscriber callback; ``push`` never blocks.
 
-    ``recv`` wakes the moment a sample arrives (no polling). When full, ``push`` either
-    blocks the feeding thread — backpressure through Zenoh to the publisher, nothing lost
-    — or, with ``drop_oldest``, discards the oldest sample (capacity 1 = latest wins).
+    ``recv`` wakes the moment a sample arrives (no polling). With ``capacity`` (1 = latest
+    wins) the oldest samples beyond it are dropped; otherwise the queue grows until its
+    payloads hold ``max_bytes``, then drops its oldest — counted in ``dropped`` and logged —
+    rather than ever making the feeding (Zenoh) thread wait.
     """
 
-    def __init__(self, *, capacity: int, drop_oldest: bool) -> None:
+    def __init__(self, *, name: str = "", capacity: int | None = None,
+                 max_bytes: int = DEFAULT_QUEUE_BYTES) -> None:
+        self.name = name
         self._items: deque[Sample] = deque()
-        self._capacity = max(1, capacity)
-        self._drop_oldest = drop_oldest
+        self._capacity = None if capacity is None else max(1, capacity)
+        self._max_bytes = max(1, max_bytes)
+        self._bytes = 0
         self._cond = threading.Condition()
         self._closed = False
-        self.dropped = 0
-        self._on_close: Callable[[], None] | None = None
+        self._dropped = 0
+        self._lost = 0
+        self.received = 0  #: samples pushed in all
+        self.high_water = 0  #: the largest backlog seen
+        self._on_close: list[Callable[[], None]] = []
+
+    @property
+    def backlog(self) -> int:
+        return len(self._items)
+
+    @property
+    def dropped(self) -> int:
+        return self._dropped
+
+    @property
+    def lost(self) -> int:
+        return self._lost
+
+    def count_lost(self, n: int) -> None:
+        """Record ``n`` samples known to be missed for good (sample-miss detection)."""
+        with self._cond:
+            self._lost += n
+            total = self._lost
+        if total == n or total // _LOST_LOG_EVERY != (total - n) // _LOST_LOG_EVERY:
+            log.warning("%s: %d sample(s) missed and not recoverable (%d so far)",
+                        self.name or "channel", n, total)
 
     def push(self, sample: Sample) -> None:
+        overflow = False
         with self._cond:
-            while len(self._items) >= self._capacity and not self._closed:
-                if self._drop_oldest:
-                    self._items.popleft()
-                    self.dropped += 1
-                else:
-                    self._cond.wait(0.5)
             if self._closed:
                 return
             self._items.append(sample)
-            self._cond.notify_all()
+            self._bytes += len(sample.payload)
+            self.received += 1
+            if self._capacity is not None:
+                while len(self._items) > self._capacity:
+                    self._bytes -= len(self._items.popleft().payload)
+                    self._dropped += 1
+            else:
+                while self._bytes > self._max_bytes and len(self._items) > 1:
+                    self._bytes -= len(self._items.popleft().payload)
+                    self._dropped += 1
+                    overflow = True
+            if len(self._items) > self.high_water:
+                self.high_water = len(self._items)
+            dropped = self._dropped
+            self._cond.notify()
+        if overflow and (dropped == 1 or dropped % _LOST_LOG_EVERY == 0):
+            log.warning("%s: queue over %d MB, oldest samples dropped (%d so far)",
+                        self.name or "channel", self._max_bytes >> 20, dropped)
 
     def recv(self, timeout: float | None = None) -> Sample | None:
         with self._cond:
@@ -150,7 +227,7 @@ class QueueChannel:
             if not self._items:
                 return None
             sample = self._items.popleft()
-            self._cond.notify_all()
+            self._bytes -= len(sample.payload)
             return sample
 
     def close(self) -> None:
@@ -159,12 +236,22 @@ class QueueChannel:
                 return
             self._closed = True
             self._items.clear()
+            self._bytes = 0
             self._cond.notify_all()
-        if self._on_close is not None:
+        for undeclare in reversed(self._on_close):
             try:
-                self._on_close()
+                undeclare()
             except Exception:  # already gone with the session
                 pass
+
+
+def _sample_of(zsample: Any, key: str | None = None) -> Sample:
+    """A :class:`Sample` from a ``zenoh.Sample`` (payload copied out of Zenoh's buffer)."""
+    ts = zsample.timestamp
+    if ts is None:
+        return Sample(key or str(zsample.key_expr), zsample.payload.to_bytes())
+    return Sample(key or str(zsample.key_expr), zsample.payload.to_bytes(),
+                  source=str(ts.get_id()), time=int(str(ts.get_time_as_ntp64())))  # raw u64
 
 
 class _ZenohPublisher:
@@ -173,6 +260,47 @@ class _ZenohPublisher:
 
     def put(self, payload: bytes) -> None:
         self._pub.put(payload)
+
+    def undeclare(self) -> None:
+        self._pub.undeclare()
+
+
+class _CachingPublisher:
+    """An advanced publisher whose cache holds at most ``cache_bytes`` of payloads.
+
+    A cache is sized in samples when declared; as payloads grow (a map's state grows with
+    its landmarks) the publisher is declared again with fewer samples, so the cache never
+    outgrows its byte budget. Subscribers see a new publisher then (nothing is missed:
+    the new one publishes the next sample).
+    """
+
+    MIN_SAMPLES = 4
+
+    def __init__(self, declare: Callable[[int], Any], *, samples: int,
+                 cache_bytes: int | None) -> None:
+        self._declare = declare
+        self._samples = max(1, int(samples))
+        self._budget = cache_bytes
+        self._pub = declare(self._samples)
+        self.redeclared = 0
+
+    def put(self, payload: bytes) -> None:
+        budget = self._budget
+        if budget is not None and self._samples > self.MIN_SAMPLES \
+                and len(payload) * self._samples > budget:
+            samples = max(self.MIN_SAMPLES, budget // max(1, len(payload)) // 2)
+            if samples < self._samples:
+                old, self._samples = self._pub, samples
+                self._pub = self._declare(samples)
+                self.redeclared += 1
+                try:
+                    old.undeclare()
+                except Exception:
+                    pass
+        self._pub.put(payload)
+
+    def undeclare(self) -> None:
+        self._pub.undeclare()
 
 
 class ZenohBus:
@@ -200,20 +328,41 @@ class ZenohBus:
             self._entities.append(entity)
         return entity
 
-    def publisher(self, key: str, *, latest_wins: bool = False) -> Publisher:
+    def publisher(self, key: str, *, latest_wins: bool = False, cache: int = 0,
+                  cache_bytes: int | None = None) -> Publisher:
+        """A publisher that never blocks (module docstring): best effort and express with
+        ``latest_wins``; an advanced publisher caching its last ``cache`` samples (and at
+        most ``cache_bytes`` of them), with heartbeats and publisher detection, when
+        ``cache`` > 0; else plain reliable."""
         z = self._zenoh
+        out: Any
         if latest_wins:
-            pub = self.session.declare_publisher(
+            out = _ZenohPublisher(self.session.declare_publisher(
                 key, congestion_control=z.CongestionControl.DROP,
-                reliability=z.Reliability.BEST_EFFORT, express=True)
+                reliability=z.Reliability.BEST_EFFORT, express=True))
+        elif cache > 0:
+            import zenoh.ext as zext
+
+            def declare(samples: int) -> Any:
+                return zext.declare_advanced_publisher(
+                    self.session, key, congestion_control=z.CongestionControl.DROP,
+                    reliability=z.Reliability.RELIABLE,
+                    cache=zext.CacheConfig(int(samples)),
+                    sample_miss_detection=zext.MissDetectionConfig(
+                        heartbeat=HEARTBEAT_S, sporadic_heartbeat=None),
+                    publisher_detection=True)
+
+            out = _CachingPublisher(declare, samples=cache, cache_bytes=cache_bytes)
         else:
-            pub = self.session.declare_publisher(
-                key, congestion_control=z.CongestionControl.BLOCK,
-                reliability=z.Reliability.RELIABLE)
-        self._keep(pub)
-        return _ZenohPublisher(pub)
+            out = _ZenohPublisher(self.session.declare_publisher(
+                key, congestion_control=z.CongestionControl.DROP,
+                reliability=z.Reliability.RELIABLE))
+        self._keep(out)
+        return out
 
     def subscribe(self, key: str, callback: Callback) -> Any:
+        """Call ``callback(key, payload)`` on Zenoh's thread for every sample: it must
+        return at once (store and wake a worker), never wait."""
         def on_sample(sample: Any) -> None:
             try:
                 callback(str(sample.key_expr), sample.payload.to_bytes())
@@ -222,21 +371,57 @@ class ZenohBus:
 
         return self._keep(self.session.declare_subscriber(key, on_sample))
 
-    def channel(self, key: str, *, latest_wins: bool = False, capacity: int = 4096,
-                drop_oldest: bool = False,
+    def channel(self, key: str, *, latest_wins: bool = False, recover: bool = False,
+                history_s: float = 0.0, max_bytes: int = DEFAULT_QUEUE_BYTES,
                 accept: Callable[[str], bool] | None = None) -> Channel:
-        ch = QueueChannel(capacity=1 if latest_wins else capacity,
-                          drop_oldest=latest_wins or drop_oldest)
+        """One ordered queue for ``key`` (module docstring); ``accept(key)`` filters
+        samples before their payload is copied."""
+        ch = QueueChannel(name=key, capacity=1 if latest_wins else None, max_bytes=max_bytes)
 
         def on_sample(sample: Any) -> None:
             sample_key = str(sample.key_expr)
             if accept is None or accept(sample_key):  # filter before copying the payload
-                ch.push(Sample(sample_key, sample.payload.to_bytes()))
+                ch.push(_sample_of(sample, sample_key))
 
-        sub = self.session.declare_subscriber(key, on_sample)
-        ch._on_close = sub.undeclare
+        if recover or history_s > 0:
+            import zenoh.ext as zext
+
+            history = (zext.HistoryConfig(detect_late_publishers=True,
+                                          max_age=float(history_s))
+                       if history_s > 0 else None)
+            sub = zext.declare_advanced_subscriber(
+                self.session, key, on_sample, history=history,
+                recovery=zext.RecoveryConfig(periodic_queries=None, heartbeat=True),
+                subscriber_detection=True)
+            misses = sub.sample_miss_listener(lambda miss: ch.count_lost(int(miss.nb)))
+            ch._on_close.append(sub.undeclare)
+            ch._on_close.append(misses.undeclare)
+        else:
+            sub = self.session.declare_subscriber(key, on_sample)
+            ch._on_close.append(sub.undeclare)
         self._keep(ch)
         return ch
+
+    def wait_for_subscriber(self, key: str, *, timeout: float = 10.0) -> bool:
+        """Wait until some subscriber matches ``key`` (Zenoh matching status): what a
+        publisher that must not publish into the void waits on."""
+        import zenoh
+
+        probe = self.session.declare_publisher(key)
+        try:
+            if probe.matching_status:
+                return True
+            matched = threading.Event()
+            listener = probe.declare_matching_listener(
+                lambda status: matched.set() if status.matching else None)
+            try:
+                return matched.wait(timeout) or bool(probe.matching_status)
+            finally:
+                listener.undeclare()
+        except zenoh.ZError:  # the session closed while waiting
+            return False
+        finally:
+            probe.undeclare()
 
     def serve_latest(self, key: str, provider: Callable[[], bytes | None]) -> Any:
         def on_query(query: Any) -> None:
@@ -301,14 +486,23 @@ def _intersects(a: str, b: str) -> bool:
 
 
 class InProcessBus:
-    """A synchronous bus inside one process: ``put`` delivers before it returns."""
+    """A synchronous bus inside one process: ``put`` delivers before it returns.
+
+    Samples get a timestamp like Zenoh's (one source, a counter for a clock), so services
+    that order or de-duplicate by publication time behave as they do over Zenoh.
+    """
+
+    SOURCE = "inprocess"
 
     def __init__(self) -> None:
         self._subs: list[tuple[str, Callable[[Sample], None]]] = []
         self._queryables: list[tuple[str, Callable[[], bytes | None]]] = []
         self._alive: set[str] = set()
+        self._clock = 0
+        self._lock = threading.Lock()
 
-    def publisher(self, key: str, *, latest_wins: bool = False) -> Publisher:
+    def publisher(self, key: str, *, latest_wins: bool = False, cache: int = 0,
+                  cache_bytes: int | None = None) -> Publisher:
         bus = self
 
         class _Pub:
@@ -318,20 +512,22 @@ class InProcessBus:
         return _Pub()
 
     def put(self, key: str, payload: bytes) -> None:
+        with self._lock:
+            self._clock += 1
+            now = self._clock
         for pattern, deliver in list(self._subs):
             if _intersects(pattern, key):
-                deliver(Sample(key, bytes(payload)))
+                deliver(Sample(key, bytes(payload), source=self.SOURCE, time=now))
 
     def subscribe(self, key: str, callback: Callback) -> Any:
         entry = (key, lambda s: callback(s.key, s.payload))
         self._subs.append(entry)
         return entry
 
-    def channel(self, key: str, *, latest_wins: bool = False, capacity: int = 4096,
-                drop_oldest: bool = False,
+    def channel(self, key: str, *, latest_wins: bool = False, recover: bool = False,
+                history_s: float = 0.0, max_bytes: int = DEFAULT_QUEUE_BYTES,
                 accept: Callable[[str], bool] | None = None) -> Channel:
-        ch = QueueChannel(capacity=1 if latest_wins else capacity,
-                          drop_oldest=latest_wins or drop_oldest)
+        ch = QueueChannel(name=key, capacity=1 if latest_wins else None, max_bytes=max_bytes)
 
         def push(sample: Sample) -> None:
             if accept is None or accept(sample.key):
@@ -339,6 +535,9 @@ class InProcessBus:
 
         self._subs.append((key, push))
         return ch
+
+    def wait_for_subscriber(self, key: str, *, timeout: float = 10.0) -> bool:
+        return any(_intersects(pattern, key) for pattern, _ in self._subs)
 
     def serve_latest(self, key: str, provider: Callable[[], bytes | None]) -> Any:
         entry = (key, provider)

@@ -1,8 +1,11 @@
 """Pieces every service's ``cli.py`` shares: common flags, logging, stop signals, errors.
 
-Common flags (SPEC §9): ``--connect ENDPOINT`` (repeatable), ``--listen ENDPOINT``,
-``--zenoh-config FILE``, ``--prefix``, ``--config FILE``, ``--secure DIR --name NAME``
-(SPEC §7b: mutual TLS with that identity), plus ``-v``/``-q`` for logging.
+Common flags (SPEC §9) are settings too (:mod:`common.config`), declared once below:
+:class:`BusFlags` (``--connect ENDPOINT`` repeatable, ``--listen ENDPOINT``,
+``--zenoh-config FILE``, ``--prefix``, ``--secure DIR --name NAME`` for mutual TLS with an
+identity, SPEC §7b) for every command on the bus, ``--config FILE`` for
+every command with settings, and :class:`LogFlags` (``-v``/``-q``) for all. A new common
+flag is one more field here (then read it from :func:`bus_flags`).
 """
 
 from __future__ import annotations
@@ -13,7 +16,10 @@ import signal
 import sys
 import threading
 from collections.abc import Callable
+from dataclasses import dataclass
+from typing import Any
 
+from common.config import add_flags, flag_values, setting, settings_from_mapping
 from common.errors import SlamlensError
 from common.keys import DEFAULT_PREFIX, Keys
 from common.session import BusSettings
@@ -21,41 +27,77 @@ from common.session import BusSettings
 log = logging.getLogger("slamlens")
 
 
-def add_common_flags(parser: argparse.ArgumentParser, *, config: bool = True) -> None:
-    """Add the SPEC §9 common flags to a service's parser."""
-    g = parser.add_argument_group("bus")
-    g.add_argument("--connect", action="append", default=[], metavar="ENDPOINT",
-                   help="Zenoh endpoint to connect to (repeatable); default tcp/127.0.0.1:7447")
-    g.add_argument("--listen", action="append", default=[], metavar="ENDPOINT",
-                   help="Zenoh endpoint to listen on (repeatable)")
-    g.add_argument("--zenoh-config", metavar="FILE",
-                   help="Zenoh JSON5 config file (flags override it)")
-    g.add_argument("--prefix", default=DEFAULT_PREFIX, help="key prefix (default: slamlens)")
-    g.add_argument("--secure", metavar="DIR",
-                   help="mutual TLS with an identity of the authority in DIR (slamlens certs); "
-                        "endpoints must then be tls/HOST:PORT (default tls/127.0.0.1:7447)")
-    g.add_argument("--name", metavar="NAME",
-                   help="the identity in --secure DIR to use, e.g. robot-r1 (docs/security.md)")
+@dataclass(frozen=True)
+class BusFlags:
+    """How a command reaches the bus (flags only: no TOML key)."""
+
+    connect: tuple[str, ...] = setting(
+        (), doc="Zenoh endpoint to connect to (repeatable); with neither --connect nor "
+                "--listen: a client of tcp/127.0.0.1:7447", metavar="ENDPOINT",
+        action="append", group="bus")
+    listen: tuple[str, ...] = setting(
+        (), doc="Zenoh endpoint to listen on (repeatable)", metavar="ENDPOINT",
+        action="append", group="bus")
+    zenoh_config: str = setting(
+        "", doc="Zenoh JSON5 config file; empty = Zenoh's defaults (the flags above override "
+                "it)", metavar="FILE",
+        group="bus")
+    prefix: str = setting(DEFAULT_PREFIX, doc="key prefix of every key expression",
+                          group="bus")
+    secure: str = setting(
+        "", doc="folder of the certificate authority (slamlens certs): mutual TLS with the "
+                "identity --name; endpoints must then be tls/HOST:PORT (default "
+                "tls/127.0.0.1:7447); empty = plain", metavar="DIR", group="bus")
+    name: str = setting(
+        "", doc="the identity in --secure DIR, e.g. robot-robot1 (docs/security.md)",
+        metavar="NAME", group="bus")
+
+
+@dataclass(frozen=True)
+class LogFlags:
+    """How much a command logs (flags only)."""
+
+    verbose: int = setting(0, doc="more logging", short="-v", action="count", group="logging")
+    quiet: bool = setting(False, doc="warnings and errors only", short="-q", group="logging")
+
+
+def add_common_flags(parser: argparse.ArgumentParser, *, bus: bool = True,
+                     config: bool = True, groups: dict[str, Any] | None = None) -> None:
+    """Add the SPEC §9 common flags: the bus flags, ``--config FILE``, ``-v``/``-q``."""
+    groups = {} if groups is None else groups
+    if bus:
+        add_flags(parser, BusFlags, groups=groups)
     if config:
         parser.add_argument("--config", metavar="FILE",
-                            help="TOML file with this service's settings (flags override it)")
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more logging")
-    parser.add_argument("-q", "--quiet", action="store_true", help="warnings and errors only")
+                            help="TOML file with this command's settings (flags override it)")
+    add_flags(parser, LogFlags, groups=groups)
+
+
+def bus_flags(args: argparse.Namespace) -> BusFlags:
+    """The common bus flags as given (defaults for those that were not)."""
+    return settings_from_mapping(BusFlags, flag_values(BusFlags, args), source="flags")
+
+
+def log_flags(args: argparse.Namespace) -> LogFlags:
+    """``-v`` / ``-q`` as given."""
+    return settings_from_mapping(LogFlags, flag_values(LogFlags, args), source="flags")
 
 
 def bus_settings(args: argparse.Namespace) -> BusSettings:
-    return BusSettings(connect=tuple(args.connect), listen=tuple(args.listen),
-                       zenoh_config=args.zenoh_config, secure=getattr(args, "secure", None),
-                       name=getattr(args, "name", None), prefix=args.prefix)
+    flags = bus_flags(args)
+    return BusSettings(connect=flags.connect, listen=flags.listen,
+                       zenoh_config=flags.zenoh_config or None, secure=flags.secure or None,
+                       name=flags.name or None, prefix=flags.prefix)
 
 
 def keys_from(args: argparse.Namespace) -> Keys:
-    return Keys(args.prefix)
+    return Keys(bus_flags(args).prefix)
 
 
 def setup_logging(args: argparse.Namespace, name: str) -> None:
-    level = logging.WARNING if getattr(args, "quiet", False) else (
-        logging.DEBUG if getattr(args, "verbose", 0) else logging.INFO)
+    flags = log_flags(args)
+    level = logging.WARNING if flags.quiet else (
+        logging.DEBUG if flags.verbose else logging.INFO)
     logging.basicConfig(level=level, stream=sys.stderr,
                         format=f"%(asctime)s {name} %(levelname)s %(message)s",
                         datefmt="%H:%M:%S")

@@ -2,6 +2,20 @@
 
 The CLI turns any :class:`SlamlensError` into one clear line and exit code 1;
 subscribers drop and count messages that raise :class:`MessageError`.
+
+=======================  ======================================================
+error                    raised when
+=======================  ======================================================
+:class:`MessageError`    a message cannot be decoded or fails validation
+:class:`ConfigError`     a setting, flag, settings file or world file is invalid
+:class:`CalibrationError` a camera calibration file is unreadable or incomplete
+:class:`BusError`        the Zenoh session cannot be opened or used
+:class:`SourceError`     a camera, dataset or serial port fails or is malformed
+:class:`EstimationError` the estimator refuses an input (NaN, dt < 0, bad ids …)
+:class:`GeometryError`   a geometric computation has no answer (no pose, no mean)
+:class:`RenderError`     a picture cannot be drawn or encoded
+:class:`SecurityError`   a certificate, key or identity is missing, wrong or foreign
+=======================  ======================================================
 """
 
 from __future__ import annotations
@@ -40,6 +54,21 @@ class BusError(SlamlensError):
 
 class SourceError(SlamlensError):
     """A data source (camera, dataset, serial port) failed or is malformed."""
+
+
+class EstimationError(SlamlensError):
+    """The estimator refused an input (non-finite value, dt < 0, malformed batch …).
+
+    The estimator's state is unchanged when this is raised.
+    """
+
+
+class GeometryError(SlamlensError):
+    """A geometric computation has no answer (a pose, a mean, a projection)."""
+
+
+class RenderError(SlamlensError):
+    """A picture could not be drawn or encoded."""
 
 
 class SecurityError(SlamlensError):

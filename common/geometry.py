@@ -52,6 +52,27 @@ def transform_points(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     return pts @ T[:3, :3].T + T[:3, 3]
 
 
+def compose2(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Planar pose composition a ⊕ b (b expressed in a's frame), θ wrapped."""
+    c, s = math.cos(float(a[2])), math.sin(float(a[2]))
+    return np.array([a[0] + c * b[0] - s * b[1], a[1] + s * b[0] + c * b[1],
+                     float(wrap_angle(float(a[2]) + float(b[2])))])
+
+
+def inverse2(a: np.ndarray) -> np.ndarray:
+    """The planar pose ⊖a, so that ⊖a ⊕ a = 0."""
+    c, s = math.cos(float(a[2])), math.sin(float(a[2]))
+    return np.array([-c * a[0] - s * a[1], s * a[0] - c * a[1], float(wrap_angle(-float(a[2])))])
+
+
+def transform2(T: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """Apply the planar pose ``T`` (x, y, θ) as a rigid transform to (N, 2) points."""
+    c, s = math.cos(float(T[2])), math.sin(float(T[2]))
+    pts = np.asarray(points, dtype=float).reshape(-1, 2)
+    return np.column_stack([T[0] + c * pts[:, 0] - s * pts[:, 1],
+                            T[1] + s * pts[:, 0] + c * pts[:, 1]])
+
+
 def rotation_angle_deg(R: np.ndarray) -> float:
     """Angle of a rotation matrix in degrees (for registration error reports)."""
     c = (np.trace(R) - 1.0) / 2.0

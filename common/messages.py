@@ -41,10 +41,14 @@ from common.errors import MessageError
 
 SCHEMA = 1
 _FIELDS: dict[type, tuple[dataclasses.Field[Any], ...]] = {}
+_PLANS: dict[type, tuple[tuple[Any, ...], ...]] = {}
+_DEFAULTS: dict[type, tuple[bool, ...]] = {}
 STEPS = ("init", "predict", "update")
 VIOLATION_KINDS = ("pair", "feature", "symmetry", "psd", "correlation", "nees", "nis",
                    "prediction")
 
+_INT64 = (-(2 ** 63), 2 ** 63 - 1)
+_UINT64 = (0, 2 ** 64 - 1)
 _F8: dict[str, Any] = {"kind": "array", "dtype": "<f8"}
 _I8: dict[str, Any] = {"kind": "array", "dtype": "<i8"}
 
@@ -57,10 +61,16 @@ def _arr(dtype: dict[str, Any], shape: tuple[int | None, ...], doc: str,
     return field(metadata=meta)
 
 
-def _scalar(kind: str, doc: str, *, choices: tuple[str, ...] | None = None, **kw: Any) -> Any:
+def _scalar(kind: str, doc: str, *, choices: tuple[str, ...] | None = None,
+            range: tuple[int, int] | None = None, optional: bool = False, **kw: Any) -> Any:
     meta: dict[str, Any] = {"kind": kind, "doc": doc}
     if choices is not None:
         meta["choices"] = choices
+    if range is not None:
+        meta["range"] = range
+    if optional:
+        meta["optional"] = True
+        kw.setdefault("default", None)
     return field(metadata=meta, **kw)
 
 
@@ -78,45 +88,74 @@ class Message:
             cached = _FIELDS[cls] = dataclasses.fields(cls)  # type: ignore[arg-type]
         return cached
 
+    @classmethod
+    def _plan(cls) -> tuple[tuple[Any, ...], ...]:
+        """Per field, what validation needs, computed once per class (a hot path: every
+        message built or decoded): (name, kind, dtype, shape, optional, range, choices)."""
+        plan = _PLANS.get(cls)
+        if plan is None:
+            rows = []
+            for f in cls._fields():
+                m = f.metadata
+                shape = tuple(m.get("shape", ()))
+                rows.append((f.name, m.get("kind"),
+                             np.dtype(m["dtype"]) if m.get("kind") == "array" else None,
+                             (shape, len(shape),
+                              tuple((i, n) for i, n in enumerate(shape) if n is not None)),
+                             bool(m.get("optional")), m.get("range", _INT64), m.get("choices")))
+            plan = _PLANS[cls] = tuple(rows)
+        return plan
+
     def __post_init__(self) -> None:
-        for f in self._fields():
-            meta = f.metadata
-            value = getattr(self, f.name)
-            kind = meta.get("kind")
-            if kind == "array":
+        setattr_ = object.__setattr__
+        for name, kind, dtype, (shape, ndim, fixed), optional, (low, high), choices \
+                in self._plan():
+            value = getattr(self, name)
+            if kind == "float":
+                if type(value) is not float or not math.isfinite(value):
+                    if value is None and optional:
+                        continue
+                    setattr_(self, name, check_finite(self.TYPE, name, value))
+            elif kind == "int":
+                if type(value) is not int:
+                    if value is None and optional:
+                        continue
+                    value = check_int(self.TYPE, name, value)
+                    setattr_(self, name, value)
+                if not low <= value <= high:
+                    raise MessageError(self.TYPE, name, f"an integer in [{low}, {high}]",
+                                       str(value))
+            elif kind == "str":
+                if type(value) is not str or (choices is not None and value not in choices):
+                    if value is None and optional:
+                        continue
+                    check_str(self.TYPE, name, value, choices=choices)
+            elif kind == "array":
                 if value is None:
                     continue
-                dtype = np.dtype(meta["dtype"])
                 if isinstance(value, np.ndarray) and not value.flags.writeable \
                         and value.dtype == dtype:
                     array = value  # already a frozen copy (decoded, or from another message)
                 else:
                     array = frozen_array(value, dtype)
-                shape = meta["shape"]
-                if array.ndim != len(shape) or any(
-                        s is not None and s != d for s, d in zip(shape, array.shape,
-                                                                 strict=True)):
+                dims = array.shape
+                if len(dims) != ndim or any(dims[i] != n for i, n in fixed):
                     shown = ["n" if s is None else s for s in shape]
-                    raise MessageError(self.TYPE, f.name, f"shape {shown}",
-                                       str(list(array.shape)))
+                    raise MessageError(self.TYPE, name, f"shape {shown}", str(list(dims)))
                 # the sum is finite iff every entry is (barring overflow, then check each)
                 if dtype.kind == "f" and array.size and not (
                         math.isfinite(float(array.sum())) or np.isfinite(array).all()):
-                    raise MessageError(self.TYPE, f.name, "finite values", "NaN or infinity")
-                object.__setattr__(self, f.name, array)
-            elif kind == "float":
-                object.__setattr__(self, f.name, check_finite(self.TYPE, f.name, value))
-            elif kind == "int":
-                object.__setattr__(self, f.name, check_int(self.TYPE, f.name, value))
-            elif kind == "str":
-                check_str(self.TYPE, f.name, value, choices=meta.get("choices"))
+                    raise MessageError(self.TYPE, name, "finite values", "NaN or infinity")
+                setattr_(self, name, array)
+            elif value is None and optional:
+                continue
             elif kind == "bool":
                 if not isinstance(value, bool):
-                    raise MessageError(self.TYPE, f.name, "a boolean", type(value).__name__)
+                    raise MessageError(self.TYPE, name, "a boolean", type(value).__name__)
             elif kind == "bytes":
                 if not isinstance(value, (bytes, bytearray, memoryview)):
-                    raise MessageError(self.TYPE, f.name, "bytes", type(value).__name__)
-                object.__setattr__(self, f.name, bytes(value))
+                    raise MessageError(self.TYPE, name, "bytes", type(value).__name__)
+                setattr_(self, name, bytes(value))
         self._check()
 
     def _check(self) -> None:
@@ -134,18 +173,18 @@ class Message:
     # -- wire format --------------------------------------------------------------
     def to_dict(self) -> dict[str, Any]:
         out: dict[str, Any] = {"schema": SCHEMA}
-        for f in self._fields():
-            value = getattr(self, f.name)
-            if f.metadata.get("kind") == "array":
-                if value is None:
-                    continue
-                out[f.name] = encode_array(value, f.metadata["dtype"])
-            elif f.metadata.get("kind") == "violations":
-                out[f.name] = [v.to_dict() for v in value]
-            elif f.metadata.get("kind") == "stats":
-                out[f.name] = dict(value)
+        for name, kind, dtype, _shape, optional, _range, _choices in self._plan():
+            value = getattr(self, name)
+            if value is None and (optional or kind == "array"):
+                continue
+            if kind == "array":
+                out[name] = encode_array(value, dtype.str)
+            elif kind == "violations":
+                out[name] = [v.to_dict() for v in value]
+            elif kind == "stats":
+                out[name] = dict(value)
             else:
-                out[f.name] = value
+                out[name] = value
         return self._wire_overrides(out)
 
     def _wire_overrides(self, out: dict[str, Any]) -> dict[str, Any]:
@@ -161,7 +200,13 @@ class Message:
         except Exception as exc:  # msgpack raises several unrelated types
             raise MessageError(cls.TYPE, "<payload>", "a msgpack map",
                                f"undecodable bytes ({type(exc).__name__})") from None
-        return cls.from_dict(raw, **options)
+        try:
+            return cls.from_dict(raw, **options)
+        except MessageError:
+            raise
+        except Exception as exc:  # a case the validators missed: still one error type
+            raise MessageError(cls.TYPE, "<payload>", "a well-formed message",
+                               f"{type(exc).__name__}: {str(exc)[:80]}") from None
 
     @classmethod
     def from_dict(cls, raw: Any, **options: Any) -> Self:
@@ -171,41 +216,47 @@ class Message:
         if schema != SCHEMA:
             raise MessageError(cls.TYPE, "schema", str(SCHEMA), repr(schema))
         kwargs: dict[str, Any] = {}
-        for f in cls._fields():
-            meta = f.metadata
-            if f.name not in raw or raw[f.name] is None:
-                has_default = (f.default is not dataclasses.MISSING
-                               or f.default_factory is not dataclasses.MISSING)
+        for (name, kind, dtype, (shape, _, _), _opt, _rng, _ch), has_default in zip(
+                cls._plan(), cls._defaults(), strict=True):
+            value = raw.get(name)
+            if value is None:
                 if has_default:
                     continue
-                raise MessageError(cls.TYPE, f.name, "present", "missing")
-            value = raw[f.name]
-            kind = meta.get("kind")
+                raise MessageError(cls.TYPE, name, "present", "missing")
             if kind == "array":
                 # finiteness is checked once, by the constructor
-                value = decode_array(value, message=cls.TYPE, field=f.name,
-                                     dtype=meta["dtype"], shape=cls._wire_shape(f.name, raw),
-                                     finite=False)
+                value = decode_array(value, message=cls.TYPE, field=name, dtype=dtype.str,
+                                     shape=cls._wire_shape(name, raw, shape), finite=False)
             elif kind == "violations":
                 if not isinstance(value, list):
-                    raise MessageError(cls.TYPE, f.name, "a list", type(value).__name__)
+                    raise MessageError(cls.TYPE, name, "a list", type(value).__name__)
                 value = tuple(Violation.from_dict(v) for v in value)
             elif kind == "stats":
                 if not isinstance(value, Mapping):
-                    raise MessageError(cls.TYPE, f.name, "a map", type(value).__name__)
-                value = {str(k): check_finite(cls.TYPE, f"{f.name}.{k}", v)
+                    raise MessageError(cls.TYPE, name, "a map", type(value).__name__)
+                value = {str(k): check_finite(cls.TYPE, f"{name}.{k}", v)
                          for k, v in value.items()}
             elif kind == "float" and isinstance(value, int) and not isinstance(value, bool):
                 value = float(value)
-            kwargs[f.name] = value
+            kwargs[name] = value
         return cls._from_wire(kwargs, **options)
 
     @classmethod
-    def _wire_shape(cls, name: str, raw: Mapping[str, Any]) -> tuple[int | None, ...]:
-        for f in cls._fields():
-            if f.name == name:
-                return tuple(f.metadata["shape"])
-        raise KeyError(name)
+    def _defaults(cls) -> tuple[bool, ...]:
+        """Per field, whether it has a default (may be absent on the wire)."""
+        cached = _DEFAULTS.get(cls)
+        if cached is None:
+            cached = _DEFAULTS[cls] = tuple(
+                f.default is not dataclasses.MISSING or f.default_factory is not
+                dataclasses.MISSING for f in cls._fields())
+        return cached
+
+    @classmethod
+    def _wire_shape(cls, name: str, raw: Mapping[str, Any],
+                    shape: tuple[int | None, ...]) -> tuple[int | None, ...]:
+        """The shape field ``name`` travels in (its declared ``shape`` unless a message
+        says otherwise)."""
+        return shape
 
     @classmethod
     def _from_wire(cls, kwargs: dict[str, Any], **options: Any) -> Self:
@@ -229,6 +280,10 @@ class Odometry(Message):
     dt: float = _scalar("float", "duration of the step, s (≥ 0)")
     v: float = _scalar("float", "forward speed, m/s")
     w: float = _scalar("float", "turn rate, rad/s")
+    input_seq: int | None = _scalar(
+        "int", "optional: the driver's input counter, +1 per odometry or observations "
+        "message on either key (SPEC §7a ordering; docs/protocol.md)", optional=True,
+        range=_UINT64)
 
     def _check(self) -> None:
         if self.dt < 0:
@@ -246,6 +301,9 @@ class Observations(Message):
                            "landmark ids int64[k]; −1 = unknown (the estimator associates)")
     ranges: np.ndarray = _arr(_F8, (None,), "ranges, m, float64[k] (≥ 0)")
     bearings: np.ndarray = _arr(_F8, (None,), "bearings, rad, float64[k], robot frame")
+    input_seq: int | None = _scalar(
+        "int", "optional: the driver's input counter (see Odometry.input_seq)",
+        optional=True, range=_UINT64)
 
     def _check(self) -> None:
         k = self.ids.shape[0]
@@ -295,11 +353,23 @@ class SlamState(Message):
     innovations: np.ndarray = _arr(_F8, (None, 2), "innovations ν [k,2] (m, rad)", optional=True)
     innovation_covariances: np.ndarray = _arr(_F8, (None, 2, 2), "innovation covariances S",
                                               optional=True)
+    epoch: int = _scalar("int", "uint64 fixed for the life of one map (kept across a restart "
+                         "from a checkpoint, new when a map starts from scratch); 0 = unknown "
+                         "(a third-party estimator that does not say)", range=_UINT64,
+                         default=0)
+    input_stamp: float | None = _scalar(
+        "float", "stamp of the newest input folded in, s (what drivers pace on); "
+        "defaults to ``stamp``", optional=True)
+    origin_stamp: float | None = _scalar(
+        "float", "optional: when the robot stood at this epoch's map origin (the start of "
+        "the first input folded in), s; None until an input is applied", optional=True)
 
     def __post_init__(self) -> None:
         for name in ("observed_ids", "new_ids"):
             if getattr(self, name) is None:
                 object.__setattr__(self, name, frozen_array(np.zeros(0), "<i8"))
+        if self.input_stamp is None:
+            object.__setattr__(self, "input_stamp", self.stamp)
         super().__post_init__()
 
     @property
@@ -327,13 +397,14 @@ class SlamState(Message):
         return out
 
     @classmethod
-    def _wire_shape(cls, name: str, raw: Mapping[str, Any]) -> tuple[int | None, ...]:
+    def _wire_shape(cls, name: str, raw: Mapping[str, Any],
+                    shape: tuple[int | None, ...]) -> tuple[int | None, ...]:
         if name == "covariance":
             cov = raw.get("covariance")
-            shape = cov.get("shape") if isinstance(cov, Mapping) else None
-            if isinstance(shape, list) and len(shape) == 1:
+            wire = cov.get("shape") if isinstance(cov, Mapping) else None
+            if isinstance(wire, list) and len(wire) == 1:
                 return (None,)
-        return super()._wire_shape(name, raw)
+        return shape
 
     @classmethod
     def _from_wire(cls, kwargs: dict[str, Any], **options: Any) -> Self:
@@ -362,6 +433,8 @@ class Violation:
     bound: float | None = None  #: tolerance or χ² bound it was held against
     phase: str = ""  #: "predict" / "update" when the step type matters
     detail: str = ""  #: one human sentence
+    first_step: int | None = None  #: standing violations: seq where it was first seen
+    count: int | None = None  #: standing violations: states that showed it
 
     _STAT_KINDS: ClassVar[tuple[str, ...]] = ("nees", "nis")
 
@@ -375,6 +448,10 @@ class Violation:
             out["phase"] = self.phase
         if self.detail:
             out["detail"] = self.detail
+        if self.first_step is not None:
+            out["first_step"] = self.first_step
+        if self.count is not None:
+            out["count"] = self.count
         return out
 
     @classmethod
@@ -390,9 +467,12 @@ class Violation:
         key = "statistic" if kind in cls._STAT_KINDS else "growth"
         value = check_finite(m, key, raw.get(key, raw.get("growth", raw.get("statistic"))))
         bound = raw.get("bound")
+        first, count = raw.get("first_step"), raw.get("count")
         return cls(kind=kind, ids=ids, step=check_int(m, "step", raw.get("step")), value=value,
                    bound=None if bound is None else check_finite(m, "bound", bound),
-                   phase=str(raw.get("phase", "")), detail=str(raw.get("detail", "")))
+                   phase=str(raw.get("phase", "")), detail=str(raw.get("detail", "")),
+                   first_step=None if first is None else check_int(m, "first_step", first),
+                   count=None if count is None else check_int(m, "count", count))
 
 
 @dataclass(frozen=True, eq=False)
@@ -410,6 +490,17 @@ class Health(Message):
     statistics: dict[str, float] = field(
         default_factory=dict, metadata={"kind": "stats",
                                         "doc": "named statistics: nees_pose, nis, bounds…"})
+    verdict: str = field(default="ok", metadata={
+        "kind": "str", "choices": ("ok", "fault", "tuning"),
+        "doc": "the robot's verdict now (not only this state): ok / fault (a covariance "
+               "theorem broken: an estimator fault) / tuning (only NEES/NIS outside their "
+               "bands: inconsistent tuning or model mismatch); docs/monitor.md"})
+    verdict_since: int | None = _scalar("int", "seq where the current verdict began",
+                                        optional=True)
+    standing: tuple[Violation, ...] = field(
+        default=(), metadata={"kind": "violations",
+                              "doc": "the violations that keep the verdict up (each once, "
+                                     "with first_step and count)"})
 
 
 @dataclass(frozen=True, eq=False)
@@ -452,6 +543,29 @@ class CameraPose(Message):
     camera: str = _scalar("str", "camera name")
     stamp: float = _scalar("float", "time, s")
     T_world_from_camera: np.ndarray = _arr(_F8, (4, 4), "camera frame → world frame, m")
+
+
+def peek_fields(payload: bytes | bytearray | memoryview,
+                names: tuple[str, ...]) -> dict[str, Any]:
+    """The top-level fields ``names`` of a msgpack map, without decoding the others.
+
+    For consumers that need a state's header (seq, epoch, input_stamp) and not its map: the
+    big arrays are skipped, not copied. Raises MessageError if the payload is not a map.
+    """
+    unpacker = msgpack.Unpacker(raw=False, strict_map_key=False)
+    unpacker.feed(payload)
+    out: dict[str, Any] = {}
+    try:
+        for _ in range(unpacker.read_map_header()):
+            key = unpacker.unpack()
+            if key in names and isinstance(key, str):
+                out[key] = unpacker.unpack()
+            else:
+                unpacker.skip()
+    except Exception as exc:
+        raise MessageError("Message", "<payload>", "a msgpack map",
+                           f"undecodable bytes ({type(exc).__name__})") from None
+    return out
 
 
 MESSAGE_TYPES: tuple[type[Message], ...] = (

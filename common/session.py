@@ -183,6 +183,7 @@ def router_settings(listen: Sequence[str], zenoh_config: str | None = None, *,
                     name: str | None = None, prefix: str = DEFAULT_PREFIX) -> BusSettings:
     """Settings of an in-process router listening on ``listen`` (else where the Zenoh
     config file says, else on loopback: see :func:`build_config`) and linked to the
-    routers at ``connect``."""
+    routers at ``connect`` (a robot's router connects to the workstation's: traffic
+    between services on the robot never crosses the link)."""
     return BusSettings(listen=tuple(listen), connect=tuple(connect), zenoh_config=zenoh_config,
                        mode="router", secure=secure, name=name, prefix=prefix)

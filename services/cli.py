@@ -1,8 +1,11 @@
 """The ``slamlens`` program: one command per service (SPEC §9).
 
-Each command lives in its service's ``cli.py`` and is imported only when run, so
-``slamlens sim`` never loads OpenCV and ``slamlens --help`` is instant. A command module
-exposes ``add_arguments(command, parser)`` and ``run(command, args) -> int``.
+Each command is a row of :data:`COMMANDS`: the module whose ``run(command, args) -> int``
+runs it, its one-line help, and the settings dataclass its flags are built from
+(:func:`common.config.add_flags`; every field a TOML key of ``--config FILE`` and a flag).
+Modules are imported only when needed, so ``slamlens sim`` never loads OpenCV and
+``slamlens --help`` is instant; ``--help`` of a command loads only its settings module.
+docs/cli.md is generated from the same parsers (``python -m services.cli_reference``).
 """
 
 from __future__ import annotations
@@ -10,32 +13,82 @@ from __future__ import annotations
 import argparse
 import importlib
 import sys
+from dataclasses import dataclass
+from typing import Any
 
-from common.cli import run_cli
+from common.cli import add_common_flags, run_cli
+from common.config import add_flags
 
-#: command → (module, one-line help)
-COMMANDS: dict[str, tuple[str, str]] = {
-    "router": ("services.router", "a Zenoh router, in-process (no binary to install)"),
-    "sim": ("services.slam.cli", "simulated robot: odometry, observations, truth"),
-    "estimator": ("services.slam.cli", "the EKF-SLAM estimator service"),
-    "replay": ("services.slam.cli", "a recorded dataset (MRCLAM) as a robot driver"),
-    "serial": ("services.slam.cli", "a real robot on a serial line"),
-    "monitor": ("services.slam.cli", "the covariance behaviour monitor"),
-    "registration": ("services.registration.cli", "camera capture and fiducial registration"),
-    "calibrate": ("services.registration.cli", "camera intrinsics from ChArUco board images"),
-    "viewer": ("services.visualiser.cli", "the AR renderer and its web viewers"),
-    "figures": ("services.visualiser.cli", "regenerate the paper's Figs. 3-8 into docs/"),
-    "demo": ("services.demo", "all of it on one machine, with a browser link"),
-    "certs": ("services.certs", "create or extend the certificate authority of SPEC §7b"),
+
+@dataclass(frozen=True)
+class Command:
+    """One ``slamlens`` command."""
+
+    module: str  #: module with ``run(command, args) -> int``
+    help: str  #: one line, for ``slamlens --help`` and the command's own
+    settings: str = ""  #: "module:Class" of its settings (flags + TOML keys); "" = none
+    bus: bool = True  #: takes the common bus flags (--connect, --listen, --zenoh-config …)
+    config: bool = True  #: its settings may come from --config FILE (False: flags only)
+
+    def settings_class(self) -> type | None:
+        if not self.settings:
+            return None
+        module, _, name = self.settings.partition(":")
+        cls: type = getattr(importlib.import_module(module), name)
+        return cls
+
+
+COMMANDS: dict[str, Command] = {
+    "router": Command("services.router", "a Zenoh router, in-process (no binary to install)",
+                      "services.settings:RouterSettings", config=False),
+    "sim": Command("services.slam.cli", "simulated robot: odometry, observations, truth",
+                   "services.slam.settings:SimSettings"),
+    "estimator": Command("services.slam.cli", "the EKF-SLAM estimator service",
+                         "services.slam.settings:EstimatorSettings"),
+    "replay": Command("services.slam.cli", "a recorded dataset (MRCLAM) as a robot driver",
+                      "services.slam.settings:ReplaySettings"),
+    "serial": Command("services.slam.cli", "a real robot on a serial line",
+                      "services.slam.settings:SerialSettings"),
+    "monitor": Command("services.slam.cli", "the covariance behaviour monitor",
+                       "services.slam.settings:MonitorSettings"),
+    "registration": Command("services.registration.cli",
+                            "camera capture and fiducial registration",
+                            "services.registration.settings:RegistrationSettings"),
+    "calibrate": Command("services.registration.cli",
+                         "camera intrinsics from ChArUco board images",
+                         "services.registration.settings:CalibrateSettings", bus=False),
+    "viewer": Command("services.visualiser.cli", "the AR renderer and its web viewers",
+                      "services.visualiser.settings:ViewerConfig"),
+    "figures": Command("services.figures",
+                       "regenerate the paper's Figs. 3-8 (into docs/figures by default)",
+                       "services.settings:FigureSettings", bus=False),
+    "demo": Command("services.demo", "all of it on one machine, with a browser link",
+                    "services.settings:DemoSettings"),
+    "certs": Command("services.certs", "create or extend the certificate authority of "
+                     "SPEC §7b", "services.settings:CertsSettings", bus=False, config=False),
 }
+
+
+def command_parser(name: str) -> argparse.ArgumentParser:
+    """The parser of ``slamlens NAME``: its settings' flags, then the common flags."""
+    command = COMMANDS[name]
+    parser = argparse.ArgumentParser(prog=f"slamlens {name}", description=command.help)
+    groups: dict[str, Any] = {}
+    cls = command.settings_class()
+    if cls is not None:
+        add_flags(parser, cls, title=f"{name} settings (also TOML keys of --config)",
+                  groups=groups)
+    add_common_flags(parser, bus=command.bus, config=cls is not None and command.config,
+                     groups=groups)
+    return parser
 
 
 def _parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="slamlens", description="See whether an EKF-SLAM estimator is right.")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
-    for name, (_module, text) in COMMANDS.items():
-        sub.add_parser(name, help=text, add_help=False)
+    for name, command in COMMANDS.items():
+        sub.add_parser(name, help=command.help, add_help=False)
     return parser
 
 
@@ -47,13 +100,10 @@ def main(argv: list[str] | None = None) -> int:
             parser.print_help()
             return 0 if argv else 2
         parser.error(f"unknown command {argv[0]!r}; choose from {', '.join(COMMANDS)}")
-    command = argv[0]
-    module = importlib.import_module(COMMANDS[command][0])
-    parser = argparse.ArgumentParser(prog=f"slamlens {command}",
-                                     description=COMMANDS[command][1])
-    module.add_arguments(command, parser)
-    args = parser.parse_args(argv[1:])
-    return run_cli(lambda: module.run(command, args))
+    name = argv[0]
+    args = command_parser(name).parse_args(argv[1:])
+    module = importlib.import_module(COMMANDS[name].module)
+    return run_cli(lambda: module.run(name, args))
 
 
 if __name__ == "__main__":

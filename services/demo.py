@@ -25,44 +25,16 @@ from pathlib import Path
 import numpy as np
 
 from common.bus import ZenohBus
-from common.cli import add_common_flags, setup_logging, stop_event
+from common.cli import bus_flags, setup_logging, stop_event
+from common.config import settings_from_args
 from common.errors import ConfigError, MessageError, SlamlensError
 from common.geometry import all_relative_covariances, pd_size_m
 from common.keys import Keys
 from common.messages import Health, SlamState
 from common.session import BusSettings, free_tcp_endpoint, open_bus
+from services.settings import DemoSettings
 
 log = logging.getLogger("slamlens.demo")
-
-#: features planted faulty by ``--faulty`` (ids of the paper world; one per cluster pair)
-DEFAULT_FAULTY = "3,12"
-
-
-def add_arguments(command: str, parser: argparse.ArgumentParser) -> None:
-    add_common_flags(parser, config=False)
-    parser.add_argument("--robot", default="robot1")
-    parser.add_argument("--camera", default="overhead")
-    parser.add_argument("--http", default="127.0.0.1:8080", help="viewer address HOST:PORT")
-    parser.add_argument("--rate", type=float, default=1.0, help="× real time (default 1)")
-    parser.add_argument("--seed", type=int, default=0)
-    parser.add_argument("--loops", type=int, default=1000, help="laps of the loop (default: "
-                        "practically endless)")
-    parser.add_argument("--faulty", action="store_true",
-                        help="plant the paper's programming fault in the estimator")
-    parser.add_argument("--fault", default="map-update", help="fault kind with --faulty")
-    parser.add_argument("--faulty-features", default=DEFAULT_FAULTY)
-    parser.add_argument("--fault-onset", type=float, default=0.0)
-    parser.add_argument("--fault-magnitude", type=float,
-                        help="size of the fault (docs/estimator.md); for map-update the demo "
-                             "uses 5e-4 m² unless given: the faulty glyphs grow clearly "
-                             "without covering the picture (the estimator's own default, "
-                             "2e-3, is the figures' stronger fault)")
-    parser.add_argument("--no-camera", action="store_true",
-                        help="no synthetic camera: the viewer shows the map view")
-    parser.add_argument("--duration", type=float, default=0.0,
-                        help="stop after this many seconds (0 = until Ctrl-C)")
-    parser.add_argument("--log-dir", help="folder for the services' logs (default: a temp dir)")
-
 
 @dataclass
 class _Child:
@@ -85,9 +57,9 @@ def _free_http(host_port: str) -> str:
             return f"{host}:{s.getsockname()[1]}"
 
 
-def _router_endpoint(args: argparse.Namespace) -> str:
-    if args.listen:
-        endpoint = str(args.listen[0])
+def _router_endpoint(listen: tuple[str, ...]) -> str:
+    if listen:
+        endpoint = str(listen[0])
         if endpoint.startswith("tcp/") and endpoint.endswith(":0"):
             return free_tcp_endpoint(endpoint[4:].rsplit(":", 1)[0])
         return endpoint
@@ -163,47 +135,50 @@ def _wait_alive(bus: ZenohBus, key: str, stop: threading.Event,
 
 
 def run(command: str, args: argparse.Namespace) -> int:
-    if args.secure or args.name:
+    if bus_flags(args).secure or bus_flags(args).name:
         raise ConfigError("the demo runs every service on loopback without TLS; for a secure "
                           "set-up start the services with their own identities "
                           "(docs/security.md)")
     setup_logging(args, "demo")
+    s = settings_from_args(DemoSettings, args)
+    flags = bus_flags(args)
     stop = stop_event()
-    keys = Keys(args.prefix)
-    endpoint = _router_endpoint(args)
-    log_dir = Path(args.log_dir or tempfile.mkdtemp(prefix="slamlens-demo-"))
+    keys = Keys(flags.prefix)
+    endpoint = _router_endpoint(flags.listen)
+    log_dir = Path(s.log_dir or tempfile.mkdtemp(prefix="slamlens-demo-"))
     log_dir.mkdir(parents=True, exist_ok=True)
     have_camera = importlib.util.find_spec("services.registration.service") is not None
     have_viewer = importlib.util.find_spec("services.visualiser.service") is not None
-    http = _free_http(args.http) if have_viewer else ""
-    common = ["--connect", endpoint, "--prefix", args.prefix]
+    http = _free_http(s.http) if have_viewer else ""
+    common = ["--connect", endpoint, "--prefix", flags.prefix]
 
     plan: list[tuple[str, list[str]]] = [
-        ("router", ["router", "--listen", endpoint, "--prefix", args.prefix]),
+        ("router", ["router", "--listen", endpoint, "--prefix", flags.prefix]),
     ]
-    estimator = ["estimator", "--robot", args.robot, *common]
-    if args.faulty:
-        estimator += ["--fault", args.fault, "--faulty-features", args.faulty_features,
-                      "--fault-onset", str(args.fault_onset)]
-        magnitude = args.fault_magnitude
-        if magnitude is None and args.fault == "map-update":
+    estimator = ["estimator", "--robot", s.robot, *common]
+    if s.faulty:
+        estimator += ["--fault", s.fault,
+                      "--faulty-features", ",".join(map(str, s.faulty_features)),
+                      "--fault-onset", str(s.fault_onset)]
+        magnitude = s.fault_magnitude
+        if magnitude is None and s.fault == "map-update":
             magnitude = 5e-4
         if magnitude is not None:
             estimator += ["--fault-magnitude", str(magnitude)]
     plan.append(("estimator", estimator))
-    plan.append(("monitor", ["monitor", "--robot", args.robot, *common]))
+    plan.append(("monitor", ["monitor", "--robot", s.robot, *common]))
     camera = None
-    if have_camera and not args.no_camera:
-        camera = args.camera
-        plan.append(("registration", ["registration", "--camera", camera, "--robot", args.robot,
+    if have_camera and s.synthetic_camera:
+        camera = s.camera
+        plan.append(("registration", ["registration", "--camera", camera, "--robot", s.robot,
                                       "--source", "synthetic", *common]))
     if have_viewer:
-        viewer = ["viewer", "--robot", args.robot, "--http", http, *common]
+        viewer = ["viewer", "--robot", s.robot, "--http", http, *common]
         if camera:
             viewer += ["--camera", camera]
         plan.append(("viewer", viewer))
-    sim = ["sim", "--robot", args.robot, "--seed", str(args.seed), "--rate", str(args.rate),
-           "--loops", str(args.loops), *common]
+    sim = ["sim", "--robot", s.robot, "--seed", str(s.seed), "--rate", str(s.rate),
+           "--loops", str(s.loops), *common]
     if camera:
         sim += ["--hold", "3"]  # stand still at the start pose while the camera registers
     plan.append(("sim", sim))
@@ -225,14 +200,14 @@ def run(command: str, args: argparse.Namespace) -> int:
                 bus = open_bus(BusSettings(connect=(endpoint,)))
         assert bus is not None
         summary = _Summary()
-        bus.subscribe(keys.state(args.robot), summary.on_state)
-        bus.subscribe(keys.health(args.robot), summary.on_health)
+        bus.subscribe(keys.state(s.robot), summary.on_state)
+        bus.subscribe(keys.health(s.robot), summary.on_health)
         print(f"slamlens demo: router {endpoint}, logs in {log_dir}", flush=True)
         if have_viewer:
             print(f"open http://{http}/ in a browser", flush=True)
         else:
             print("(the viewer is not installed: showing the summary only)", flush=True)
-        deadline = time.monotonic() + args.duration if args.duration else None
+        deadline = time.monotonic() + s.duration_s if s.duration_s else None
         tty = sys.stdout.isatty()
         last_print = 0.0
         while not stop.wait(0.25):

@@ -1,11 +1,22 @@
-"""Starting and stopping slamlens services as real processes, for tests."""
+"""Starting and stopping slamlens services as real processes, for tests.
+
+A :class:`Service` reads its process's stdout and stderr on two threads, so a chatty
+service never blocks on a full pipe, ``wait_for_line`` really times out (a bare
+``readline`` would wait forever for a silent process), and the whole output is there
+when the test stops it.
+"""
 
 from __future__ import annotations
 
 import os
+import queue
+import signal
 import subprocess
 import sys
+import threading
+import time
 from pathlib import Path
+from typing import IO
 
 REPO = Path(__file__).resolve().parents[1]
 
@@ -15,117 +26,123 @@ def slamlens_cmd(*args: str) -> list[str]:
     return [sys.executable, "-m", "services", *args]
 
 
-def spawn(*args: str, **kw) -> subprocess.Popen:
-    """Start a slamlens service as a real process (stdout/stderr piped)."""
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    return subprocess.Popen(slamlens_cmd(*args), cwd=REPO, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, text=True, **kw)
+class Service:
+    """A running slamlens process; most of :class:`subprocess.Popen` is passed through."""
 
-
-def stop(proc: subprocess.Popen, timeout: float = 10.0) -> tuple[str, str]:
-    """SIGTERM a service and collect its output; fail loudly if it will not exit."""
-    if proc.poll() is None:
-        proc.terminate()
-    elif proc.stdout is not None and proc.stdout.closed:
-        return "", ""  # already stopped and collected
-    try:
-        out, err = proc.communicate(timeout=timeout)
-    except subprocess.TimeoutExpired:
-        proc.kill()
-        out, err = proc.communicate()
-        raise AssertionError(f"{proc.args} did not exit on SIGTERM; stderr:\n{err}") from None
-    return out, err
-
-
-def wait_for_line(proc: subprocess.Popen, text: str, timeout: float = 60.0) -> None:
-    """Read a service's stdout until a line contains ``text`` (e.g. "estimator ready")."""
-    import time
-
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        line = proc.stdout.readline() if proc.stdout else ""
-        if text in line:
-            return
-        if proc.poll() is not None:
-            err = proc.stderr.read() if proc.stderr else ""
-            raise AssertionError(f"{proc.args} exited {proc.returncode}: {err}")
-    raise AssertionError(f"{proc.args} never printed {text!r}")
-
-
-def netns_cmd(namespace: str, *args: str) -> list[str]:
-    """``args`` (a command line) run inside network namespace ``namespace``."""
-    return ["ip", "netns", "exec", namespace, *args]
-
-
-def spawn_in(namespace: str, *args: str, module: str = "services") -> subprocess.Popen:
-    """A slamlens service (or another ``python -m`` module) as a real process inside a
-    network namespace (stdout/stderr piped)."""
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    return subprocess.Popen(netns_cmd(namespace, sys.executable, "-m", module, *args), cwd=REPO,
-                            env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-
-
-class Output:
-    """A process's stdout and stderr, collected line by line as it writes them, so a test
-    waits for a line with a real timeout (a bare ``readline`` blocks until a line comes)."""
-
-    def __init__(self, proc: subprocess.Popen) -> None:
-        import threading
-
-        self.proc = proc
-        self.stdout: list[str] = []
-        self.stderr: list[str] = []
-        self._cond = threading.Condition()
-        self._threads = [threading.Thread(target=self._read, args=(pipe, lines), daemon=True)
-                         for pipe, lines in ((proc.stdout, self.stdout),
-                                             (proc.stderr, self.stderr)) if pipe is not None]
-        for t in self._threads:
+    def __init__(self, argv: list[str], *, env: dict[str, str] | None = None,
+                 cwd: Path = REPO) -> None:
+        full_env = dict(os.environ, PYTHONUNBUFFERED="1", **(env or {}))
+        self.proc = subprocess.Popen(argv, cwd=cwd, env=full_env, stdout=subprocess.PIPE,
+                                     stderr=subprocess.PIPE, text=True)
+        self.args = argv
+        self.out: list[str] = []
+        self.err: list[str] = []
+        self._lines: queue.Queue[str | None] = queue.Queue()
+        self._readers = [
+            threading.Thread(target=self._read, args=(self.proc.stdout, self.out, True),
+                             daemon=True),
+            threading.Thread(target=self._read, args=(self.proc.stderr, self.err, False),
+                             daemon=True)]
+        for t in self._readers:
             t.start()
 
-    def _read(self, pipe, lines: list[str]) -> None:
-        for line in pipe:
-            with self._cond:
-                lines.append(line.rstrip("\n"))
-                self._cond.notify_all()
-        with self._cond:
-            self._cond.notify_all()
+    def _read(self, pipe: IO[str] | None, into: list[str], lines: bool) -> None:
+        assert pipe is not None
+        with pipe:
+            for line in pipe:
+                into.append(line)
+                if lines:
+                    self._lines.put(line)
+        if lines:
+            self._lines.put(None)
 
-    def wait(self, text: str, *, stream: str = "stdout", timeout: float = 60.0) -> str:
-        """The first line of ``stream`` containing ``text``; fails after ``timeout`` s or
-        when the process exits without writing it."""
-        lines = self.stdout if stream == "stdout" else self.stderr
+    # -- Popen-like ------------------------------------------------------------------
+    @property
+    def pid(self) -> int:
+        return self.proc.pid
 
-        def found() -> str | None:
-            return next((x for x in lines if text in x), None)
-
-        with self._cond:
-            self._cond.wait_for(lambda: found() is not None or self.proc.poll() is not None,
-                                timeout)
-            line = found()
-        if line is None and self.proc.poll() is not None:
-            for t in self._threads:  # it exited: take in what it wrote last
-                t.join(timeout=5)
-            with self._cond:
-                line = found()
-        if line is None:
-            raise AssertionError(f"{self.proc.args} never wrote {text!r} "
-                                 f"(exit status {self.proc.poll()}); stderr:\n"
-                                 + "\n".join(self.stderr[-30:]))
-        return line
-
-    def stop(self, timeout: float = 10.0) -> int:
-        """SIGTERM the process, wait for it and its output; its exit status."""
-        if self.proc.poll() is None:
-            self.proc.terminate()
-        try:
-            self.proc.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait()
-            raise AssertionError(f"{self.proc.args} did not exit on SIGTERM") from None
-        for t in self._threads:
-            t.join(timeout=5)
-        for pipe in (self.proc.stdout, self.proc.stderr):
-            if pipe is not None:
-                pipe.close()
+    @property
+    def returncode(self) -> int | None:
         return self.proc.returncode
+
+    def poll(self) -> int | None:
+        return self.proc.poll()
+
+    def send_signal(self, sig: int) -> None:
+        if self.proc.poll() is None:
+            self.proc.send_signal(sig)
+
+    def terminate(self) -> None:
+        self.send_signal(signal.SIGTERM)
+
+    def kill(self) -> None:
+        self.send_signal(signal.SIGKILL)
+
+    def wait(self, timeout: float | None = None) -> int:
+        return self.proc.wait(timeout)
+
+    def communicate(self, timeout: float | None = None) -> tuple[str, str]:
+        """Wait for the process to end by itself; its whole stdout and stderr."""
+        self.proc.wait(timeout)
+        return self.output()
+
+    def output(self) -> tuple[str, str]:
+        for t in self._readers:
+            t.join(timeout=5.0)
+        return "".join(self.out), "".join(self.err)
+
+    def cpu_seconds(self) -> float | None:
+        """User + system CPU seconds the process has used so far (None once it is gone)."""
+        try:
+            fields = Path(f"/proc/{self.proc.pid}/stat").read_text().rsplit(")", 1)[1].split()
+        except (OSError, IndexError):
+            return None
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+    # -- waiting on what it says -------------------------------------------------------
+    def wait_for_line(self, text: str, timeout: float = 60.0) -> str:
+        """The first line from now on containing ``text``; AssertionError after
+        ``timeout`` s or if the process ends first."""
+        deadline = time.monotonic() + timeout
+        while True:
+            left = deadline - time.monotonic()
+            if left <= 0:
+                raise AssertionError(f"{self.args[3:]} never printed {text!r} in {timeout} s;"
+                                     f" stderr tail:\n{''.join(self.err[-15:])}")
+            try:
+                line = self._lines.get(timeout=min(left, 0.5))
+            except queue.Empty:
+                continue
+            if line is None:
+                self._lines.put(None)  # stay at end of file for later callers
+                self.proc.wait(10)
+                raise AssertionError(f"{self.args[3:]} exited {self.proc.returncode} before "
+                                     f"printing {text!r}; stderr:\n{''.join(self.err[-30:])}")
+            if text in line:
+                return line
+
+
+def spawn(*args: str, env: dict[str, str] | None = None, netns: str | None = None) -> Service:
+    """Start a slamlens service as a real process (optionally in a network namespace)."""
+    argv = slamlens_cmd(*args)
+    if netns is not None:
+        argv = ["ip", "netns", "exec", netns, *argv]
+    return Service(argv, env=env)
+
+
+def stop(proc: Service, timeout: float = 10.0, *, sig: int = signal.SIGTERM) -> tuple[str, str]:
+    """Signal a service (SIGTERM) and collect its output; fail loudly if it will not exit."""
+    proc.send_signal(sig)
+    try:
+        proc.wait(timeout)
+    except subprocess.TimeoutExpired:
+        proc.kill()
+        proc.wait()
+        raise AssertionError(f"{proc.args} did not exit on signal {sig}; stderr:\n"
+                             f"{''.join(proc.err[-30:])}") from None
+    return proc.output()
+
+
+def wait_for_line(proc: Service, text: str, timeout: float = 60.0) -> str:
+    """Read a service's stdout until a line contains ``text`` (e.g. "estimator ready")."""
+    return proc.wait_for_line(text, timeout)

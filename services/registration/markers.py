@@ -20,7 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from common.errors import ConfigError, SourceError
+from common.errors import ConfigError, GeometryError, SourceError
 
 log = logging.getLogger(__name__)
 
@@ -127,10 +127,10 @@ def mean_detection(detections: Sequence[Detection]) -> Detection:
     average a few frames before solving the pose.
     """
     if not detections:
-        raise ValueError("mean_detection needs at least one detection")
+        raise GeometryError("mean_detection needs at least one detection")
     ids = {d.marker_id for d in detections}
     if len(ids) != 1:
-        raise ValueError(f"mean_detection needs one marker id, got {sorted(ids)}")
+        raise GeometryError(f"mean_detection needs one marker id, got {sorted(ids)}")
     return Detection(detections[0].marker_id,
                      np.mean([d.corners_px for d in detections], axis=0))
 

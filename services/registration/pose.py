@@ -15,13 +15,13 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from common.errors import SlamlensError
+from common.errors import GeometryError
 from common.geometry import T_from_pose2, invert_T, make_T
 from services.registration.calibration import CameraCalibration
 from services.registration.markers import Detection
 
 
-class PoseError(SlamlensError):
+class PoseError(GeometryError):
     """A pose could not be computed from the given corners (degenerate or non-finite)."""
 
 

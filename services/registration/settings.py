@@ -1,72 +1,112 @@
-"""Settings of ``slamlens registration``: one frozen dataclass, a TOML file then flags.
+"""Settings of ``slamlens registration`` and ``slamlens calibrate``: one frozen dataclass each.
 
-Every field is a TOML key of ``--config FILE`` (see deploy/camera_overhead.toml); the flags
-of SPEC §9 override them. Lengths in metres, angles in degrees, rates in Hz.
+Every field is a TOML key of ``--config FILE`` (see deploy/camera_overhead.toml) and a flag
+over it (:func:`common.config.setting`; docs/cli.md lists them all). Lengths in metres,
+angles in degrees, rates in Hz.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
+from common.config import setting
 from common.errors import ConfigError
 from common.keys import check_name
 
 MODES = ("overhead", "head-mounted")
 POSE_SOURCES = ("board", "tracker")
 
+_CAMERA = "camera and marker"
+_REGISTER = "registration"
+_SYNTHETIC = "synthetic camera"
+
 
 @dataclass(frozen=True)
 class RegistrationSettings:
-    """``slamlens registration`` settings (TOML keys = these names)."""
+    """``slamlens registration``: camera capture and registration (docs/registration.md)."""
 
-    camera: str = "overhead"  #: camera name (key segment); stereo adds -left / -right
-    robot: str = "robot1"  #: robot whose marker registers the map frame
-    #: a device index ("0"), a video file, a stream URL, a folder of images, or "synthetic"
-    source: str = "synthetic"
-    #: OpenCV calibration YAML; empty = the synthetic camera's own (synthetic source only)
-    calibration: str = ""
-    dictionary: str = "apriltag_36h11"  #: robot (and board) marker dictionary
-    marker_id: int = field(default=0, metadata={"min": 0})
-    marker_size: float = field(default=0.2, metadata={"min": 1e-3})  #: black square side, m
-    #: marker centre in the robot frame, m (SPEC §3: flat, face up, x = robot forward)
-    marker_offset: tuple[float, ...] = (0.0, 0.0, 0.2)
-    mode: str = field(default="overhead", metadata={"choices": MODES})
-    #: head-mounted: where the camera pose comes from — the marker board in view, or an
-    #: external tracker publishing CameraPose on slamlens/camera/{camera}/pose
-    camera_pose_source: str = field(default="board", metadata={"choices": POSE_SOURCES})
-    board: str = ""  #: board TOML (services.registration.board); empty = default board
-    stereo_baseline: float = field(default=0.0, metadata={"min": 0.0})  #: m; 0 = mono
-    fps: float = field(default=30.0, metadata={"min": 0.1})  #: frame rate (files, synthetic)
-    jpeg_quality: int = field(default=80, metadata={"min": 1})
-    loop: bool = False  #: replay a video file / image folder from the start when it ends
-    #: frames averaged for a registration (the robot must stand still at the map origin)
-    register_frames: int = field(default=5, metadata={"min": 1})
-    #: a sample further than this from the first one means the robot moved: stop averaging
-    still_tolerance_m: float = field(default=0.01, metadata={"min": 0.0})
-    still_tolerance_deg: float = field(default=1.0, metadata={"min": 0.0})
-    #: marker poses with a larger RMS reprojection error are not used
-    max_reprojection_error_px: float = field(default=2.0, metadata={"min": 0.0})
-    registration_period_s: float = field(default=1.0, metadata={"min": 0.05})  #: re-publish
-    reconnect_max_s: float = field(default=5.0, metadata={"min": 0.1})  #: back-off cap
+    camera: str = setting("overhead", doc="camera name (a key segment); stereo adds -left / "
+                                          "-right", group=_CAMERA)
+    robot: str = setting("robot1", doc="robot whose marker registers the map frame",
+                         group=_CAMERA)
+    source: str = setting("synthetic", doc="a device index (\"0\"), a video file, a stream URL, "
+                                           "a folder of images, or synthetic", group=_CAMERA)
+    calibration: str = setting("", doc="OpenCV calibration YAML; empty = the synthetic "
+                                       "camera's own (synthetic source only)",
+                               metavar="FILE.yml", group=_CAMERA)
+    dictionary: str = setting("apriltag_36h11", doc="robot (and board) marker dictionary",
+                              group=_CAMERA)
+    marker_id: int = setting(0, doc="the robot's marker id", min=0, group=_CAMERA)
+    marker_size: float = setting(0.2, doc="marker black square side", unit="m", min=1e-3,
+                                 group=_CAMERA)
+    marker_offset: tuple[float, ...] = setting(
+        (0.0, 0.0, 0.2), doc="marker centre in the robot frame, m (SPEC §3: flat, face up, "
+                             "x = robot forward)", metavar="X,Y,Z", group=_CAMERA)
+    mode: str = setting("overhead", doc="overhead (a fixed camera) or head-mounted (moving)",
+                        choices=MODES, group=_CAMERA)
+    camera_pose_source: str = setting(
+        "board", doc="head-mounted: where the camera pose comes from — the marker board in "
+                     "view, or an external tracker publishing CameraPose on "
+                     "slamlens/camera/{camera}/pose", choices=POSE_SOURCES, group=_CAMERA)
+    board: str = setting("", doc="world marker board TOML (services/registration/board.py); "
+                                 "empty = the default board", metavar="FILE.toml",
+                         group=_CAMERA)
+    stereo_baseline: float = setting(0.0, doc="run cameras C-left and C-right this far apart "
+                                              "(synthetic source); 0 = mono", unit="m",
+                                     min=0.0, metavar="B", group=_CAMERA)
+    fps: float = setting(30.0, doc="frame rate of files and the synthetic camera", unit="Hz",
+                         min=0.1, group=_CAMERA)
+    jpeg_quality: int = setting(80, doc="JPEG quality of published frames", min=1, max=100,
+                                group=_CAMERA)
+    loop: bool = setting(False, doc="replay a video file / image folder from the start when "
+                                    "it ends", group=_CAMERA)
+    register_frames: int = setting(5, doc="frames averaged for a registration (the robot "
+                                          "must stand still at the map origin)", min=1,
+                                   group=_REGISTER)
+    still_tolerance_m: float = setting(0.01, doc="a sample further than this from the first "
+                                                 "one means the robot moved: stop averaging",
+                                       unit="m", min=0.0, group=_REGISTER)
+    still_tolerance_deg: float = setting(1.0, doc="the same for the turn", unit="deg",
+                                         min=0.0, group=_REGISTER)
+    max_reprojection_error_px: float = setting(
+        2.0, doc="marker poses with a larger RMS reprojection error are not used", unit="px",
+        min=0.0, group=_REGISTER)
+    registration_period_s: float = setting(1.0, doc="re-publish the registration this often",
+                                           unit="s", min=0.05, group=_REGISTER)
+    reconnect_max_s: float = setting(5.0, doc="longest wait between reconnection attempts of "
+                                              "a lost camera", unit="s", min=0.1,
+                                     group=_REGISTER)
     # -- the synthetic camera ----------------------------------------------------------
-    width: int = field(default=1280, metadata={"min": 16})
-    height: int = field(default=720, metadata={"min": 16})
-    hfov: float = field(default=0.0, metadata={"min": 0.0})  #: deg; 0 = fit the arena
-    camera_height: float = field(default=3.0, metadata={"min": 0.1})  #: overhead camera, m
-    #: overhead camera turned about the vertical, deg: a real mount is never exactly square
-    #: to the map, and the default keeps the marker's edges off the pixel grid
-    camera_yaw: float = 8.0
-    arena: tuple[float, ...] = (-1.0, -1.0, 2.0, 2.0)  #: xmin, ymin, xmax, ymax (map frame)
-    noise: float = field(default=2.0, metadata={"min": 0.0})  #: sensor noise σ, grey levels
-    blur: int = field(default=3, metadata={"min": 0})  #: Gaussian blur kernel, px (0 = none)
-    gain: float = field(default=1.0, metadata={"min": 0.0})
-    offset: float = 0.0  #: brightness offset, grey levels
-    gradient: float = 0.0  #: brightness change left → right edge, relative
-    seed: int = 0
-    robot_radius: float = field(default=0.25, metadata={"min": 0.01})
-    orbit_radius: float = field(default=3.0, metadata={"min": 0.1})  #: head-mounted path, m
-    orbit_height: float = field(default=2.5, metadata={"min": 0.1})  #: eye height, m
-    orbit_period: float = field(default=60.0, metadata={"min": 0.1})  #: s per lap
+    width: int = setting(1280, doc="image width", unit="px", min=16, group=_SYNTHETIC)
+    height: int = setting(720, doc="image height", unit="px", min=16, group=_SYNTHETIC)
+    hfov: float = setting(0.0, doc="horizontal field of view; 0 = fit the arena (head-mounted: "
+                                   "75°)", unit="deg", min=0.0, group=_SYNTHETIC)
+    camera_height: float = setting(3.0, doc="overhead camera height above the arena centre",
+                                   unit="m", min=0.1, group=_SYNTHETIC)
+    camera_yaw: float = setting(8.0, doc="overhead camera turn about the vertical: a real "
+                                         "mount is never exactly square to the map, and the "
+                                         "default keeps the marker's edges off the pixel grid",
+                                unit="deg", group=_SYNTHETIC)
+    arena: tuple[float, ...] = setting((-1.0, -1.0, 2.0, 2.0), doc="arena in the map frame, m",
+                                       metavar="XMIN,YMIN,XMAX,YMAX", group=_SYNTHETIC)
+    noise: float = setting(2.0, doc="sensor noise σ", unit="grey levels", min=0.0,
+                           group=_SYNTHETIC)
+    blur: int = setting(3, doc="Gaussian blur kernel; 0 = none", unit="px", min=0,
+                        group=_SYNTHETIC)
+    gain: float = setting(1.0, doc="brightness gain", min=0.0, group=_SYNTHETIC)
+    offset: float = setting(0.0, doc="brightness offset", unit="grey levels",
+                            group=_SYNTHETIC)
+    gradient: float = setting(0.0, doc="brightness change from the left to the right edge, "
+                                       "relative", group=_SYNTHETIC)
+    seed: int = setting(0, doc="floor texture and noise seed", group=_SYNTHETIC)
+    robot_radius: float = setting(0.25, doc="radius of the drawn robot", unit="m", min=0.01,
+                                  group=_SYNTHETIC)
+    orbit_radius: float = setting(3.0, doc="head-mounted: radius of the viewer's walk round "
+                                           "the arena", unit="m", min=0.1, group=_SYNTHETIC)
+    orbit_height: float = setting(2.5, doc="head-mounted: eye height", unit="m", min=0.1,
+                                  group=_SYNTHETIC)
+    orbit_period: float = setting(60.0, doc="head-mounted: time per lap", unit="s", min=0.1,
+                                  group=_SYNTHETIC)
 
     def __post_init__(self) -> None:
         check_name("camera", self.camera)
@@ -78,8 +118,6 @@ class RegistrationSettings:
                 or self.arena[1] >= self.arena[3]:
             raise ConfigError(f"setting 'arena': expected xmin,ymin,xmax,ymax, got "
                               f"{list(self.arena)}")
-        if not 1 <= self.jpeg_quality <= 100:
-            raise ConfigError(f"setting 'jpeg_quality': {self.jpeg_quality} is not in 1..100")
         if self.hfov >= 180.0:
             raise ConfigError(f"setting 'hfov': {self.hfov} must be below 180 degrees")
         if not self.source:
@@ -98,3 +136,24 @@ class RegistrationSettings:
         if self.stereo_baseline > 0:
             return (f"{self.camera}-left", f"{self.camera}-right")
         return (self.camera,)
+
+
+@dataclass(frozen=True)
+class CalibrateSettings:
+    """``slamlens calibrate``: camera intrinsics from photos of a ChArUco board."""
+
+    images: tuple[str, ...] = setting((), doc="photos of a ChArUco board", positional=True,
+                                      required=True, metavar="IMAGE")
+    squares_x: int = setting(5, doc="board squares across")
+    squares_y: int = setting(7, doc="board squares down")
+    square: float = setting(0.04, doc="square side (> 0)", unit="m", min=0.0)
+    marker: float = setting(0.02, doc="marker side (> 0)", unit="m", min=0.0)
+    dictionary: str = setting("aruco_6x6_250", doc="board dictionary")
+    legacy_pattern: bool = setting(False, doc="the board was laid out by OpenCV < 4.6 with an "
+                                              "even number of rows")
+    output: str = setting("", doc="calibration YAML to write", short="-o", required=True,
+                          metavar="FILE.yml")
+
+    def __post_init__(self) -> None:
+        if not (self.square > 0 and self.marker > 0):
+            raise ConfigError("calibrate: --square and --marker must be positive")

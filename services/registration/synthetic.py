@@ -31,6 +31,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
+from common.errors import ConfigError
 from common.geometry import T_from_pose2, invert_T, make_T, rot_z, transform_points
 
 #: BGR colours of the scene
@@ -191,7 +192,7 @@ def _marker_bgra(dictionary: str, marker_id: int, module_px: int = 16) -> np.nda
     from services.registration.markers import DICTIONARIES
 
     if dictionary not in DICTIONARIES:
-        raise ValueError(f"unknown marker dictionary {dictionary!r}")
+        raise ConfigError(f"unknown marker dictionary {dictionary!r}")
     d = cv2.aruco.getPredefinedDictionary(DICTIONARIES[dictionary])
     bits = d.markerSize + 2  # data bits plus the black border
     side = bits * module_px

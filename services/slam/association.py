@@ -23,6 +23,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.errors import ConfigError
+
 MATCH, NEW, AMBIGUOUS = "match", "new", "ambiguous"
 
 
@@ -35,7 +37,7 @@ class Gates:
 
     def __post_init__(self) -> None:
         if not 0.0 < self.gate_chi2 <= self.new_landmark_chi2:
-            raise ValueError(f"need 0 < gate_chi2 ≤ new_landmark_chi2, got "
+            raise ConfigError(f"need 0 < gate_chi2 ≤ new_landmark_chi2, got "
                              f"{self.gate_chi2} and {self.new_landmark_chi2}")
 
 

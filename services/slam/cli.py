@@ -1,8 +1,9 @@
 """Commands of the SLAM side: ``sim``, ``estimator``, ``replay``, ``serial``, ``monitor``.
 
-Each command: settings from ``--config FILE`` (TOML) with flags over it, a bus from the
-common flags, the service's ``run`` until SIGINT/SIGTERM (or the end of the data), and a
-clean close of the Zenoh session.
+Each command: its settings (:mod:`services.slam.settings`) from ``--config FILE`` with the
+flags over it, a bus from the common flags, the service's ``run`` until SIGINT/SIGTERM (or
+the end of the data), and a clean close of the Zenoh session. The flags themselves are
+built from the settings by ``services/cli.py``.
 """
 
 from __future__ import annotations
@@ -14,115 +15,21 @@ import logging
 import os
 import threading
 import time
-from dataclasses import dataclass, field
 from typing import Any
 
-from common.cli import add_common_flags, bus_settings, keys_from, setup_logging, stop_event
-from common.config import load_settings
+from common.cli import bus_settings, keys_from, setup_logging, stop_event
+from common.config import settings_from_args
 from common.errors import ConfigError
 from common.session import open_bus
+from services.slam.settings import (
+    EstimatorSettings,
+    MonitorSettings,
+    ReplaySettings,
+    SerialSettings,
+    SimSettings,
+)
 
 log = logging.getLogger("slamlens")
-
-
-@dataclass(frozen=True)
-class SimSettings:
-    """``slamlens sim`` settings (TOML keys = these names)."""
-
-    robot: str = "robot1"  #: robot name (key segment)
-    scenario: str = "paper"  #: a packaged world name, or the path of a world TOML file
-    seed: int = 0  #: random seed: same seed, same run
-    rate: float = field(default=1.0, metadata={"min": 0.0})  #: × real time; 0 = as fast as possible
-    #: laps of the waypoint loop; 0 = the world's default
-    loops: int = field(default=0, metadata={"min": 0})
-    anonymous: bool = False  #: withhold landmark ids (id −1) to exercise data association
-    wait_for_estimator: bool = True  #: hold the first message until an estimator is alive
-    wait_timeout_s: float = field(default=60.0, metadata={"min": 0.0})
-    #: seconds the robot stands at its start pose (truth repeated at 10 Hz) before it
-    #: moves, so that a camera can register the map frame there (paper §3.1)
-    hold_s: float = field(default=0.0, metadata={"min": 0.0})
-
-
-@dataclass(frozen=True)
-class ReplaySettings:
-    """``slamlens replay`` settings."""
-
-    robot: str = "robot1"
-    format: str = field(default="mrclam", metadata={"choices": ("mrclam",)})
-    robot_index: int = field(default=1, metadata={"min": 1})  #: MRCLAM Robot{k}_*.dat
-    rate: float = field(default=1.0, metadata={"min": 0.0})
-    start_s: float = 0.0  #: dataset seconds to skip from the start
-    duration_s: float = 0.0  #: dataset seconds to play; 0 = all
-    wait_for_estimator: bool = True
-    wait_timeout_s: float = field(default=60.0, metadata={"min": 0.0})
-
-
-@dataclass(frozen=True)
-class SerialSettings:
-    """``slamlens serial`` settings (wire protocol in docs/drivers.md)."""
-
-    robot: str = "robot1"
-    port: str = ""  #: device path or pyserial URL (e.g. /dev/ttyUSB0, loop://)
-    baudrate: int = field(default=115200, metadata={"min": 1})
-
-
-def _overrides(args: argparse.Namespace, names: list[str]) -> dict[str, Any]:
-    return {n: getattr(args, n, None) for n in names}
-
-
-# ---------------------------------------------------------------------------------
-# arguments
-# ---------------------------------------------------------------------------------
-
-
-def add_arguments(command: str, parser: argparse.ArgumentParser) -> None:
-    add_common_flags(parser)
-    parser.add_argument("--robot", help="robot name (default robot1)")
-    if command == "sim":
-        parser.add_argument("--scenario", help="world: 'paper' or a world TOML file")
-        parser.add_argument("--seed", type=int)
-        parser.add_argument("--rate", type=float, help="× real time; 0 = as fast as possible")
-        parser.add_argument("--loops", type=int, help="laps of the loop (default: the world's)")
-        parser.add_argument("--anonymous", action="store_true", default=None,
-                            help="publish landmark id −1 (estimator associates)")
-        parser.add_argument("--no-wait", dest="wait_for_estimator", action="store_false",
-                            default=None, help="do not wait for an estimator to be alive")
-        parser.add_argument("--hold", dest="hold_s", type=float,
-                            help="seconds standing at the start pose before moving "
-                                 "(lets a camera register the map frame)")
-    elif command == "estimator":
-        for flag, text in [("--sigma-v", "odometry speed noise σ, m/s"),
-                           ("--sigma-w", "odometry turn-rate noise σ, rad/s"),
-                           ("--sigma-range", "range noise σ, m"),
-                           ("--sigma-bearing", "bearing noise σ, rad"),
-                           ("--gate-chi2", "association gate on d² (id −1)"),
-                           ("--new-landmark-chi2", "d² above which an id −1 is a new landmark"),
-                           ("--fault-magnitude", "size of the planted fault (docs/estimator.md)"),
-                           ("--fault-onset", "stamp (s) from which the fault acts")]:
-            parser.add_argument(flag, type=float, help=text)
-        parser.add_argument("--fault", help="plant a documented fault: map-update, "
-                            "cross-covariance (docs/estimator.md)")
-        parser.add_argument("--faulty-features", help="feature ids the fault acts on: ID,ID")
-    elif command == "replay":
-        parser.add_argument("path", help="dataset folder (e.g. ../shared/data/mrclam6)")
-        parser.add_argument("--format", help="dataset format (mrclam)")
-        parser.add_argument("--robot-index", type=int, help="which robot of the dataset")
-        parser.add_argument("--rate", type=float, help="× real time; 0 = as fast as possible")
-        parser.add_argument("--start", dest="start_s", type=float, help="skip seconds")
-        parser.add_argument("--duration", dest="duration_s", type=float, help="seconds to play")
-        parser.add_argument("--no-wait", dest="wait_for_estimator", action="store_false",
-                            default=None)
-    elif command == "serial":
-        parser.add_argument("--port", help="serial device or pyserial URL")
-        parser.add_argument("--baudrate", type=int)
-    elif command == "monitor":
-        parser.add_argument("--rtol", type=float,
-                            help="relative tolerance of the Loewner-order checks (rtol_growth)")
-
-
-# ---------------------------------------------------------------------------------
-# commands
-# ---------------------------------------------------------------------------------
 
 
 def run(command: str, args: argparse.Namespace) -> int:
@@ -146,9 +53,7 @@ def _run_sim(args: argparse.Namespace) -> int:
     from services.slam.sim import Simulator
     from services.slam.world import load_world
 
-    s = load_settings(SimSettings, args.config, _overrides(
-        args, ["robot", "scenario", "seed", "rate", "loops", "anonymous", "wait_for_estimator",
-               "hold_s"]))
+    s = settings_from_args(SimSettings, args)
     world = load_world(s.scenario)
     sim = Simulator(world, robot=s.robot, seed=s.seed, anonymous=s.anonymous,
                     loops=s.loops or None)
@@ -168,19 +73,25 @@ def _run_sim(args: argparse.Namespace) -> int:
             while time.monotonic() < hold_until and not stop.is_set():
                 out.publish(first)
                 stop.wait(0.1)
+        if s.rate == 0 and s.wait_for_estimator:
+            out.pace_on_estimator()
         wall = play(itertools.chain([first], events), out, stop, rate=s.rate,
                     progress_every_s=10.0 if s.rate and s.rate <= 5 else 0.0)
-        log.info("done in %.2f s wall: %s", wall, out.counts)
-        print(f"sim done: {json.dumps(out.counts)} in {wall:.2f} s", flush=True)
+        _finish("sim", out, stop, wall)
     finally:
         bus.close()
     return 0
 
 
-def _estimator_overrides(args: argparse.Namespace) -> dict[str, Any]:
-    names = ["robot", "sigma_v", "sigma_w", "sigma_range", "sigma_bearing", "gate_chi2",
-             "new_landmark_chi2", "fault", "faulty_features", "fault_magnitude", "fault_onset"]
-    return _overrides(args, names)
+def _finish(name: str, out: Any, stop: threading.Event, wall: float) -> None:
+    """The driver's final line: what it published, and whether the estimator applied it."""
+    applied = ""
+    if out.pacer is not None and not stop.is_set():
+        applied = (", all applied by the estimator" if out.pacer.drain(stop)
+                   else ", NOT all applied by the estimator within 10 s")
+    verb = "stopped" if stop.is_set() else "done"
+    log.info("%s in %.2f s wall: %s", verb, wall, out.counts)
+    print(f"{name} {verb}: {json.dumps(out.counts)} in {wall:.2f} s{applied}", flush=True)
 
 
 def _one_blas_thread() -> None:
@@ -195,10 +106,9 @@ def _one_blas_thread() -> None:
 
 def _run_estimator(args: argparse.Namespace) -> int:
     _one_blas_thread()
-    from services.slam.estimator import EstimatorSettings
     from services.slam.estimator_service import EstimatorService
 
-    settings = load_settings(EstimatorSettings, args.config, _estimator_overrides(args))
+    settings = settings_from_args(EstimatorSettings, args)
     stop = stop_event()
     bus = open_bus(bus_settings(args))
     try:
@@ -208,7 +118,7 @@ def _run_estimator(args: argparse.Namespace) -> int:
         log.info("estimator for %s ready%s", settings.robot, fault)
         print("estimator ready", flush=True)
         service.run(stop)
-        log.info("stopped: %s, %d dropped", service.stats, service.drops.total)
+        print(f"estimator stopped: {json.dumps(service.summary())}", flush=True)
     finally:
         bus.close()
     return 0
@@ -218,10 +128,8 @@ def _run_replay(args: argparse.Namespace) -> int:
     from services.slam.drivers import RobotPublisher, play
     from services.slam.mrclam import load_mrclam
 
-    s = load_settings(ReplaySettings, args.config, _overrides(
-        args, ["robot", "format", "robot_index", "rate", "start_s", "duration_s",
-               "wait_for_estimator"]))
-    run_ = load_mrclam(args.path, robot=s.robot_index, robot_name=s.robot)
+    s = settings_from_args(ReplaySettings, args)
+    run_ = load_mrclam(s.path, robot=s.robot_index, robot_name=s.robot)
     stop = stop_event()
     bus = open_bus(bus_settings(args))
     try:
@@ -230,8 +138,10 @@ def _run_replay(args: argparse.Namespace) -> int:
             return 0
         events = run_.events(start=s.start_s or None,
                              end=(s.start_s + s.duration_s) if s.duration_s else None)
+        if s.rate == 0 and s.wait_for_estimator:
+            out.pace_on_estimator()
         wall = play(events, out, stop, rate=s.rate, progress_every_s=30.0)
-        print(f"replay done: {json.dumps(out.counts)} in {wall:.2f} s", flush=True)
+        _finish("replay", out, stop, wall)
     finally:
         bus.close()
     return 0
@@ -241,10 +151,7 @@ def _run_serial(args: argparse.Namespace) -> int:
     from services.slam.drivers import RobotPublisher
     from services.slam.serial_link import SerialLink
 
-    s = load_settings(SerialSettings, args.config,
-                      _overrides(args, ["robot", "port", "baudrate"]))
-    if not s.port:
-        raise ConfigError("serial: --port is required (a device path or a pyserial URL)")
+    s = settings_from_args(SerialSettings, args)
     stop = stop_event()
     bus = open_bus(bus_settings(args))
     link = SerialLink(s.port, baudrate=s.baudrate, robot=s.robot)
@@ -253,7 +160,8 @@ def _run_serial(args: argparse.Namespace) -> int:
         print("serial ready", flush=True)
         for message in link.messages(stop):
             out.publish(message)
-        log.info("serial stopped: published %s, parser %s", out.counts, link.stats)
+        print(f"serial stopped: published {json.dumps(out.counts)}, parser {link.stats}",
+              flush=True)
     finally:
         link.close()
         bus.close()
@@ -263,10 +171,8 @@ def _run_serial(args: argparse.Namespace) -> int:
 def _run_monitor(args: argparse.Namespace) -> int:
     _one_blas_thread()
     from services.slam.monitor_service import MonitorService
-    from services.slam.monitor_settings import MonitorSettings
 
-    settings = load_settings(MonitorSettings, args.config,
-                             {"robot": args.robot, "rtol_growth": args.rtol})
+    settings = settings_from_args(MonitorSettings, args)
     robot = settings.robot
     stop = stop_event()
     bus = open_bus(bus_settings(args))
@@ -274,6 +180,7 @@ def _run_monitor(args: argparse.Namespace) -> int:
         service = MonitorService(bus, keys=keys_from(args), robot=robot, settings=settings)
         print("monitor ready", flush=True)
         service.run(stop)
+        print(f"monitor stopped: {json.dumps(service.summary())}", flush=True)
     finally:
         bus.close()
     return 0

@@ -20,7 +20,8 @@ from scipy import stats
 
 from common.geometry import wrap_angle
 from common.messages import Observations, Odometry, SlamState, Truth
-from services.slam.estimator import Estimator, EstimatorSettings
+from services.slam.estimator import Estimator
+from services.slam.settings import EstimatorSettings
 from services.slam.sim import Simulator
 from services.slam.world import World
 

@@ -1,59 +1,160 @@
 """Robot drivers on the bus: the simulator, dataset replay and a serial robot.
 
 Every driver turns a stream of ``Odometry`` / ``Observations`` / ``Truth`` messages into
-reliable, in-order publications on the robot's keys. All three publish through one
-:class:`RobotPublisher`, so odometry and observations keep their order on the wire.
+publications on the robot's keys through one :class:`RobotPublisher` (SPEC §7a):
+
+* odometry and observations go through advanced publishers with a cache of at least the
+  last 60 s and 10 000 samples (an estimator that missed some, or restarted from a
+  checkpoint, recovers them), congestion control drop (the driver never waits for a slow
+  consumer), and one counter over both keys, ``input_seq``, so the estimator can merge
+  them in publication order exactly once (docs/protocol.md);
+* truth is published plainly (nobody needs every sample of it).
+
+At ``rate = 0`` (as fast as possible) a :class:`Pacer` keeps the driver at most a window
+of inputs ahead of the ``input_stamp`` in the estimator's newest state, so a whole dataset
+goes through at the estimator's speed with every input applied.
 """
 
 from __future__ import annotations
 
+import copy
 import logging
 import threading
 import time
+from collections import deque
 from collections.abc import Iterable
 
 from common.bus import Bus
+from common.errors import MessageError
 from common.keys import Keys
-from common.messages import Message, Observations, Odometry, Truth
+from common.messages import Message, Observations, Odometry, Truth, peek_fields
 
 log = logging.getLogger("slamlens.driver")
 
+#: samples each input publisher caches (SPEC §7a: at least 10 000 and 60 s of inputs)
+INPUT_CACHE = 10_000
+#: inputs a driver at full speed stays ahead of the estimator
+PACE_WINDOW = 200
+
+
+class Pacer:
+    """Holds a driver back to ``window`` inputs ahead of the estimator's ``input_stamp``.
+
+    It watches the robot's state key (latest wins) and reads only the state's header; the
+    stamps of the inputs still unapplied are kept in publication order.
+    """
+
+    def __init__(self, bus: Bus, *, keys: Keys, robot: str, window: int = PACE_WINDOW,
+                 stall_log_s: float = 10.0) -> None:
+        self.window = max(1, int(window))
+        self._states = bus.channel(keys.state(robot), latest_wins=True)
+        self._pending: deque[float] = deque()
+        self._acked = float("-inf")
+        self._epoch: int | None = None
+        self._stall_log_s = stall_log_s
+        self.waited_s = 0.0
+
+    def _take(self, timeout: float) -> bool:
+        sample = self._states.recv(timeout=timeout)
+        if sample is None:
+            return False
+        try:
+            head = peek_fields(sample.payload, ("epoch", "input_stamp", "stamp"))
+        except MessageError:
+            return False
+        stamp = head.get("input_stamp", head.get("stamp"))
+        if isinstance(stamp, (int, float)):
+            epoch = head.get("epoch")
+            if epoch != self._epoch:
+                if self._epoch is not None:  # a new map starts from what comes next
+                    self._pending.clear()
+                self._epoch = epoch if isinstance(epoch, int) else None
+            self._acked = float(stamp)
+        while self._pending and self._pending[0] <= self._acked:
+            self._pending.popleft()
+        return True
+
+    def before(self, stamp: float, stop: threading.Event) -> None:
+        """Wait (until ``stop``) while ``window`` inputs are unapplied, then count one more."""
+        started = time.monotonic()
+        said = started
+        while len(self._pending) >= self.window and not stop.is_set():
+            self._take(0.2)
+            if time.monotonic() - said >= self._stall_log_s:
+                said = time.monotonic()
+                log.warning("the estimator applied nothing for %.0f s (input stamp %.3f); "
+                            "holding %d inputs", said - started, self._acked,
+                            len(self._pending))
+        self._take(0.0)
+        self.waited_s += time.monotonic() - started
+        self._pending.append(stamp)
+
+    def drain(self, stop: threading.Event, *, timeout_s: float = 10.0) -> bool:
+        """Wait until the estimator applied everything published (or ``timeout_s``)."""
+        deadline = time.monotonic() + timeout_s
+        while self._pending and not stop.is_set() and time.monotonic() < deadline:
+            self._take(0.2)
+        return not self._pending
+
+    def close(self) -> None:
+        self._states.close()
+
 
 class RobotPublisher:
-    """Publishes a robot's messages on their SPEC §7 keys."""
+    """Publishes a robot's messages on their SPEC §7 keys, numbering the inputs."""
 
     def __init__(self, bus: Bus, *, keys: Keys, robot: str) -> None:
         self.bus = bus
         self.keys = keys
         self.robot = robot
         self._pubs = {
-            Odometry: bus.publisher(keys.odometry(robot)),
-            Observations: bus.publisher(keys.observations(robot)),
+            Odometry: bus.publisher(keys.odometry(robot), cache=INPUT_CACHE),
+            Observations: bus.publisher(keys.observations(robot), cache=INPUT_CACHE),
             Truth: bus.publisher(keys.truth(robot)),
         }
         self.counts = {cls.__name__: 0 for cls in self._pubs}
+        self.input_seq = 0  #: inputs numbered so far (the last input_seq given)
+        self.pacer: Pacer | None = None
 
-    def publish(self, message: Message) -> None:
-        pub = self._pubs[type(message)]
-        pub.put(message.to_bytes())
+    def pace_on_estimator(self, *, window: int = PACE_WINDOW) -> Pacer:
+        """From now on, stay ``window`` inputs ahead of the estimator (``rate = 0``)."""
+        self.pacer = Pacer(self.bus, keys=self.keys, robot=self.robot, window=window)
+        return self.pacer
+
+    def publish(self, message: Message, stop: threading.Event | None = None) -> None:
+        if isinstance(message, (Odometry, Observations)):
+            if self.pacer is not None:
+                self.pacer.before(message.stamp, stop or threading.Event())
+            self.input_seq += 1
+            # a copy with the number set: the rest was validated when it was built
+            # (dataclasses.replace would validate every field again: 30 % of a replay)
+            message = copy.copy(message)
+            object.__setattr__(message, "input_seq", self.input_seq)
+        self._pubs[type(message)].put(message.to_bytes())
         self.counts[type(message).__name__] += 1
 
     def wait_for_estimator(self, stop: threading.Event, *, timeout_s: float) -> bool:
-        """Wait until an estimator for this robot announces itself (liveliness)."""
+        """Wait until an estimator for this robot announces itself (liveliness) and its
+        input subscription reaches us (Zenoh matching status)."""
         key = self.keys.estimator_alive(self.robot)
         deadline = time.monotonic() + timeout_s
         said = False
         while not stop.is_set():
             if self.bus.alive(key, timeout=1.0):
-                time.sleep(0.2)  # let its subscription reach every router on the path
-                return True
+                left = max(0.1, deadline - time.monotonic())
+                return all(self.bus.wait_for_subscriber(k, timeout=left) for k in
+                           (self.keys.odometry(self.robot), self.keys.observations(self.robot)))
             if not said:
                 log.info("waiting for an estimator on %s", key)
                 said = True
             if time.monotonic() >= deadline:
                 return False
-            time.sleep(0.1)
+            stop.wait(0.1)
         return False
+
+    def close(self) -> None:
+        if self.pacer is not None:
+            self.pacer.close()
 
 
 def _stamp(message: Message) -> float:
@@ -62,10 +163,8 @@ def _stamp(message: Message) -> float:
 
 def play(events: Iterable[Message], publisher: RobotPublisher, stop: threading.Event, *,
          rate: float, progress_every_s: float = 0.0) -> float:
-    """Publish ``events`` paced at ``rate`` × their own time (0 = as fast as possible).
-
-    Returns the wall-clock seconds it took.
-    """
+    """Publish ``events`` paced at ``rate`` × their own time (0 = as fast as possible:
+    paced on the estimator if ``publisher`` has a pacer). Returns the wall seconds."""
     start = time.monotonic()
     t0: float | None = None
     next_report = progress_every_s
@@ -80,7 +179,7 @@ def play(events: Iterable[Message], publisher: RobotPublisher, stop: threading.E
             delay = due - time.monotonic()
             if delay > 0:
                 stop.wait(delay)
-        publisher.publish(message)
+        publisher.publish(message, stop)
         if progress_every_s and stamp - t0 >= next_report:
             next_report += progress_every_s
             log.info("t = %.1f s published (%s)", stamp - t0, publisher.counts)

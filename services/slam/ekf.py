@@ -29,12 +29,13 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from common.errors import EstimationError
 from common.geometry import wrap_angle
 
 _TWO_PI = 2.0 * math.pi
 
 
-class SingularInnovationError(ValueError):
+class SingularInnovationError(EstimationError):
     """The innovation covariance S is not positive definite (or h is undefined)."""
 
 
@@ -392,10 +393,10 @@ def initialise(x: np.ndarray, L: np.ndarray, n: int, *, z_range: float, z_bearin
 
 
 def check_finite_inputs(**values: float) -> None:
-    """Raise ValueError naming the first non-finite value (NaN/inf would poison P)."""
+    """Raise EstimationError naming the first non-finite value (NaN/inf would poison P)."""
     for name, value in values.items():
         if not math.isfinite(value):
-            raise ValueError(f"{name} must be finite, got {value!r}")
+            raise EstimationError(f"{name} must be finite, got {value!r}")
 
 
 __all__ = [

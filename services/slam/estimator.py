@@ -11,84 +11,19 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
-from common.errors import ConfigError
+from common.errors import EstimationError
 from common.messages import SlamState
 from services.slam import association, ekf, faults
+from services.slam.settings import EstimatorSettings
 
 log = logging.getLogger("slamlens.estimator")
 
 _INITIAL_CAPACITY = 16  # landmarks; doubled on demand
-
-
-def _doc(text: str, **meta: Any) -> dict[str, Any]:
-    return {"doc": text, **meta}
-
-
-@dataclass(frozen=True)
-class EstimatorSettings:
-    """Settings of the estimator (``slamlens estimator``; TOML keys = field names).
-
-    Noise defaults equal the simulator's "paper" world, so a correct run is consistent.
-    """
-
-    robot: str = field(default="robot1", metadata=_doc("robot name"))
-    sigma_v: float = field(default=0.05, metadata=_doc("odometry speed noise σv, m/s",
-                                                         min=0.0))
-    sigma_w: float = field(default=0.05, metadata=_doc("odometry turn-rate noise σω, rad/s",
-                                                         min=0.0))
-    sigma_range: float = field(default=0.05, metadata=_doc("range noise σr, m (> 0)", min=0.0))
-    sigma_bearing: float = field(default=0.02, metadata=_doc("bearing noise σφ, rad (> 0)",
-                                                               min=0.0))
-    gate_chi2: float = field(default=9.21, metadata=_doc(
-        "id −1: accept the nearest landmark when d² is below this (χ²₂ 99 %)", min=0.0))
-    new_landmark_chi2: float = field(default=27.63, metadata=_doc(
-        "id −1: start a new landmark when the nearest d² is above this (χ²₂ 1 − 1e-6: "
-        "over thousands of observations a 99.9 % threshold makes duplicates)", min=0.0))
-    anonymous_id_base: int = field(default=1_000_000, metadata=_doc(
-        "first id given to landmarks found by association (then counting up)", min=0))
-    initial_pose: tuple[float, ...] = field(default=(0.0, 0.0, 0.0), metadata=_doc(
-        "x_v(0) = (x m, y m, θ rad) in the map frame"))
-    initial_pose_sigma: tuple[float, ...] = field(default=(0.0, 0.0, 0.0), metadata=_doc(
-        "standard deviations of x_v(0) (m, m, rad); 0 = the map frame is the start pose"))
-    fault: str = field(default="none", metadata=_doc(
-        "planted fault (docs/estimator.md)", choices=faults.FAULT_KINDS))
-    faulty_features: tuple[int, ...] = field(default=(), metadata=_doc(
-        "landmark ids the fault acts on"))
-    fault_magnitude: float | None = field(default=None, metadata=_doc(
-        "size of the fault; None = the kind's default (map-update 2e-3 m², "
-        "cross-covariance 1.0 = propagation fully omitted)", min=0.0))
-    fault_onset: float = field(default=0.0, metadata=_doc(
-        "stamp (s) from which the fault acts (0 = from the start)"))
-    publish_innovations: bool = field(default=True, metadata=_doc(
-        "put each update's innovations and S into the state (for the monitor's NIS)"))
-
-    def __post_init__(self) -> None:
-        if not (self.sigma_range > 0 and self.sigma_bearing > 0):
-            raise ConfigError("settings 'sigma_range' and 'sigma_bearing' must be > 0 "
-                              "(R must be positive definite)")
-        for name in ("sigma_v", "sigma_w"):
-            if not getattr(self, name) >= 0:
-                raise ConfigError(f"setting {name!r} must be ≥ 0")
-        if not 0 < self.gate_chi2 <= self.new_landmark_chi2:
-            raise ConfigError(f"settings need 0 < 'gate_chi2' ≤ 'new_landmark_chi2', got "
-                              f"{self.gate_chi2} and {self.new_landmark_chi2}")
-        for name in ("initial_pose", "initial_pose_sigma"):
-            value = getattr(self, name)
-            if len(value) != 3 or not all(math.isfinite(float(v)) for v in value):
-                raise ConfigError(f"setting {name!r}: expected 3 finite numbers, got {value!r}")
-        if any(s < 0 for s in self.initial_pose_sigma):
-            raise ConfigError("setting 'initial_pose_sigma': standard deviations must be ≥ 0")
-        try:
-            faults.make_fault(self.fault, self.faulty_features, magnitude=self.fault_magnitude,
-                              onset=self.fault_onset)
-        except ValueError as exc:
-            raise ConfigError(f"settings 'fault'/'faulty_features'/'fault_magnitude': {exc}") \
-                from None
 
 
 @dataclass(frozen=True, eq=False)
@@ -184,10 +119,10 @@ class Estimator:
     # -- events ------------------------------------------------------------------------
     def predict(self, *, v: float, w: float, dt: float, stamp: float) -> None:
         """Apply one odometry step (v m/s, w rad/s held for dt s). Refuses NaN and dt < 0
-        with ValueError, leaving the state unchanged."""
+        with EstimationError, leaving the state unchanged."""
         ekf.check_finite_inputs(v=v, w=w, dt=dt, stamp=stamp)
         if dt < 0:
-            raise ValueError(f"dt must be ≥ 0, got {dt!r}")
+            raise EstimationError(f"dt must be ≥ 0, got {dt!r}")
         fault = self._fault
         if fault is not None and fault.kind == faults.CROSS_COVARIANCE and fault.active(stamp):
             faults.predict_without_cross_covariance(
@@ -202,7 +137,7 @@ class Estimator:
 
         A known id updates, an unknown id is initialised (and not also used to update), id
         −1 is associated (:mod:`services.slam.association`). Malformed input (NaN, negative
-        range, ids < −1, mismatched lengths) raises ValueError before anything changes.
+        range, ids < −1, mismatched lengths) raises EstimationError before anything changes.
         """
         id_list, range_list, bearing_list = self._check_batch(ids, ranges, bearings, stamp)
         observed: list[int] = []
@@ -260,7 +195,9 @@ class Estimator:
             assigned_ids=_frozen(assigned, np.int64), rejected=rejected, ambiguous=ambiguous)
 
     def to_state(self, *, seq: int, stamp: float, step: str,
-                 report: ObserveReport | None = None) -> SlamState:
+                 report: ObserveReport | None = None, epoch: int = 0,
+                 input_stamp: float | None = None,
+                 origin_stamp: float | None = None) -> SlamState:
         """The current state as a SlamState message (covariance materialised once)."""
         n = self._n
         cov = ekf.symmetric(self._L, 3 + 2 * n)
@@ -275,7 +212,38 @@ class Estimator:
                 extra["innovation_covariances"] = report.innovation_covariances
         return SlamState(robot=self.settings.robot, seq=seq, stamp=stamp, step=step,
                          pose=self.pose, landmark_ids=self.landmark_ids,
-                         landmarks=self.landmarks, covariance=cov, **extra)
+                         landmarks=self.landmarks, covariance=cov, epoch=epoch,
+                         input_stamp=input_stamp, origin_stamp=origin_stamp, **extra)
+
+    # -- checkpoints -------------------------------------------------------------------
+    @property
+    def next_anonymous_id(self) -> int:
+        """The id the next landmark found by association gets (kept by checkpoints)."""
+        return self._next_anonymous
+
+    def restore(self, state: SlamState, *, next_anonymous_id: int | None = None) -> None:
+        """Continue from ``state`` (a checkpoint): the same map, bit for bit.
+
+        The buffers get the capacity an uninterrupted run would have by now (16 doubled
+        as needed), so that every later BLAS call sees the same layout.
+        """
+        n = state.n
+        capacity = _INITIAL_CAPACITY
+        while capacity < n:
+            capacity *= 2
+        size, N = 3 + 2 * capacity, 3 + 2 * n
+        self._x = np.zeros(size)
+        self._x[0:3] = state.pose
+        self._x[3:N] = state.landmarks.reshape(-1)
+        self._L = np.zeros((size, size))
+        self._L[:N, :N] = state.covariance  # only the lower triangle is read (ekf.py)
+        self._ws = ekf.Workspace.for_capacity(size)
+        self._capacity = capacity
+        self._n = n
+        self._ids = [int(i) for i in state.landmark_ids]
+        self._index = {lid: k for k, lid in enumerate(self._ids)}
+        self._next_anonymous = (self.settings.anonymous_id_base if next_anonymous_id is None
+                                else int(next_anonymous_id))
 
     # -- internals ---------------------------------------------------------------------
     @staticmethod
@@ -286,23 +254,23 @@ class Estimator:
         ekf.check_finite_inputs(stamp=stamp)
         ids_a = np.asarray(ids)
         if ids_a.ndim != 1 or (ids_a.size and ids_a.dtype.kind not in "iu"):
-            raise ValueError(f"ids must be a 1-D integer array, got dtype {ids_a.dtype} "
+            raise EstimationError(f"ids must be a 1-D integer array, got dtype {ids_a.dtype} "
                              f"shape {ids_a.shape}")
         ranges_a = np.asarray(ranges, dtype=np.float64)
         bearings_a = np.asarray(bearings, dtype=np.float64)
         if ranges_a.shape != ids_a.shape or bearings_a.shape != ids_a.shape:
-            raise ValueError(f"ids, ranges and bearings must have the same length, got "
+            raise EstimationError(f"ids, ranges and bearings must have the same length, got "
                              f"{ids_a.shape}, {ranges_a.shape}, {bearings_a.shape}")
         id_list: list[int] = ids_a.tolist()
         range_list: list[float] = ranges_a.tolist()
         bearing_list: list[float] = bearings_a.tolist()
         if not (all(map(math.isfinite, range_list)) and all(map(math.isfinite, bearing_list))):
-            raise ValueError("ranges and bearings must be finite (NaN or infinity received)")
+            raise EstimationError("ranges and bearings must be finite (NaN or infinity received)")
         if id_list:
             if min(range_list) < 0:
-                raise ValueError("ranges must be ≥ 0")
+                raise EstimationError("ranges must be ≥ 0")
             if min(id_list) < -1:
-                raise ValueError(f"ids must be ≥ −1, got {min(id_list)}")
+                raise EstimationError(f"ids must be ≥ −1, got {min(id_list)}")
         return id_list, range_list, bearing_list
 
     def _log_refused(self, lid: int, exc: Exception) -> None:

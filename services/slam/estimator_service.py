@@ -1,28 +1,42 @@
-"""The EKF-SLAM estimator as a bus service (SPEC §4, §7).
+"""The EKF-SLAM estimator as a bus service (SPEC §4, §7, §7a).
 
-One ordered FIFO channel on ``slamlens/robot/{robot}/*`` carries odometry and
-observations in publication order, and one thread applies them: odometry is never
-reordered against observations (separate callbacks would race on separate threads).
-After every event applied it publishes one ``SlamState`` and keeps its bytes as the
-answer to a ``get`` on the state key. A liveliness token announces the estimator.
+Inputs: one recovering channel on ``slamlens/robot/{robot}/*`` (an advanced subscriber:
+what congestion, a link cut or a router restart made it miss comes back from the drivers'
+caches). Its Zenoh callback only queues the sample; one worker thread decodes, puts the
+inputs in publication order exactly once (:mod:`services.slam.input_order`) and applies
+them. After every event applied it publishes one ``SlamState`` through an advanced
+publisher with a cache (congestion control drop: a slow subscriber never slows it) and
+keeps its bytes as the answer to a ``get``. A liveliness token announces the estimator.
+
+Epochs: a map started from scratch gets a new ``epoch`` (the wall-clock nanoseconds at its
+start: unique in practice and increasing); with ``--checkpoint DIR`` the service saves its
+whole state there and, started again, resumes the same epoch and seq numbering, asking the
+drivers' caches for the inputs published since (:mod:`services.slam.checkpoint`).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
+import time
 from dataclasses import dataclass
 
 import numpy as np
 
-from common.bus import Bus, pump
+from common.bus import Bus, Sample
 from common.drops import DropCounter
-from common.errors import MessageError
+from common.errors import EstimationError, MessageError
 from common.keys import Keys
 from common.messages import Observations, Odometry, SlamState
-from services.slam.estimator import Estimator, EstimatorSettings
+from services.slam import checkpoint as ckpt
+from services.slam.estimator import Estimator
+from services.slam.input_order import Input, InputOrder
+from services.slam.settings import EstimatorSettings
 
 log = logging.getLogger("slamlens.estimator")
+
+_NOISE = ("sigma_v", "sigma_w", "sigma_range", "sigma_bearing")
 
 
 @dataclass
@@ -33,6 +47,7 @@ class EstimatorStats:
     observation_batches: int = 0
     states: int = 0
     foreign_robot: int = 0
+    refused: int = 0  #: inputs the estimator refused (NaN, dt < 0 …)
 
 
 def _warm_up(settings: EstimatorSettings) -> None:
@@ -54,6 +69,11 @@ def _warm_up(settings: EstimatorSettings) -> None:
                                          bearings=np.array([0.0])).to_bytes())
 
 
+def new_epoch() -> int:
+    """A new map's epoch: wall-clock nanoseconds (unique in practice, and increasing)."""
+    return time.time_ns()
+
+
 class EstimatorService:
     """Wires an :class:`Estimator` to the bus; ``handle`` is the whole event logic."""
 
@@ -61,64 +81,134 @@ class EstimatorService:
         _warm_up(settings)
         self.robot = settings.robot
         self.keys = keys
+        self.settings = settings
         self.estimator = Estimator(settings)
         self.stats = EstimatorStats()
         self.drops = DropCounter(log)
+        self.order = InputOrder(gap_wait_s=settings.input_gap_wait_s)
         self._seq = 0
+        self._input_stamp = 0.0
+        self._origin_stamp: float | None = None  #: when the robot stood at the map origin
         self._lock = threading.Lock()
-        self._publisher = bus.publisher(keys.state(self.robot))
+        self._writer: ckpt.CheckpointWriter | None = None
+        self._last_checkpoint = time.monotonic()
+        self.resumed = False
+        self.epoch = new_epoch()
+        init: SlamState | None = None
+        if settings.checkpoint:
+            init = self._resume(settings.checkpoint)
+            self._writer = ckpt.CheckpointWriter(settings.checkpoint)
+        self._publisher = bus.publisher(keys.state(self.robot), cache=settings.state_cache,
+                                        cache_bytes=int(settings.state_cache_mb * 2 ** 20))
         # The input channel is declared before the liveliness token, so a driver that
-        # waits for the token never publishes into the void.
+        # waits for the token never publishes into the void; after a resume it also asks
+        # the drivers' caches for what was published while the estimator was down.
         self._inputs = bus.channel(
-            keys.robot_inputs(self.robot),
+            keys.robot_inputs(self.robot), recover=True,
+            history_s=settings.input_history_s if self.resumed else 0.0,
             accept=lambda key: key.endswith(("/odometry", "/observations")))
-        init = self.estimator.to_state(seq=0, stamp=0.0, step="init")
+        if init is None:
+            init = self.estimator.to_state(seq=0, stamp=0.0, step="init", epoch=self.epoch,
+                                           input_stamp=0.0)
         self._latest = init.to_bytes()
         bus.serve_latest(keys.state(self.robot), self.latest_bytes)
         self._publisher.put(self._latest)
         bus.declare_alive(keys.estimator_alive(self.robot))
 
+    # -- checkpoints ------------------------------------------------------------------
+    def _resume(self, directory: str) -> SlamState | None:
+        cp = ckpt.load(directory, self.robot)
+        if cp is None:
+            log.info("no checkpoint in %s yet: a new map, epoch %d", directory, self.epoch)
+            return None
+        state = SlamState.from_bytes(cp.state)
+        noise = {k: float(getattr(self.settings, k)) for k in _NOISE}
+        if cp.noise != noise:
+            log.warning("the checkpoint was made with %s, now %s: the map continues with the "
+                        "new settings", cp.noise, noise)
+        self.estimator.restore(state, next_anonymous_id=cp.next_anonymous_id)
+        self.order.resume(cp.positions)
+        self.epoch, self._seq = state.epoch, state.seq
+        self._input_stamp = float(state.input_stamp or state.stamp)
+        self._origin_stamp = state.origin_stamp
+        self.resumed = True
+        log.info("resumed epoch %d at seq %d (input stamp %.3f, %d landmarks) from %s",
+                 state.epoch, state.seq, state.input_stamp, state.n,
+                 ckpt.checkpoint_path(directory, self.robot))
+        return state
+
+    def _checkpoint(self) -> ckpt.Checkpoint:
+        with self._lock:
+            state = self._latest
+        return ckpt.Checkpoint(
+            robot=self.robot, state=state, positions=self.order.positions(),
+            next_anonymous_id=self.estimator.next_anonymous_id,
+            noise={k: float(getattr(self.settings, k)) for k in _NOISE})
+
+    def _maybe_checkpoint(self) -> None:
+        if self._writer is not None and \
+                time.monotonic() - self._last_checkpoint >= self.settings.checkpoint_interval_s:
+            self._last_checkpoint = time.monotonic()
+            self._writer.submit(self._checkpoint())
+
+    # -- the event logic ----------------------------------------------------------------
     def latest_bytes(self) -> bytes:
         with self._lock:
             return self._latest
 
     def handle(self, key: str, payload: bytes) -> SlamState | None:
-        """Apply one input sample; returns the state published, or None if ignored."""
-        leaf = self.keys.leaf_of(key)
+        """Decode and apply one input now (no ordering); the state published, or None."""
+        item = self.decode(Sample(key, payload))
+        return None if item is None else self.apply(item)
+
+    def decode(self, sample: Sample) -> Input | None:
+        """The input a sample carries, or None (counted) if it is not one of ours."""
+        leaf = self.keys.leaf_of(sample.key)
         if leaf not in ("odometry", "observations"):
             return None  # truth, state, health… share the prefix; not ours to apply
         try:
-            if leaf == "odometry":
-                odo = Odometry.from_bytes(payload)
-                if not self._mine(odo.robot):
-                    return None
-                self.estimator.predict(v=odo.v, w=odo.w, dt=odo.dt, stamp=odo.stamp)
-                self.stats.odometry += 1
-                return self._publish(stamp=odo.stamp, step="predict", report=None)
-            obs = Observations.from_bytes(payload)
-            if not self._mine(obs.robot):
-                return None
-            report = self.estimator.observe(ids=obs.ids, ranges=obs.ranges,
-                                            bearings=obs.bearings, stamp=obs.stamp)
-            self.stats.observation_batches += 1
-            return self._publish(stamp=obs.stamp, step="update", report=report)
+            message: Odometry | Observations = (
+                Odometry.from_bytes(sample.payload) if leaf == "odometry"
+                else Observations.from_bytes(sample.payload))
         except MessageError as exc:
-            self.drops.drop(exc.message_type, f"on {key}: {exc}")
-        except ValueError as exc:  # the estimator refused the input (NaN, bad control…)
-            self.drops.drop(leaf, f"on {key}: {exc}")
-        return None
-
-    def _mine(self, robot: str) -> bool:
-        if robot != self.robot:
+            self.drops.drop(exc.message_type, f"on {sample.key}: {exc}")
+            return None
+        if message.robot != self.robot:
             self.stats.foreign_robot += 1
-            self.drops.drop("robot", f"message for robot {robot!r} on {self.robot!r}'s key")
-            return False
-        return True
+            self.drops.drop("robot", f"message for robot {message.robot!r} on "
+                                     f"{self.robot!r}'s key")
+            return None
+        return Input(leaf, message, source=sample.source, time=sample.time)
+
+    def apply(self, item: Input) -> SlamState | None:
+        """Fold one input into the map and publish the state (None if refused)."""
+        message = item.message
+        try:
+            if isinstance(message, Odometry):
+                self.estimator.predict(v=message.v, w=message.w, dt=message.dt,
+                                       stamp=message.stamp)
+                if self._origin_stamp is None:  # the map origin: where this step began
+                    self._origin_stamp = message.stamp - message.dt
+                self.stats.odometry += 1
+                return self._publish(stamp=message.stamp, step="predict", report=None)
+            report = self.estimator.observe(ids=message.ids, ranges=message.ranges,
+                                            bearings=message.bearings, stamp=message.stamp)
+            if self._origin_stamp is None:
+                self._origin_stamp = message.stamp
+            self.stats.observation_batches += 1
+            return self._publish(stamp=message.stamp, step="update", report=report)
+        except EstimationError as exc:  # the estimator refused the input (NaN, bad control…)
+            self.stats.refused += 1
+            self.drops.drop(item.leaf, f"refused: {exc}")
+        return None
 
     def _publish(self, *, stamp: float, step: str, report: object) -> SlamState:
         self._seq += 1
+        self._input_stamp = stamp
         state = self.estimator.to_state(seq=self._seq, stamp=stamp, step=step,
-                                        report=report)  # type: ignore[arg-type]
+                                        report=report,  # type: ignore[arg-type]
+                                        epoch=self.epoch, input_stamp=stamp,
+                                        origin_stamp=self._origin_stamp)
         payload = state.to_bytes()
         with self._lock:
             self._latest = payload
@@ -126,9 +216,51 @@ class EstimatorService:
         self.stats.states += 1
         return state
 
-    def run(self, stop: threading.Event) -> None:
-        """Apply events until ``stop`` is set."""
-        pump(self._inputs, self.handle, stop, status=lambda: log.info(
-            "seq %d, %d landmarks, %d odometry, %d observation batches, %d dropped",
-            self._seq, self.estimator.n, self.stats.odometry, self.stats.observation_batches,
-            self.drops.total))
+    # -- the worker -----------------------------------------------------------------
+    def ingest(self, sample: Sample | None) -> list[SlamState]:
+        """One arrived sample (or None: only the gap timers) through decoding and the
+        ordering; applies what is ready and returns the states published."""
+        ready: list[Input] = []
+        if sample is not None:
+            item = self.decode(sample)
+            if item is not None:
+                ready = self.order.offer(item)
+        ready.extend(self.order.expire())
+        out = [state for state in map(self.apply, ready) if state is not None]
+        self._maybe_checkpoint()
+        return out
+
+    def step(self, timeout: float = 0.2) -> int:
+        """Take what arrived (waiting up to ``timeout`` s) and apply what is in order;
+        returns the number of states published."""
+        deadline = self.order.next_deadline()
+        if deadline is not None:
+            timeout = max(0.0, min(timeout, deadline - time.monotonic()))
+        return len(self.ingest(self._inputs.recv(timeout=timeout)))
+
+    def status_line(self) -> str:
+        o = self.order.stats
+        return (f"epoch {self.epoch} seq {self._seq}, {self.estimator.n} landmarks, "
+                f"{self.stats.odometry} odometry + {self.stats.observation_batches} "
+                f"observation batches applied, backlog {self._inputs.backlog}, "
+                f"{o.duplicates} duplicates, {o.lost} lost, {self.drops.total} dropped")
+
+    def run(self, stop: threading.Event, *, status_every_s: float = 10.0) -> None:
+        """Apply events until ``stop`` is set, then write a last checkpoint."""
+        last = time.monotonic()
+        try:
+            while not stop.is_set():
+                self.step()
+                if time.monotonic() - last >= status_every_s:
+                    last = time.monotonic()
+                    log.info("%s", self.status_line())
+        finally:
+            if self._writer is not None:
+                self._writer.close(final=self._checkpoint())
+
+    def summary(self) -> dict[str, object]:
+        """What the service did (the final line at exit)."""
+        return {"epoch": self.epoch, "seq": self._seq, "landmarks": self.estimator.n,
+                "resumed": self.resumed, **dataclasses.asdict(self.stats),
+                "duplicates": self.order.stats.duplicates, "lost": self.order.stats.lost,
+                "dropped": self.drops.total}

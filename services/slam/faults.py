@@ -29,10 +29,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.errors import ConfigError
 from services.slam import ekf
+from services.slam.settings import CROSS_COVARIANCE, FAULT_KINDS, MAP_UPDATE, NONE
 
-NONE, MAP_UPDATE, CROSS_COVARIANCE = "none", "map-update", "cross-covariance"
-FAULT_KINDS = (NONE, MAP_UPDATE, CROSS_COVARIANCE)
 DEFAULT_MAGNITUDE = {
     MAP_UPDATE: 2e-3,  # m² per update batch: σ grows ~4.5 cm in 1 s of 10 Hz batches
     CROSS_COVARIANCE: 1.0,  # fraction of the propagation Fx·P_v,f − P_v,f left out
@@ -50,13 +50,13 @@ class PlantedFault:
 
     def __post_init__(self) -> None:
         if self.kind not in FAULT_KINDS or self.kind == NONE:
-            raise ValueError(f"unknown fault kind {self.kind!r}; one of {FAULT_KINDS[1:]}")
+            raise ConfigError(f"unknown fault kind {self.kind!r}; one of {FAULT_KINDS[1:]}")
         if not self.feature_ids:
-            raise ValueError(f"fault {self.kind!r} needs at least one faulty feature id")
+            raise ConfigError(f"fault {self.kind!r} needs at least one faulty feature id")
         if self.kind == MAP_UPDATE and not self.magnitude >= 0.0:
-            raise ValueError(f"map-update magnitude must be ≥ 0 m², got {self.magnitude}")
+            raise ConfigError(f"map-update magnitude must be ≥ 0 m², got {self.magnitude}")
         if self.kind == CROSS_COVARIANCE and not 0.0 <= self.magnitude <= 1.0:
-            raise ValueError(f"cross-covariance magnitude is a fraction in [0, 1], "
+            raise ConfigError(f"cross-covariance magnitude is a fraction in [0, 1], "
                              f"got {self.magnitude}")
 
     def active(self, stamp: float) -> bool:
@@ -69,7 +69,7 @@ def make_fault(kind: str, feature_ids: Iterable[int], *, magnitude: float | None
     if kind == NONE:
         return None
     if kind not in FAULT_KINDS:
-        raise ValueError(f"unknown fault kind {kind!r}; one of {FAULT_KINDS}")
+        raise ConfigError(f"unknown fault kind {kind!r}; one of {FAULT_KINDS}")
     size = DEFAULT_MAGNITUDE[kind] if magnitude is None else float(magnitude)
     return PlantedFault(kind, frozenset(int(i) for i in feature_ids), size, float(onset))
 

@@ -27,10 +27,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from common.geometry import compose2, inverse2, transform2
 from common.messages import Health, SlamState, Truth, Violation
 from services.slam import monitor_checks as checks
 from services.slam.monitor_blame import Evidence, blame_weights
-from services.slam.monitor_settings import MonitorSettings
 from services.slam.monitor_stats import (
     FeatureWindows,
     WindowTest,
@@ -39,6 +39,8 @@ from services.slam.monitor_stats import (
     pose_nees,
     quadratic_forms_2x2,
 )
+from services.slam.monitor_verdict import Verdict
+from services.slam.settings import MonitorSettings
 
 log = logging.getLogger(__name__)
 
@@ -90,6 +92,8 @@ class Monitor:
         self._evidence = Evidence(half_life=s.evidence_half_life,
                                   suspect_score=s.suspect_score, suspect_ratio=s.suspect_ratio)
         self._truth_sigma2 = np.square(np.resize(np.asarray(s.truth_pose_sigma, float), 3))
+        self._verdict = Verdict(clear_after=s.clear_after,
+                                max_listed=s.max_violations_per_kind)
         self.reset()
 
     # -- state ---------------------------------------------------------------------------
@@ -106,6 +110,8 @@ class Monitor:
         self._nees_pose.reset()
         self._nees_features.reset()
         self._evidence.reset()
+        self._verdict.reset()
+        self._frame_reset()
         self._counts: Counter[str] = Counter()
         self._phase_counts: Counter[str] = Counter()
         self._states = 0
@@ -121,6 +127,48 @@ class Monitor:
         self._nees_pose.reset()
         self._nees_features.reset()
         self._evidence.reset()
+        self._verdict.reset()
+
+    def new_map(self) -> None:
+        """A new epoch (a map started from scratch): nothing of the old map compares."""
+        self._restarts += 1
+        self._restart()
+        self._prev = None
+        self._frame_reset()
+
+    # -- the map frame of the truth ------------------------------------------------------
+    def _frame_reset(self) -> None:
+        self._initial_pose = np.zeros(3)  #: the estimator's x_v(0) (its init state says)
+        self._origin_stamp: float | None = None  #: when the robot stood at the map origin
+        self._map_from_truth: np.ndarray | None = None  #: None: truth is in the map frame
+
+    def _follow_frame(self, state: SlamState) -> None:
+        """Truth is given in its own world frame; the map frame is the robot's pose at
+        the map's origin (SPEC §3). When a state says when that was (``origin_stamp``),
+        truth is re-expressed in the map frame — identity for a map started where the
+        truth's frame starts, a real change for a map restarted mid-run."""
+        if state.step == "init":
+            self._initial_pose = np.array(state.pose, dtype=float)
+        if state.origin_stamp is None or state.origin_stamp == self._origin_stamp:
+            return
+        at_origin = self._match_truth(state.origin_stamp, aligned=False)
+        if at_origin is None:
+            return  # no truth of that instant (yet): try again with the next state
+        self._origin_stamp = state.origin_stamp
+        T = compose2(self._initial_pose, inverse2(at_origin.pose))
+        moved = float(np.hypot(T[0], T[1])) > 1e-9 or abs(float(T[2])) > 1e-12
+        self._map_from_truth = T if moved else None
+        if moved:
+            log.info("truth re-expressed in the map frame of the robot's pose at t = %.3f s "
+                     "(%.3f m, %.3f m, %.3f rad)", state.origin_stamp, *at_origin.pose)
+
+    def _aligned(self, truth: Truth) -> Truth:
+        T = self._map_from_truth
+        if T is None:
+            return truth
+        return dataclasses.replace(truth, pose=compose2(T, truth.pose),
+                                   landmarks=transform2(T, truth.landmarks)
+                                   if truth.landmarks.size else truth.landmarks)
 
     @property
     def summary(self) -> MonitorSummary:
@@ -153,14 +201,14 @@ class Monitor:
         still: deque[_Pending] = deque(maxlen=_PENDING)
         for p in self._pending:
             if abs(p.stamp - truth.stamp) <= tol:
-                _, _, late = self._nees(p.pose, p.Pvv, p.ids, p.landmarks, p.blocks, truth,
-                                        seq=p.seq)
+                _, _, late = self._nees(p.pose, p.Pvv, p.ids, p.landmarks, p.blocks,
+                                        self._aligned(truth), seq=p.seq)
                 self._late.extend(late)
             else:
                 still.append(p)
         self._pending = still
 
-    def _match_truth(self, stamp: float) -> Truth | None:
+    def _match_truth(self, stamp: float, *, aligned: bool = True) -> Truth | None:
         if not self._truths:
             return None
         k = bisect.bisect_left(self._truth_stamps, stamp)
@@ -170,7 +218,10 @@ class Monitor:
                 d = abs(self._truth_stamps[j] - stamp)
                 if d <= self.settings.truth_tolerance_s and (best is None or d < best[0]):
                     best = (d, j)
-        return None if best is None else self._truths[best[1]]
+        if best is None:
+            return None
+        truth = self._truths[best[1]]
+        return self._aligned(truth) if aligned else truth
 
     # -- the check -----------------------------------------------------------------------
     def check(self, state: SlamState) -> Health:
@@ -184,6 +235,7 @@ class Monitor:
             self._restarts += 1
             self._restart()
             prev = None
+        self._follow_frame(state)
         gap = 0 if prev is None else max(state.seq - prev.seq - 1, 0)
         self._gaps += gap
         stats["gap"] = float(gap)
@@ -214,10 +266,13 @@ class Monitor:
             self._onset = (state.seq, state.stamp)
         self._prev = state
         self._states += 1
+        verdict = self._verdict.update(state.seq, [_finite(v) for v in found], suspects)
         return Health(robot=state.robot, seq=state.seq, stamp=state.stamp, ok=not found,
                       suspects=np.asarray(suspects, dtype=np.int64),
                       violations=tuple(_finite(v) for v in self._cap(found)),
-                      statistics={k: v for k, v in stats.items() if math.isfinite(v)})
+                      statistics={k: v for k, v in stats.items() if math.isfinite(v)},
+                      verdict=verdict, verdict_since=self._verdict.since,
+                      standing=self._verdict.standing())
 
     def _cap(self, found: list[Violation]) -> list[Violation]:
         """At most ``max_violations_per_kind`` per kind, the largest values first."""
@@ -312,7 +367,7 @@ class Monitor:
             growth_max = max(growth_max, float(pair.value.max()))
             pairs = ids[pair.index]
             for k in self._top(pair.value):
-                i, j = (int(x) for x in pairs[k])
+                i, j = sorted(int(x) for x in pairs[k])  # a pair is written low–high
                 out.append(Violation(
                     kind="pair", ids=(i, j), step=state.seq, value=float(pair.value[k]),
                     bound=float(pair.bound[k]), phase=state.step,

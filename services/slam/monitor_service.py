@@ -1,10 +1,18 @@
-"""The behaviour monitor as a bus service (SPEC §5, §7; issue 5).
+"""The behaviour monitor as a bus service (SPEC §5, §7, §7a; issue 5).
 
-It listens to one robot's keys through a single ordered channel — states, simulator
-truth and the camera-tracked pose arrive in the order they were published — and
-publishes one ``Health`` per state. The channel is a ring: if the monitor ever falls
-behind it drops the oldest samples instead of slowing the estimator, and the checks are
-valid across the resulting gaps (the Loewner order is transitive).
+It listens to one robot's keys through a single ordered, recovering channel — states,
+simulator truth and the camera-tracked pose, in the order they arrive; a state missed under
+congestion or a link cut comes back from the estimator's cache — and publishes one
+``Health`` per state through an advanced publisher (a viewer that joins late or missed one
+recovers it). The channel's callback only queues: the monitor never slows the estimator.
+
+Every state is checked, in order. If the monitor ever falls behind, the states waiting
+are counted and said in every Health (statistic ``behind``) and in the log, never
+skipped silently; states the estimator's cache could no longer give back are counted
+(statistic ``lost``), and the checks stay valid across the gap (the Loewner order is
+transitive). A state already checked (the same epoch and seq: an estimator that resumed
+from a checkpoint publishes again what it published before it died) is skipped. A new
+epoch is a new map: the monitor drops the old one and says "map restarted".
 
 States from any estimator are accepted, ours or a third party's; the symmetry check is
 the monitor's own (decoding does not reject an asymmetric covariance).
@@ -14,34 +22,45 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 
-from common.bus import Bus, pump
+from common.bus import Bus
 from common.drops import DropCounter
 from common.errors import MessageError
 from common.keys import Keys
 from common.messages import Health, SlamState, Truth
 from services.slam.monitor import Monitor
-from services.slam.monitor_settings import MonitorSettings
+from services.slam.monitor_verdict import WORDS
+from services.slam.settings import MonitorSettings
 
 log = logging.getLogger("slamlens.monitor")
+
+#: Health caches this many (SPEC §7a: at least the last 10 s)
+HEALTH_CACHE = 10_000
+#: from this many states waiting, the monitor says it is behind
+BEHIND_REPORT = 50
 
 
 class MonitorService:
     """Wires a :class:`Monitor` to the bus."""
 
-    def __init__(self, bus: Bus, *, keys: Keys, robot: str, settings: MonitorSettings,
-                 ring_capacity: int = 2048) -> None:
+    def __init__(self, bus: Bus, *, keys: Keys, robot: str,
+                 settings: MonitorSettings) -> None:
         self.robot = robot
         self.keys = keys
         self.monitor = Monitor(settings)
         self.drops = DropCounter(log)
         self.checked = 0
         self.violations = 0
+        self.duplicates = 0
+        self.restarts = 0
+        self._position: tuple[int, int] | None = None  #: (epoch, seq) of the last state
+        self.verdict = ""  #: the latest Health's verdict ("" before the first state)
         self._latest: bytes | None = None
         self._lock = threading.Lock()
-        self._publisher = bus.publisher(keys.health(robot))
-        self._inputs = bus.channel(keys.robot_inputs(robot), capacity=ring_capacity,
-                                   drop_oldest=True,
+        self._said_behind = 0.0
+        self._publisher = bus.publisher(keys.health(robot), cache=HEALTH_CACHE)
+        self._inputs = bus.channel(keys.robot_inputs(robot), recover=True,
                                    accept=lambda key: key.endswith(("/state", "/truth",
                                                                     "/tracked")))
         bus.serve_latest(keys.health(robot), self.latest_bytes)
@@ -49,6 +68,11 @@ class MonitorService:
     def latest_bytes(self) -> bytes | None:
         with self._lock:
             return self._latest
+
+    @property
+    def behind(self) -> int:
+        """Samples received and not yet checked."""
+        return self._inputs.backlog
 
     def handle(self, key: str, payload: bytes) -> Health | None:
         leaf = self.keys.leaf_of(key)
@@ -62,22 +86,78 @@ class MonitorService:
         except MessageError as exc:
             self.drops.drop(exc.message_type, f"on {key}: {exc}")
             return None
+        if state.robot != self.robot:
+            self.drops.drop("robot", f"state of robot {state.robot!r} on {self.robot!r}'s key")
+            return None
+        if self._position is not None:
+            epoch, seq = self._position
+            if state.epoch == epoch and 0 < state.seq <= seq and state.epoch:
+                self.duplicates += 1  # already checked (a resumed estimator's replay)
+                return None
+            if state.epoch != epoch:
+                self.restarts += 1
+                log.warning("map restarted: epoch %d → %d (seq %d); the old map's baseline "
+                            "and evidence are dropped", epoch, state.epoch, state.seq)
+                self.monitor.new_map()
+        self._position = (state.epoch, state.seq)
         health = self.monitor.check(state)
+        health = self._annotate(health)
         self.checked += 1
+        if health.verdict != self.verdict:
+            log.log(logging.INFO if health.verdict == "ok" else logging.WARNING,
+                    "verdict %s at seq %d%s", WORDS[health.verdict].upper(), health.seq,
+                        f", suspects {[int(i) for i in health.suspects]}"
+                        if health.suspects.size else "")
+            self.verdict = health.verdict
         if not health.ok:
             self.violations += len(health.violations)
             if self.violations == len(health.violations):
                 log.warning("first violation at seq %d: %s; suspects %s", health.seq,
                             "; ".join(v.detail or v.kind for v in health.violations[:3]),
-                            list(health.suspects))
+                            [int(i) for i in health.suspects])
         payload_out = health.to_bytes()
         with self._lock:
             self._latest = payload_out
         self._publisher.put(payload_out)
         return health
 
-    def run(self, stop: threading.Event) -> None:
+    def _annotate(self, health: Health) -> Health:
+        """Add what the service knows and the core does not: backlog, losses, restarts."""
+        import dataclasses
+
+        stats = dict(health.statistics)
+        behind = self.behind
+        stats["behind"] = float(behind)
+        stats["lost"] = float(self._inputs.lost)
+        stats["restarts"] = float(self.restarts)
+        if behind >= BEHIND_REPORT and time.monotonic() - self._said_behind >= 10.0:
+            self._said_behind = time.monotonic()
+            log.warning("monitor %d states behind the estimator", behind)
+        return dataclasses.replace(health, statistics=stats)
+
+    def status_line(self) -> str:
+        verdict = WORDS[self.verdict] if self.verdict else "no verdict yet"
+        return (f"{verdict}: {self.checked} states checked, {self.violations} violations, "
+                f"suspects {[int(i) for i in self.monitor.summary.suspects]}, behind "
+                f"{self.behind}, lost "
+                f"{self._inputs.lost}, {self.duplicates} duplicates, {self.drops.total} "
+                "dropped")
+
+    def run(self, stop: threading.Event, *, status_every_s: float = 10.0) -> None:
         """Check states until ``stop`` is set."""
-        pump(self._inputs, self.handle, stop, status=lambda: log.info(
-            "%d states checked, %d violations, suspects %s", self.checked, self.violations,
-            self.monitor.summary))
+        last = time.monotonic()
+        while not stop.is_set():
+            sample = self._inputs.recv(timeout=0.2)
+            if sample is not None:
+                self.handle(sample.key, sample.payload)
+            if time.monotonic() - last >= status_every_s:
+                last = time.monotonic()
+                log.info("%s", self.status_line())
+
+    def summary(self) -> dict[str, object]:
+        s = self.monitor.summary
+        return {"verdict": self.verdict or "none", "checked": self.checked,
+                "violations": self.violations,
+                "suspects": [int(i) for i in s.suspects], "lost": self._inputs.lost,
+                "duplicates": self.duplicates, "restarts": self.restarts,
+                "dropped": self.drops.total}

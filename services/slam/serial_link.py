@@ -30,7 +30,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 import serial
 
-from common.errors import MessageError, SourceError
+from common.errors import MessageError, SlamlensError, SourceError
 from common.messages import Observations, Odometry
 
 log = logging.getLogger("slamlens.serial")
@@ -99,7 +99,9 @@ class SerialStats:
         return {f.name: getattr(self, f.name) for f in fields(self)}
 
 
-class _Reject(Exception):
+class _Reject(SlamlensError):
+    """A line the parser drops: ``reason`` is the stats counter, the message the detail."""
+
     def __init__(self, reason: str, detail: str) -> None:
         super().__init__(detail)
         self.reason = reason

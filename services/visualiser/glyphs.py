@@ -19,6 +19,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.errors import ConfigError
 from services.visualiser.camera_model import NEAR_M, CameraModel
 
 MIN_MINOR_PX = 0.5  #: thinnest drawn glyph, pixels
@@ -53,7 +54,7 @@ def semi_axes(lam_major: np.ndarray, lam_minor: np.ndarray, *, glyph: str, sigma
         return scale * sigma_k * np.sqrt(hi), scale * sigma_k * np.sqrt(lo)
     if glyph == "linear":
         return scale * hi, scale * lo  # the paper: axis length = eigenvalue, read as metres
-    raise ValueError(f"unknown glyph mode {glyph!r}")
+    raise ConfigError(f"unknown glyph mode {glyph!r}")
 
 
 @dataclass(frozen=True)

@@ -22,6 +22,8 @@ from typing import Any
 import cv2
 import numpy as np
 
+from common.errors import ConfigError, RenderError
+
 log = logging.getLogger("slamlens.viewer")
 
 EXTENSIONS = {"mp4v": ".mp4", "MJPG": ".avi"}
@@ -33,7 +35,7 @@ def encode_png(image_bgr: np.ndarray) -> bytes:
     """PNG bytes of a BGR picture (fast compression: a snapshot should come back at once)."""
     ok, data = cv2.imencode(".png", image_bgr, [cv2.IMWRITE_PNG_COMPRESSION, 1])
     if not ok:
-        raise ValueError("PNG encoding failed")
+        raise RenderError("PNG encoding failed")
     return data.tobytes()
 
 
@@ -49,7 +51,7 @@ class Recorder:
     def __init__(self, *, directory: str | Path, name: str, fps: float, codec: str,
                  source: Callable[[], np.ndarray | None], settings: Callable[[], Any]) -> None:
         if codec not in EXTENSIONS:
-            raise ValueError(f"codec {codec!r} is not one of {list(EXTENSIONS)}")
+            raise ConfigError(f"codec {codec!r} is not one of {list(EXTENSIONS)}")
         self.path = Path(directory) / name
         self.fps = fps
         self.codec = codec

@@ -30,6 +30,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common.errors import RenderError
 from common.geometry import all_relative_covariances, pd_size_m
 from common.messages import SlamState
 from services.visualiser.glyphs import Ellipsoids, ellipsoids_from_pd
@@ -56,7 +57,7 @@ def select_pairs(n: int, *, mode: str, cluster_ids: np.ndarray | None = None,
     if mode in ("inter", "minmeanmax") and not (mode == "minmeanmax"
                                                  and selected_index is not None):
         if cluster_ids is None:
-            raise ValueError(f"mode {mode!r} needs cluster ids")
+            raise RenderError(f"mode {mode!r} needs cluster ids")
         keep &= cluster_ids[ii] != cluster_ids[jj]
     if selected_index is not None:
         keep &= (ii == selected_index) | (jj == selected_index)

@@ -27,8 +27,7 @@ import numpy as np
 
 from common.bus import Bus
 from common.drops import DropCounter
-from common.errors import ConfigError
-from common.keys import Keys, check_name
+from common.keys import Keys
 from common.messages import CameraFrame, Health, Registration, SlamState, Truth
 from services.visualiser.camera_model import CameraModel
 from services.visualiser.clusters import ClusterTracker, cluster_labels
@@ -36,7 +35,7 @@ from services.visualiser.intake import Queue, RateMeter, Slot, decode
 from services.visualiser.recording import Recorder, recording_name
 from services.visualiser.render import Renderer, side_by_side
 from services.visualiser.series import SeriesStore
-from services.visualiser.settings import ViewSettings
+from services.visualiser.settings import ViewerConfig, ViewSettings
 from services.visualiser.views import (
     DEFAULT_BOUNDS,
     Eye,
@@ -48,59 +47,10 @@ from services.visualiser.views import (
 
 log = logging.getLogger("slamlens.viewer")
 
-VIEWS = ("auto", "camera", "map", "stereo")
 #: the newest tracked pose is compared with the estimate of the state nearest its stamp,
 #: if one is within this (s): the robot moves, so only the same instant is a fair comparison
 #: (the camera's pose lags the newest state by its capture and detection time)
 TRACKED_MATCH_S = 0.06
-
-
-@dataclass(frozen=True)
-class ViewerConfig:
-    """Settings of ``slamlens viewer`` (TOML file first, flags over it)."""
-
-    robot: str = "robot1"  #: robot whose state is shown
-    camera: str | None = None  #: camera to draw over; None: the map view
-    view: str = field(default="auto", metadata={"choices": VIEWS})
-    #: auto: camera if one is named, else map; stereo: cameras C-left / C-right if
-    #: registered, else a stereo pair of the map view
-    http: str = "127.0.0.1:8080"  #: HOST:PORT of the web viewer (port 0: any free port)
-    fps: float = field(default=30.0, metadata={"min": 0.5})  #: render rate cap, Hz
-    jpeg_quality: int = field(default=80, metadata={"min": 10})  #: 10-100
-    recordings_dir: str = "recordings"  #: where video recordings are written
-    record_codec: str = field(default="mp4v", metadata={"choices": ("mp4v", "MJPG")})
-    stereo_baseline_m: float = field(default=0.065, metadata={"min": 1e-3})  #: map stereo, m
-    map_width: int = field(default=1280, metadata={"min": 64})  #: map view size, px
-    map_height: int = field(default=720, metadata={"min": 64})
-    series_length: int = field(default=600, metadata={"min": 2})  #: samples kept per plot
-    series_interval_s: float = field(default=0.2, metadata={"min": 0.0})  #: plot sampling
-    client_ttl_s: float = field(default=5.0, metadata={"min": 0.1})  #: view kept rendering
-    late_join_timeout_s: float = field(default=2.0, metadata={"min": 0.0})
-
-    def __post_init__(self) -> None:
-        check_name("robot", self.robot)
-        if self.camera is not None:
-            check_name("camera", self.camera)
-        if not 10 <= self.jpeg_quality <= 100:
-            raise ConfigError(f"setting 'jpeg_quality': {self.jpeg_quality} is not in 10-100")
-        if self.view == "camera" and self.camera is None:
-            raise ConfigError("setting 'view': 'camera' needs a camera (--camera C)")
-
-    @property
-    def resolved_view(self) -> str:
-        if self.view == "auto":
-            return "camera" if self.camera else "map"
-        return self.view
-
-    @property
-    def cameras(self) -> tuple[str, ...]:
-        """Cameras whose frames and registrations this viewer subscribes to."""
-        view = self.resolved_view
-        if view == "camera" and self.camera:
-            return (self.camera,)
-        if view == "stereo" and self.camera:
-            return (f"{self.camera}-left", f"{self.camera}-right")
-        return ()
 
 
 def _store(offer: Callable[[bytes], None]) -> Callable[[str, bytes], None]:

@@ -1,10 +1,14 @@
-"""What a viewer wants to see: one frozen ``ViewSettings`` per client (SPEC §6, paper §3.2).
+"""Settings of the viewer: ``ViewerConfig`` (the service) and ``ViewSettings`` (each view).
 
-Colours are OpenCV BGR tuples with the paper's defaults (robot and path green, heading
-arrow yellow, features cyan, pair lines yellow, correlation ellipsoids red); violations
-and suspects are magenta, which the paper does not use, so they cannot be mistaken for
-ordinary glyphs. Every field can come from a TOML file (``load_settings``), from a web
-page's query string (``from_query``) or from code (``replace``); bad values raise
+``ViewerConfig`` is ``slamlens viewer``'s: every field a TOML key of ``--config FILE`` and a
+flag over it (:func:`common.config.setting`; docs/cli.md lists them all).
+
+``ViewSettings`` is what one viewer wants to see (SPEC §6, paper §3.2), one frozen object
+per client. Colours are OpenCV BGR tuples with the paper's defaults (robot and path green,
+heading arrow yellow, features cyan, pair lines yellow, correlation ellipsoids red);
+violations and suspects are magenta, which the paper does not use, so they cannot be
+mistaken for ordinary glyphs. Every field can come from a TOML file (``load_settings``),
+from a web page's query string (``from_query``) or from code (``replace``); bad values raise
 :class:`~common.errors.ConfigError` naming the field.
 """
 
@@ -15,9 +19,12 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from common.config import settings_from_mapping
+from common.config import setting, settings_from_mapping
 from common.errors import ConfigError
+from common.keys import check_name
 
+VIEWS = ("auto", "camera", "map", "stereo")
+CODECS = ("mp4v", "MJPG")
 MODES = ("all", "inter", "minmeanmax")
 GLYPHS = ("sigma", "linear")
 LAYERS = ("robot", "path", "features", "lines", "ellipsoids", "legend", "labels", "health")
@@ -128,3 +135,58 @@ class ViewSettings:
         """Plain JSON-able values (colours as lists), e.g. for the web page."""
         return {f.name: list(v) if isinstance(v := getattr(self, f.name), tuple) else v
                 for f in dataclasses.fields(self)}
+
+
+@dataclass(frozen=True)
+class ViewerConfig:
+    """``slamlens viewer``: the AR renderer and its web viewers (docs/viewer.md)."""
+
+    robot: str = setting("robot1", doc="robot whose state is shown")
+    camera: str | None = setting(None, doc="camera to draw over; none: the map view",
+                                 metavar="C")
+    view: str = setting("auto", doc="auto: the camera if one is named, else the map; "
+                                    "stereo: cameras C-left / C-right if registered, else a "
+                                    "stereo pair of the map view", choices=VIEWS)
+    http: str = setting("127.0.0.1:8080", doc="address of the web viewer (port 0: any free "
+                                              "port; the URL is printed)", metavar="HOST:PORT")
+    fps: float = setting(30.0, doc="render rate cap", unit="Hz", min=0.5)
+    jpeg_quality: int = setting(80, doc="JPEG quality of the stream", min=10, max=100)
+    recordings_dir: str = setting("recordings", doc="where video recordings are written",
+                                  metavar="DIR")
+    record_codec: str = setting("mp4v", doc="video codec: mp4v (.mp4) or MJPG (.avi)",
+                                choices=CODECS)
+    stereo_baseline_m: float = setting(0.065, doc="baseline of the map view's stereo pair",
+                                       unit="m", min=1e-3, flag="--stereo-baseline",
+                                       metavar="B")
+    map_width: int = setting(1280, doc="map view width", unit="px", min=64)
+    map_height: int = setting(720, doc="map view height", unit="px", min=64)
+    series_length: int = setting(600, doc="samples kept per plot", min=2)
+    series_interval_s: float = setting(0.2, doc="plot sampling interval", unit="s", min=0.0)
+    client_ttl_s: float = setting(5.0, doc="a view keeps rendering this long after its last "
+                                           "client request", unit="s", min=0.1)
+    late_join_timeout_s: float = setting(2.0, doc="at start, wait this long for the latest "
+                                                  "state and registrations (0 = do not ask)",
+                                         unit="s", min=0.0)
+
+    def __post_init__(self) -> None:
+        check_name("robot", self.robot)
+        if self.camera is not None:
+            check_name("camera", self.camera)
+        if self.view == "camera" and self.camera is None:
+            raise ConfigError("setting 'view': 'camera' needs a camera (--camera C)")
+
+    @property
+    def resolved_view(self) -> str:
+        if self.view == "auto":
+            return "camera" if self.camera else "map"
+        return self.view
+
+    @property
+    def cameras(self) -> tuple[str, ...]:
+        """Cameras whose frames and registrations this viewer subscribes to."""
+        view = self.resolved_view
+        if view == "camera" and self.camera:
+            return (self.camera,)
+        if view == "stereo" and self.camera:
+            return (f"{self.camera}-left", f"{self.camera}-right")
+        return ()

@@ -13,7 +13,7 @@ import pytest
 
 from common.geometry import all_relative_covariances
 from services.slam.consistency import monte_carlo, run
-from services.slam.estimator import EstimatorSettings
+from services.slam.settings import EstimatorSettings
 from services.slam.world import load_world
 
 WORLD = load_world("paper")

@@ -20,9 +20,9 @@ import pytest
 from scipy.stats import chi2
 
 from common.messages import Health, Odometry, SlamState, Truth
-from services.slam.estimator import Estimator, EstimatorSettings
+from services.slam.estimator import Estimator
 from services.slam.monitor import Monitor
-from services.slam.monitor_settings import MonitorSettings
+from services.slam.settings import EstimatorSettings, MonitorSettings
 from services.slam.sim import Simulator, first_seen_times
 from services.slam.world import load_world
 

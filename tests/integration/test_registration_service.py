@@ -362,8 +362,7 @@ def test_cli_process_publishes_and_stops_cleanly_on_sigterm(router_endpoint,
                  router_endpoint, "--camera", "c1", "--robot", "r9", "--fps", "15", "--width",
                  "960", "--height", "540", "--marker-offset", "0,0,0.2")
     try:
-        line = proc.stdout.readline()
-        assert "registration ready: c1" in line, proc.stderr.read() if proc.poll() else line
+        proc.wait_for_line("registration ready: c1")
         pub = client.publisher(KEYS.truth("r9"))
         deadline = time.monotonic() + 20
         while len(registrations) == 0 and time.monotonic() < deadline:

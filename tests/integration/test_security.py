@@ -26,7 +26,7 @@ from common.bus import ZenohBus
 from common.certs import extend_authority
 from common.errors import BusError, SecurityError
 from common.session import BusSettings, free_tcp_endpoint, open_bus
-from tests.procs import REPO, Output, slamlens_cmd, spawn
+from tests.procs import REPO, slamlens_cmd, spawn, stop
 
 NAMES = ["router-ws", "robot-r1", "robot-r2", "camera-overhead", "monitor-r1", "viewer-lab"]
 STATE = "slamlens/robot/r1/state"
@@ -37,18 +37,28 @@ class RouterProcess:
     """A `slamlens router` process whose log is collected as it is written."""
 
     def __init__(self, *args: str) -> None:
-        self.output = Output(spawn("router", *args))
-        self.output.wait("router ready", timeout=30)
+        self.proc = spawn("router", *args)
+        self.proc.wait_for_line("router ready", timeout=30)
 
     @property
     def lines(self) -> list[str]:
-        return self.output.stderr
+        return [line.rstrip("\n") for line in self.proc.err]
 
     def wait_log(self, text: str, timeout: float = 10.0) -> str:
-        return self.output.wait(text, stream="stderr", timeout=timeout)
+        """The first line of the router's log containing ``text``, once it is written."""
+        deadline = time.monotonic() + timeout
+        while True:
+            line = next((x for x in self.lines if text in x), None)
+            if line is not None:
+                return line
+            if time.monotonic() > deadline or self.proc.poll() is not None:
+                raise AssertionError(f"router never logged {text!r}; log:\n"
+                                     + "\n".join(self.lines))
+            time.sleep(0.05)
 
     def close(self) -> None:
-        assert self.output.stop() == 0, "\n".join(self.lines)
+        stop(self.proc)
+        assert self.proc.returncode == 0, "\n".join(self.lines)
 
 
 @pytest.fixture(scope="module")

@@ -42,7 +42,7 @@ def test_paper_run_every_state_received_in_order(router_endpoint, make_client, e
     client = make_client()
     got = _Collector()
     client.subscribe(KEYS.state("r1"), got)
-    time.sleep(0.3)
+    assert make_client().wait_for_subscriber(KEYS.state("r1"))  # ours reached the router
     sim = spawn("sim", "--robot", "r1", "--rate", "0", "--loops", "1", "--seed", "3",
                 "--connect", router_endpoint)
     out, err = sim.communicate(timeout=120)
@@ -86,7 +86,14 @@ def test_third_party_client_from_spec_only(router_endpoint, estimator):
         sub = session.declare_subscriber(
             "slamlens/robot/r1/state",
             lambda s: received.append(msgpack.unpackb(s.payload.to_bytes(), raw=False)))
-        time.sleep(0.3)
+        # our subscriber is declared on this session's link before anything we publish;
+        # the estimator's input subscription is another session's: wait until it matches
+        probe = session.declare_publisher("slamlens/robot/r1/odometry")
+        deadline = time.monotonic() + 10
+        while not probe.matching_status and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert probe.matching_status
+        probe.undeclare()
         put = session.put
         put("slamlens/robot/r1/odometry", msgpack.packb(
             {"schema": 1, "robot": "r1", "stamp": 0.1, "dt": 0.1, "v": 0.2, "w": 0.0}))
@@ -124,7 +131,9 @@ def test_estimator_survives_garbage(router_endpoint, make_client, estimator):
     client = make_client()
     got = _Collector()
     client.subscribe(KEYS.state("r1"), got)
-    time.sleep(0.3)
+    probe = make_client()
+    assert probe.wait_for_subscriber(KEYS.state("r1"))  # ours reached the router
+    assert probe.wait_for_subscriber(KEYS.odometry("r1"))  # and the estimator's
     odo = client.publisher(KEYS.odometry("r1"))
     odo.put(b"\x00garbage")
     odo.put(msgpack.packb({"schema": 1, "robot": "r1", "stamp": 1.0, "dt": 0.1,

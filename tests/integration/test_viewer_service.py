@@ -20,7 +20,8 @@ import pytest
 
 from common.keys import Keys
 from common.messages import CameraFrame, Health, Registration, SlamState, Violation
-from services.visualiser.service import ViewerConfig, ViewerService
+from services.visualiser.service import ViewerService
+from services.visualiser.settings import ViewerConfig
 from services.visualiser.web import WebServer
 
 KEYS = Keys()

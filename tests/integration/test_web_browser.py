@@ -22,7 +22,8 @@ import pytest
 
 from common.keys import Keys
 from common.messages import SlamState
-from services.visualiser.service import ViewerConfig, ViewerService
+from services.visualiser.service import ViewerService
+from services.visualiser.settings import ViewerConfig
 from services.visualiser.web import WebServer
 
 CHROMIUM = os.environ.get("SLAMLENS_CHROMIUM", "/usr/bin/chromium")

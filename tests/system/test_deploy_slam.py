@@ -45,7 +45,12 @@ def test_paper_run_from_deploy_configs(router, estimator_config, expected_suspec
                 healths.append(Health.from_bytes(payload))
 
         bus.subscribe(KEYS.health("robot1"), on_health)
-        time.sleep(0.3)
+        probe = open_bus(BusSettings(connect=(router,)))
+        try:  # our subscriber and the monitor's reached the router
+            assert probe.wait_for_subscriber(KEYS.health("robot1"))
+            assert probe.wait_for_subscriber(KEYS.state("robot1"))
+        finally:
+            probe.close()
         sim = subprocess.run(slamlens_cmd("sim", "--config", str(DEPLOY / "sim_paper.toml"),
                                           "--connect", router),
                              cwd=REPO, capture_output=True, text=True, timeout=180)

@@ -8,10 +8,11 @@ import numpy as np
 import pytest
 
 from common.config import load_settings
-from common.errors import ConfigError
+from common.errors import ConfigError, EstimationError
 from common.messages import SlamState
 from services.slam import association, ekf
-from services.slam.estimator import Estimator, EstimatorSettings
+from services.slam.estimator import Estimator
+from services.slam.settings import EstimatorSettings
 
 SIG_R, SIG_B = 0.05, 0.02
 
@@ -192,7 +193,7 @@ def test_ambiguous_observation_is_discarded_without_changing_state() -> None:
 def test_bad_odometry_raises_and_leaves_state_unchanged(kwargs: dict[str, float]) -> None:
     est = mapped_estimator(np.random.default_rng(4), rounds=2)
     before = snapshot(est)
-    with pytest.raises(ValueError):
+    with pytest.raises(EstimationError):
         est.predict(stamp=1.0, **kwargs)
     assert_same(before, snapshot(est))
 
@@ -208,10 +209,10 @@ def test_bad_odometry_raises_and_leaves_state_unchanged(kwargs: dict[str, float]
 def test_bad_observations_raise_and_leave_state_unchanged(batch: dict[str, list]) -> None:
     est = mapped_estimator(np.random.default_rng(5), rounds=2)
     before = snapshot(est)
-    with pytest.raises(ValueError):
+    with pytest.raises(EstimationError):
         est.observe(stamp=1.0, **batch)
     assert_same(before, snapshot(est))
-    with pytest.raises(ValueError):
+    with pytest.raises(EstimationError):
         est.observe(ids=[3], ranges=[1.0], bearings=[0.0], stamp=math.nan)
 
 

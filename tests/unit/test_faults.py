@@ -14,7 +14,8 @@ import pytest
 
 from common.geometry import relative_covariance
 from services.slam import ekf
-from services.slam.estimator import Estimator, EstimatorSettings
+from services.slam.estimator import Estimator
+from services.slam.settings import EstimatorSettings
 
 FAULTY = (2, 5)
 LANDMARKS = {i + 1: np.array([2.2 * math.cos(a), 1.0 + 2.2 * math.sin(a)])

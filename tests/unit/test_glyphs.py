@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from common.errors import ConfigError
 from common.geometry import make_T, rot_z
 from services.visualiser.camera_model import CameraModel
 from services.visualiser.glyphs import (
@@ -78,7 +79,7 @@ def test_semi_axes_per_glyph_mode() -> None:
     a, b = semi_axes(lam1, lam2, glyph="linear", sigma_k=2.0, scale=3.0)
     np.testing.assert_allclose(a, 3.0 * lam1)  # the paper: axis length = eigenvalue
     np.testing.assert_allclose(b, [0.03, 0.0])
-    with pytest.raises(ValueError):
+    with pytest.raises(ConfigError, match="unknown glyph mode"):
         semi_axes(lam1, lam2, glyph="area", sigma_k=2.0, scale=1.0)
 
 

@@ -17,8 +17,8 @@ from common.messages import Health, SlamState, Truth
 from services.slam import monitor_checks as checks
 from services.slam.monitor import Monitor
 from services.slam.monitor_blame import Evidence, blame_weights
-from services.slam.monitor_settings import MonitorSettings
 from services.slam.monitor_stats import WindowTest, pose_nees, quadratic_forms_2x2
+from services.slam.settings import MonitorSettings
 
 SIGMAS = dict(sigma_v=0.05, sigma_w=0.05, sigma_r=0.05, sigma_b=0.02)
 

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 from marker_render import PlacedMarker, look_at, render, true_corners
 
-from common.errors import ConfigError, SourceError
+from common.errors import ConfigError, GeometryError, SourceError
 from common.geometry import T_from_pose2, invert_T, make_T, rot_z, rotation_angle_deg
 from services.registration import markers
 from services.registration.board import (
@@ -127,7 +127,7 @@ def test_face_on_far_marker_pose_from_a_few_averaged_frames() -> None:
         T, _ = marker_pose(mean_detection(frames), size_m=0.2, calib=CALIB)
         dt, dr = pose_error(T, T_true)
         assert dt < MM and dr < DEG, (trial, dt, dr)
-    with pytest.raises(ValueError, match="one marker id"):
+    with pytest.raises(GeometryError, match="one marker id"):
         mean_detection([frames[0], Detection(4, frames[0].corners_px)])
 
 

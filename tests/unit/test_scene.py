@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from common.errors import RenderError
 from common.geometry import relative_covariance
 from common.messages import SlamState
 from services.visualiser.glyphs import eig_sym2
@@ -64,7 +65,7 @@ def test_select_pairs_per_mode_and_selection() -> None:
     assert list(zip(ii.tolist(), jj.tolist(), strict=True)) == [(0, 1), (1, 2), (1, 3)]
     ii, jj = select_pairs(4, mode="inter", cluster_ids=CLUSTERS, selected_index=1)
     assert list(zip(ii.tolist(), jj.tolist(), strict=True)) == [(1, 2), (1, 3)]
-    with pytest.raises(ValueError):
+    with pytest.raises(RenderError, match="needs cluster ids"):
         select_pairs(4, mode="inter")
 
 

@@ -239,7 +239,7 @@ def test_png_snapshot_round_trips() -> None:
 # -- configuration ------------------------------------------------------------------------
 def test_viewer_config_from_toml_and_flags(tmp_path: Path) -> None:
     from common.config import load_settings
-    from services.visualiser.service import ViewerConfig
+    from services.visualiser.settings import ViewerConfig
 
     path = tmp_path / "viewer.toml"
     path.write_text('robot = "r2"\ncamera = "head"\nview = "stereo"\nfps = 15\n')

@@ -1,4 +1,4 @@
-"""Regenerate the paper's Figs. 3-8 (``slamlens figures``) into ``docs/figures/``.
+"""``slamlens figures``: regenerate the paper's Figs. 3-8 into ``docs/figures/``.
 
 Paper §4: the simulated 15-feature, three-cluster world (``services/slam/worlds/paper.toml``)
 run twice, once correct and once with the planted programming fault, each shown at the start
@@ -21,22 +21,39 @@ acts from ``fault_onset_s``, after the start picture, so (a) is the same picture
 and only (b) differs, as in the paper. The picture behind the overlay is the synthetic
 overhead camera (``services/registration/synthetic.py``) seeing the true robot and the true
 features as posts, so estimated cones can be compared with the truth as in the paper's
-photographs. This module is a tool: it imports the simulator and estimator, which the
-viewer service never does.
+photographs.
+
+This is a composition-level tool, like ``services/demo.py``: it joins the simulator and the
+estimator (SLAM), the synthetic camera (registration) and the renderer (viewer) in one
+process, which no service may do. Its settings are :class:`services.settings.FigureSettings`.
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from common.cli import setup_logging
+from common.config import settings_from_args
+from common.errors import RenderError
 from common.geometry import invert_T
 from common.messages import Odometry, SlamState, Truth
+from services.registration.synthetic import (
+    ImagingSettings,
+    SceneSettings,
+    SyntheticCamera,
+    look_at,
+)
+from services.settings import FigureSettings
+from services.slam.estimator import Estimator
+from services.slam.settings import EstimatorSettings
+from services.slam.sim import Simulator
+from services.slam.world import load_world
 from services.visualiser.camera_model import CameraModel
 from services.visualiser.draw import text
 from services.visualiser.render import Renderer
@@ -52,23 +69,6 @@ FIGURES: dict[int, tuple[str, bool]] = {
 
 
 @dataclass(frozen=True)
-class FigureSettings:
-    """The runs and the view behind the figures."""
-
-    seed: int = 1  #: simulator seed of both runs
-    world: str = "paper"
-    fault: str = "map-update"
-    faulty_features: tuple[int, ...] = (3, 12)  #: one feature in cluster A, one in C
-    fault_onset_s: float = 12.0  #: after the start picture (all 15 mapped at ~10 s)
-    width: int = 960  #: pixels; small enough to keep twelve PNGs in the repository
-    height: int = 540
-    blur_px: int = 3  #: the synthetic camera's lens blur (a real camera is never pin-sharp)
-    eye_m: tuple[float, float, float] = (0.5, -1.3, 3.0)  #: ceiling camera, slightly oblique
-    target_m: tuple[float, float, float] = (0.5, 0.5, 0.0)
-    view: ViewSettings = field(default_factory=ViewSettings)
-
-
-@dataclass(frozen=True)
 class Snapshot:
     """One state to draw, with the truth at that time and the estimated path up to it."""
 
@@ -79,10 +79,6 @@ class Snapshot:
 
 def simulate(settings: FigureSettings, *, faulty: bool) -> tuple[Snapshot, Snapshot]:
     """Run the simulator into the estimator; return the (start, end) snapshots."""
-    from services.slam.estimator import Estimator, EstimatorSettings
-    from services.slam.sim import Simulator
-    from services.slam.world import load_world
-
     world = load_world(settings.world)
     sim = Simulator(world, seed=settings.seed)
     est_settings = (EstimatorSettings(fault=settings.fault,
@@ -112,19 +108,12 @@ def simulate(settings: FigureSettings, *, faulty: bool) -> tuple[Snapshot, Snaps
         if start is None and state.n == world.n_landmarks:
             start = last
     if start is None or last is None:
-        raise RuntimeError("the simulated run never mapped every feature")
+        raise RenderError("the simulated run never mapped every feature")
     return start, last
 
 
-def overhead_camera(settings: FigureSettings) -> tuple[object, CameraModel]:
+def overhead_camera(settings: FigureSettings) -> tuple[SyntheticCamera, CameraModel]:
     """The synthetic ceiling camera and the same camera as a CameraModel."""
-    from services.registration.synthetic import (
-        ImagingSettings,
-        SceneSettings,
-        SyntheticCamera,
-        look_at,
-    )
-
     T_world_from_camera = look_at(settings.eye_m, settings.target_m)
     f = 0.62 * settings.width  # ~78° horizontal field of view: the arena fills the frame
     K = np.array([[f, 0.0, settings.width / 2], [0.0, f, settings.height / 2], [0, 0, 1.0]])
@@ -138,10 +127,11 @@ def overhead_camera(settings: FigureSettings) -> tuple[object, CameraModel]:
     return synthetic, camera
 
 
-def draw_snapshot(snapshot: Snapshot, *, mode: str, synthetic: object, camera: CameraModel,
+def draw_snapshot(snapshot: Snapshot, *, mode: str, synthetic: SyntheticCamera,
+                  camera: CameraModel,
                   view: ViewSettings, caption: str) -> np.ndarray:
     """One figure panel: the camera picture with the state drawn over it."""
-    frame = synthetic.render(robot_pose=snapshot.truth.pose,  # type: ignore[attr-defined]
+    frame = synthetic.render(robot_pose=snapshot.truth.pose,
                              landmarks_xy=snapshot.truth.landmarks)
     renderer = Renderer()
     for k, xy in enumerate(snapshot.path_xy):
@@ -153,9 +143,10 @@ def draw_snapshot(snapshot: Snapshot, *, mode: str, synthetic: object, camera: C
     return image
 
 
-def generate_figures(output_dir: str | Path, settings: FigureSettings = FigureSettings()
+def generate_figures(output_dir: str | Path, settings: FigureSettings | None = None
                      ) -> list[Path]:
     """Write fig3a.png … fig8b.png into ``output_dir``; return the paths."""
+    settings = settings or FigureSettings()
     out = Path(output_dir)
     out.mkdir(parents=True, exist_ok=True)
     runs = {False: simulate(settings, faulty=False), True: simulate(settings, faulty=True)}
@@ -176,11 +167,10 @@ def generate_figures(output_dir: str | Path, settings: FigureSettings = FigureSe
     return written
 
 
-def main(args: argparse.Namespace) -> int:
-    """Entry point of ``slamlens figures`` (``--output-dir``, ``--seed``)."""
-    settings = FigureSettings()
-    if getattr(args, "seed", None) is not None:
-        settings = FigureSettings(seed=int(args.seed))
-    paths = generate_figures(getattr(args, "output_dir", "docs/figures"), settings)
+def run(command: str, args: argparse.Namespace) -> int:
+    """``slamlens figures``: settings from ``--config`` and the flags, then the twelve PNGs."""
+    setup_logging(args, "figures")
+    settings = settings_from_args(FigureSettings, args)
+    paths = generate_figures(settings.output_dir, settings)
     print(f"wrote {len(paths)} images to {Path(paths[0]).parent}")
     return 0

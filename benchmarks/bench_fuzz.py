@@ -1,0 +1,131 @@
+"""≥ 100 000 malformed payloads on every key a service subscribes to (issue 8).
+
+For each service (a real process behind a real router on loopback) and each key it
+subscribes to, this sends ``--count`` payloads from tests/fuzz.py (random bytes, wrong
+types, dtype as a list or an unknown string, 70-dimensional or huge shapes, NaN/∞,
+truncated msgpack …), paced so that none is lost in transit, then one correct message,
+and reports: payloads per second taken, rejections counted against sent, whether the
+correct message still produced correct output, and the exit status on SIGTERM.
+
+Run: ``.venv/bin/python benchmarks/bench_fuzz.py [--count 100000] [--only estimator,monitor]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+from common.keys import Keys  # noqa: E402
+from common.messages import Health, Observations, Odometry, SlamState, Truth  # noqa: E402
+from common.session import BusSettings, free_tcp_endpoint, open_bus  # noqa: E402
+from tests.fuzz import bad_payloads, valid  # noqa: E402
+from tests.procs import spawn, stop  # noqa: E402
+
+KEYS = Keys()
+ROBOT = "robot1"
+
+
+def _final(out: str, name: str) -> dict:
+    line = [ln for ln in out.splitlines() if ln.startswith(f"{name} stopped: ")][-1]
+    return json.loads(line.split(": ", 1)[1])
+
+
+def _send(bus, key: str, kind, count: int, seed: int, *, batch: int = 2000,
+          pause_s: float = 0.02) -> tuple[int, float]:
+    """Send ``count`` bad payloads in batches (a pause between them so that nothing is
+    dropped in transit: what is measured is the service, not the link)."""
+    pub = bus.publisher(key)
+    started = time.monotonic()
+    n = 0
+    for payload in bad_payloads(kind, np.random.default_rng(seed), count):
+        pub.put(payload)
+        n += 1
+        if n % batch == 0:
+            time.sleep(pause_s)
+    return n, time.monotonic() - started
+
+
+def _wait(predicate, timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.05)
+    return predicate()
+
+
+def fuzz_estimator(ep: str, count: int) -> None:
+    est = spawn("estimator", "--robot", ROBOT, "--connect", ep)
+    est.wait_for_line("estimator ready")
+    bus = open_bus(BusSettings(connect=(ep,)))
+    got: list[SlamState] = []
+    bus.subscribe(KEYS.state(ROBOT), lambda k, p: got.append(SlamState.from_bytes(p)))
+    bus.wait_for_subscriber(KEYS.odometry(ROBOT))
+    try:
+        for key, kind, seed in ((KEYS.odometry(ROBOT), Odometry, 1),
+                                (KEYS.observations(ROBOT), Observations, 2)):
+            n, took = _send(bus, key, kind, count, seed)
+            print(f"estimator {key.rsplit('/', 1)[1]}: {n} payloads sent in {took:.1f} s "
+                  f"({n / took:.0f}/s)")
+        bus.publisher(KEYS.odometry(ROBOT)).put(valid(Odometry, robot=ROBOT).to_bytes())
+        correct = _wait(lambda: any(s.step == "predict" for s in got), 120)
+    finally:
+        out, err = stop(est, timeout=30)
+        bus.close()
+    s = _final(out, "estimator")
+    print(f"estimator: rejected {s['dropped']} of {2 * count}, correct state afterwards "
+          f"{correct}, exit {est.returncode}, tracebacks {err.count('Traceback')}")
+
+
+def fuzz_monitor(ep: str, count: int) -> None:
+    mon = spawn("monitor", "--robot", ROBOT, "--connect", ep)
+    mon.wait_for_line("monitor ready")
+    bus = open_bus(BusSettings(connect=(ep,)))
+    got: list[Health] = []
+    bus.subscribe(KEYS.health(ROBOT), lambda k, p: got.append(Health.from_bytes(p)))
+    bus.wait_for_subscriber(KEYS.state(ROBOT))
+    try:
+        for key, kind, seed in ((KEYS.state(ROBOT), SlamState, 3),
+                                (KEYS.truth(ROBOT), Truth, 4),
+                                (KEYS.tracked(ROBOT), Truth, 5)):
+            n, took = _send(bus, key, kind, count, seed)
+            print(f"monitor {key.rsplit('/', 1)[1]}: {n} payloads sent in {took:.1f} s "
+                  f"({n / took:.0f}/s)")
+        bus.publisher(KEYS.state(ROBOT)).put(valid(SlamState, robot=ROBOT).to_bytes())
+        correct = _wait(lambda: any(h.seq == 1 and h.ok for h in got), 120)
+    finally:
+        out, err = stop(mon, timeout=30)
+        bus.close()
+    s = _final(out, "monitor")
+    print(f"monitor: rejected {s['dropped']} of {3 * count}, correct health afterwards "
+          f"{correct}, exit {mon.returncode}, tracebacks {err.count('Traceback')}")
+
+
+SERVICES = {"estimator": fuzz_estimator, "monitor": fuzz_monitor}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--count", type=int, default=100_000, help="payloads per key")
+    ap.add_argument("--only", default=",".join(SERVICES))
+    args = ap.parse_args()
+    ep = free_tcp_endpoint()
+    router = spawn("router", "--listen", ep)
+    router.wait_for_line("router ready")
+    try:
+        for name in args.only.split(","):
+            SERVICES[name](ep, args.count)
+    finally:
+        stop(router)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,171 @@
+"""The estimator's inputs in publication order, each folded in exactly once (SPEC §7a).
+
+Odometry and observations travel on two keys. Zenoh keeps each publisher's samples in
+order (the advanced subscriber holds later samples back while it recovers a missed one
+from the publisher's cache), but nothing orders one key against the other: a recovered
+odometry sample can arrive after a later observation batch. Drivers therefore number
+their inputs with one counter over both keys (``input_seq``, docs/protocol.md), and this
+module releases them strictly in that order:
+
+* the next number of a source is released at once (the common case: no added latency);
+* a later number is held until the missing ones arrive (recovered from the cache), or
+  until ``gap_wait_s`` has passed — then the missing numbers are counted as lost and the
+  held inputs are released in order;
+* a number already released (a duplicate: a recovered copy, a cache replayed after an
+  estimator restart) is discarded.
+
+Drivers count from 1, so a new source is expected from 1: an estimator that joins a
+driver already running waits ``gap_wait_s`` once for numbers it will never see, and those
+are counted as ``joined_late``, not lost.
+
+A *source* is one publishing Zenoh session (the id in the sample's timestamp). Inputs
+without ``input_seq`` — a third-party driver — are released in arrival order, and
+de-duplicated by their Zenoh timestamp (one session's clock strictly increases over all
+its publications).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+#: how long an input that arrived out of order waits for the ones before it (s)
+DEFAULT_GAP_WAIT_S = 2.0
+
+
+@dataclass(frozen=True)
+class Input:
+    """One decoded input and where it came from."""
+
+    leaf: str  #: "odometry" or "observations"
+    message: Any  #: the decoded Odometry / Observations
+    source: str | None = None  #: publishing session (timestamp id), if stamped
+    time: int | None = None  #: publication time (NTP64 of ``source``), if stamped
+
+    @property
+    def seq(self) -> int | None:
+        return getattr(self.message, "input_seq", None)
+
+
+FIRST_SEQ = 1  #: where a driver's ``input_seq`` starts
+
+
+@dataclass
+class _Source:
+    next_seq: int | None = None  #: the number released next
+    started: bool = False  #: released anything yet
+    last_time: int | None = None  #: publication time of the newest input released
+    held: dict[int, Input] = field(default_factory=dict)
+    held_since: float | None = None  #: when the current gap began (monotonic s)
+
+
+@dataclass
+class OrderStats:
+    """What the ordering did (counters, reported by the estimator)."""
+
+    released: int = 0
+    duplicates: int = 0  #: inputs already folded in, discarded
+    reordered: int = 0  #: inputs that arrived early and were held
+    lost: int = 0  #: input numbers never seen, skipped after ``gap_wait_s``
+    joined_late: int = 0  #: numbers a new source had published before we saw it
+
+
+class InputOrder:
+    """Releases inputs in publication order, exactly once (module docstring)."""
+
+    def __init__(self, *, gap_wait_s: float = DEFAULT_GAP_WAIT_S,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self._gap_wait_s = float(gap_wait_s)
+        self._clock = clock
+        self._sources: dict[str | None, _Source] = {}
+        self.stats = OrderStats()
+
+    # -- positions (what a checkpoint keeps) ---------------------------------------------
+    def positions(self) -> dict[str, dict[str, int | None]]:
+        """Per source, the next input number and the newest publication time released."""
+        return {src or "": {"next_seq": s.next_seq, "last_time": s.last_time}
+                for src, s in self._sources.items()}
+
+    def resume(self, positions: Mapping[str, Mapping[str, Any]]) -> None:
+        """Continue after ``positions`` (from :meth:`positions`): anything at or before
+        them is a duplicate."""
+        for src, pos in positions.items():
+            self._sources[src or None] = _Source(next_seq=pos.get("next_seq"),
+                                                 last_time=pos.get("last_time"),
+                                                 started=True)
+
+    @property
+    def held(self) -> int:
+        """Inputs waiting for an earlier one."""
+        return sum(len(s.held) for s in self._sources.values())
+
+    # -- the ordering -----------------------------------------------------------------
+    def offer(self, item: Input) -> list[Input]:
+        """Take one arrived input; return what can be applied now, in order."""
+        src = self._sources.setdefault(item.source, _Source())
+        seq = item.seq
+        if seq is None:  # no number: arrival order, duplicates told by the Zenoh clock
+            if item.time is not None and src.last_time is not None \
+                    and item.time <= src.last_time:
+                self.stats.duplicates += 1
+                return []
+            self._advance(src, item)
+            return [item]
+        if src.next_seq is None:
+            src.next_seq = FIRST_SEQ
+        if seq < src.next_seq or seq in src.held:
+            self.stats.duplicates += 1
+            return []
+        if seq > src.next_seq:
+            src.held[seq] = item
+            self.stats.reordered += 1
+            if src.held_since is None:
+                src.held_since = self._clock()
+            return []
+        out = [item]
+        self._advance(src, item)
+        self._drain(src, out)
+        return out
+
+    def next_deadline(self) -> float | None:
+        """When the oldest gap gives up (monotonic s), or None if nothing is held."""
+        times = [s.held_since + self._gap_wait_s for s in self._sources.values()
+                 if s.held and s.held_since is not None]
+        return min(times) if times else None
+
+    def expire(self) -> list[Input]:
+        """Give up on gaps older than ``gap_wait_s``: count them lost, release what
+        waited behind them."""
+        now = self._clock()
+        out: list[Input] = []
+        for src in self._sources.values():
+            while src.held and src.held_since is not None \
+                    and now - src.held_since >= self._gap_wait_s:
+                first = min(src.held)
+                assert src.next_seq is not None
+                if src.started:
+                    self.stats.lost += first - src.next_seq
+                else:
+                    self.stats.joined_late += first - src.next_seq
+                src.next_seq = first
+                src.held_since = None
+                self._drain(src, out)
+        return out
+
+    def _advance(self, src: _Source, item: Input) -> None:
+        src.started = True
+        if item.seq is not None:
+            src.next_seq = item.seq + 1
+        if item.time is not None:
+            src.last_time = item.time if src.last_time is None else max(src.last_time,
+                                                                         item.time)
+        self.stats.released += 1
+
+    def _drain(self, src: _Source, out: list[Input]) -> None:
+        while src.next_seq in src.held:
+            item = src.held.pop(src.next_seq)
+            self._advance(src, item)
+            out.append(item)
+        src.held_since = self._clock() if src.held else None

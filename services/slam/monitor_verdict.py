@@ -1,0 +1,103 @@
+"""One verdict per robot that a person can trust (issue 8 item 9; issue 11 item 4).
+
+``Health.ok`` says whether *this* state broke anything; a person wants to know whether the
+estimator is right *now*, and a single clean state proves nothing while a fault stands (an
+update fault shows only on update states, for instance). :class:`Verdict` keeps the
+violations that stand and gives one word for them:
+
+* ``fault`` — a covariance theorem or a structural property is broken (pair, feature,
+  prediction, symmetry, psd, correlation): a programming fault in the estimator;
+* ``tuning`` — only the statistical tests fail (NEES / NIS outside their bands): the filter
+  is overconfident or its models do not fit the data, but it computes what it should;
+* ``ok`` — nothing stands.
+
+Clearance rule (docs/monitor.md): a violation stands from the state it was seen in until
+``clear_after`` further states were checked without it (same kind, same ids); a ``fault``
+also stands while the monitor names any suspect (its blame evidence decays with the
+monitor's half-life). The page, the picture's legend, the terminal and ``slamlens status``
+all show this one verdict and its standing violations.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+from common.messages import Violation
+
+FAULT_KINDS = ("pair", "feature", "prediction", "symmetry", "psd", "correlation")
+TUNING_KINDS = ("nees", "nis")
+VERDICTS = ("ok", "fault", "tuning")
+_RANK = {k: i for i, k in enumerate(FAULT_KINDS + TUNING_KINDS)}
+#: the verdict in words, as every view shows it
+WORDS = {"ok": "ok", "fault": "estimator fault",
+         "tuning": "inconsistent tuning or model mismatch"}
+
+
+@dataclass
+class _Standing:
+    first: int  #: seq where first seen
+    last: int  #: seq where last seen
+    count: int  #: states it was seen in
+    worst: Violation  #: the largest value seen
+    shown: Violation | None = None  #: as listed (rebuilt only when it changed)
+
+
+class Verdict:
+    """The standing violations and the one-word verdict (module docstring)."""
+
+    def __init__(self, *, clear_after: int = 200, max_listed: int = 20) -> None:
+        self.clear_after = int(clear_after)
+        self.max_listed = int(max_listed)
+        self.reset()
+
+    def reset(self) -> None:
+        self._standing: dict[tuple[str, tuple[int, ...]], _Standing] = {}
+        self._listed: tuple[Violation, ...] | None = ()  #: None: to be rebuilt
+        self.verdict = "ok"
+        self.since: int | None = None  #: seq where the current verdict began
+
+    def update(self, seq: int, found: list[Violation], suspects: tuple[int, ...]) -> str:
+        """Take the violations of state ``seq`` and the current suspects; the verdict."""
+        for v in found:
+            key = (v.kind, tuple(sorted(v.ids)))
+            s = self._standing.get(key)
+            if s is None:
+                self._standing[key] = _Standing(first=seq, last=seq, count=1, worst=v)
+            else:
+                s.last, s.count, s.shown = seq, s.count + 1, None
+                if v.value > s.worst.value:
+                    s.worst = v
+            self._listed = None
+        expired = [k for k, s in self._standing.items() if seq - s.last > self.clear_after]
+        for key in expired:
+            del self._standing[key]
+            self._listed = None
+        kinds = {k for k, _ in self._standing}
+        if kinds & set(FAULT_KINDS) or suspects:
+            verdict = "fault"
+        elif kinds & set(TUNING_KINDS):
+            verdict = "tuning"
+        else:
+            verdict = "ok"
+        if verdict != self.verdict:
+            self.verdict, self.since = verdict, (None if verdict == "ok" else seq)
+        return verdict
+
+    def standing(self) -> tuple[Violation, ...]:
+        """The standing violations, faults first then the largest, each once with the
+        seq where it began (``first_step``) and how many states showed it."""
+        if self._listed is not None:  # nothing changed since the last state: on a hot path
+            return self._listed
+        items = sorted(self._standing.values(),
+                       key=lambda s: (_RANK.get(s.worst.kind, 99), -s.worst.value))
+        for s in items[:self.max_listed]:
+            if s.shown is None:
+                s.shown = dataclasses.replace(s.worst, step=s.last, first_step=s.first,
+                                              count=s.count)
+        self._listed = tuple(s.shown for s in items[:self.max_listed])  # type: ignore[misc]
+        return self._listed
+
+    @property
+    def standing_count(self) -> int:
+        return len(self._standing)

@@ -1,0 +1,251 @@
+"""Settings of the SLAM side: ``sim``, ``replay``, ``serial``, ``estimator`` and ``monitor``.
+
+One frozen dataclass per command; every field is a TOML key of ``--config FILE`` and a
+flag over it (:func:`common.config.setting`; docs/cli.md lists them all). No numpy here:
+``slamlens estimator --help`` must not load it before the one-BLAS-thread default is set.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+from common.config import setting
+from common.errors import ConfigError
+
+#: planted fault kinds (services/slam/faults.py says what each does)
+NONE, MAP_UPDATE, CROSS_COVARIANCE = "none", "map-update", "cross-covariance"
+FAULT_KINDS = (NONE, MAP_UPDATE, CROSS_COVARIANCE)
+
+
+def _robot() -> str:
+    return setting("robot1", doc="robot name, a key segment")
+
+
+# ------------------------------------------------------------------------------ drivers
+
+
+@dataclass(frozen=True)
+class SimSettings:
+    """``slamlens sim``: the simulated robot (docs/simulator.md)."""
+
+    robot: str = _robot()
+    scenario: str = setting("paper", doc="world: a packaged world name (paper, grid) or the "
+                                         "path of a world TOML file", metavar="WORLD")
+    seed: int = setting(0, doc="random seed: same seed, same run")
+    rate: float = setting(1.0, doc="× real time; 0 = as fast as possible", min=0.0)
+    loops: int = setting(0, doc="laps of the waypoint loop; 0 = the world's default", min=0)
+    anonymous: bool = setting(False, doc="publish landmark id −1 (the estimator associates)")
+    wait_for_estimator: bool = setting(
+        True, doc="wait until the robot's estimator is alive before the first message",
+        flag="--no-wait")
+    wait_timeout_s: float = setting(60.0, doc="give up waiting for the estimator after this",
+                                    unit="s", min=0.0)
+    hold_s: float = setting(
+        0.0, doc="stand at the start pose (truth repeated at 10 Hz) before moving, so that a "
+                 "camera can register the map frame there (paper §3.1)", unit="s", min=0.0,
+        flag="--hold", metavar="SECONDS")
+
+
+@dataclass(frozen=True)
+class ReplaySettings:
+    """``slamlens replay``: a recorded dataset as a robot driver (docs/drivers.md)."""
+
+    path: str = setting("", doc="dataset folder (e.g. ../shared/data/mrclam6)",
+                        positional=True, required=True, metavar="PATH")
+    robot: str = _robot()
+    format: str = setting("mrclam", doc="dataset format", choices=("mrclam",))
+    robot_index: int = setting(1, doc="which robot of the dataset: MRCLAM Robot{k}_*.dat",
+                               min=1)
+    rate: float = setting(1.0, doc="× real time; 0 = as fast as possible", min=0.0)
+    start_s: float = setting(0.0, doc="dataset seconds to skip from the start", unit="s",
+                             flag="--start", metavar="SECONDS")
+    duration_s: float = setting(0.0, doc="dataset seconds to play; 0 = all", unit="s",
+                                flag="--duration", metavar="SECONDS")
+    wait_for_estimator: bool = setting(
+        True, doc="wait until the robot's estimator is alive before the first message",
+        flag="--no-wait")
+    wait_timeout_s: float = setting(60.0, doc="give up waiting for the estimator after this",
+                                    unit="s", min=0.0)
+
+
+@dataclass(frozen=True)
+class SerialSettings:
+    """``slamlens serial``: a real robot on a serial line (wire protocol: docs/drivers.md)."""
+
+    robot: str = _robot()
+    port: str = setting("", doc="serial device path or pyserial URL (e.g. /dev/ttyUSB0, "
+                                "loop://)", required=True, metavar="DEV")
+    baudrate: int = setting(115200, doc="line speed", unit="baud", min=1)
+
+
+# ---------------------------------------------------------------------------- estimator
+
+
+@dataclass(frozen=True)
+class EstimatorSettings:
+    """``slamlens estimator``: EKF-SLAM with the SPEC §4 models (docs/estimator.md).
+
+    Noise defaults equal the simulator's "paper" world, so a correct run is consistent.
+    """
+
+    robot: str = _robot()
+    sigma_v: float = setting(0.05, doc="odometry speed noise σv", unit="m/s", min=0.0)
+    sigma_w: float = setting(0.05, doc="odometry turn-rate noise σω", unit="rad/s", min=0.0)
+    sigma_range: float = setting(0.05, doc="range noise σr (> 0)", unit="m", min=0.0)
+    sigma_bearing: float = setting(0.02, doc="bearing noise σφ (> 0)", unit="rad", min=0.0)
+    gate_chi2: float = setting(
+        9.21, doc="id −1: accept the nearest landmark when d² is below this (χ²₂ 99 %)",
+        min=0.0)
+    new_landmark_chi2: float = setting(
+        27.63, doc="id −1: start a new landmark when the nearest d² is above this (χ²₂ "
+                   "1 − 1e-6: over thousands of observations a 99.9 % threshold makes "
+                   "duplicates)", min=0.0)
+    anonymous_id_base: int = setting(
+        1_000_000, doc="first id given to landmarks found by association (then counting up)",
+        min=0)
+    initial_pose: tuple[float, ...] = setting(
+        (0.0, 0.0, 0.0), doc="x_v(0) = (x m, y m, θ rad) in the map frame",
+        metavar="X,Y,THETA")
+    initial_pose_sigma: tuple[float, ...] = setting(
+        (0.0, 0.0, 0.0), doc="standard deviations of x_v(0) (m, m, rad); 0 = the map frame is "
+                             "the start pose", metavar="SX,SY,STHETA")
+    fault: str = setting(NONE, doc="plant a documented fault (docs/estimator.md)",
+                         choices=FAULT_KINDS)
+    faulty_features: tuple[int, ...] = setting((), doc="landmark ids the fault acts on",
+                                               metavar="ID,ID")
+    fault_magnitude: float | None = setting(
+        None, doc="size of the fault; none = the kind's default (map-update 2e-3 m², "
+                  "cross-covariance 1.0 = propagation fully omitted)", min=0.0)
+    fault_onset: float = setting(0.0, doc="stamp from which the fault acts (0 = from the "
+                                          "start)", unit="s")
+    publish_innovations: bool = setting(
+        True, doc="put each update's innovations and S into the state (the monitor's NIS)")
+    # -- delivery (SPEC §7a; the service, not the filter) --------------------------------
+    checkpoint: str = setting(
+        "", doc="crash recovery: save the map in DIR (atomically, at least once a second and "
+                "at exit) and resume it from there on a restart; empty = none", metavar="DIR")
+    checkpoint_interval_s: float = setting(1.0, doc="time between checkpoints", unit="s",
+                                           min=0.01)
+    input_gap_wait_s: float = setting(
+        2.0, doc="how long an input that arrived out of order waits for the missing ones "
+                 "before they are counted lost", unit="s", min=0.0)
+    input_history_s: float = setting(
+        60.0, doc="when resuming from a checkpoint, the drivers' cached inputs asked for",
+        unit="s", min=0.0)
+    state_cache: int = setting(
+        10_000, doc="states kept for subscribers that recover what they missed (at most "
+                    "state_cache_mb of them)", unit="states", min=1)
+    state_cache_mb: float = setting(256.0, doc="memory the state cache may hold", unit="MB",
+                                    min=1.0)
+
+    def __post_init__(self) -> None:
+        if not (self.sigma_range > 0 and self.sigma_bearing > 0):
+            raise ConfigError("settings 'sigma_range' and 'sigma_bearing' must be > 0 "
+                              "(R must be positive definite)")
+        for name in ("sigma_v", "sigma_w"):
+            if not getattr(self, name) >= 0:
+                raise ConfigError(f"setting {name!r} must be ≥ 0")
+        if not 0 < self.gate_chi2 <= self.new_landmark_chi2:
+            raise ConfigError(f"settings need 0 < 'gate_chi2' ≤ 'new_landmark_chi2', got "
+                              f"{self.gate_chi2} and {self.new_landmark_chi2}")
+        for name in ("initial_pose", "initial_pose_sigma"):
+            value = getattr(self, name)
+            if len(value) != 3 or not all(math.isfinite(float(v)) for v in value):
+                raise ConfigError(f"setting {name!r}: expected 3 finite numbers, got {value!r}")
+        if any(s < 0 for s in self.initial_pose_sigma):
+            raise ConfigError("setting 'initial_pose_sigma': standard deviations must be ≥ 0")
+        # imported here: faults needs numpy, which --help must not load (module docstring)
+        from services.slam import faults
+
+        try:
+            faults.make_fault(self.fault, self.faulty_features, magnitude=self.fault_magnitude,
+                              onset=self.fault_onset)
+        except ConfigError as exc:
+            raise ConfigError(f"settings 'fault'/'faulty_features'/'fault_magnitude': {exc}") \
+                from None
+
+
+# ------------------------------------------------------------------------------ monitor
+
+_THEOREMS = "monitor: covariance theorems (deterministic checks)"
+_STATISTICS = "monitor: statistical tests"
+_BLAME = "monitor: pinpointing"
+
+
+@dataclass(frozen=True)
+class MonitorSettings:
+    """``slamlens monitor``: the behaviour monitor (SPEC §5, docs/monitor.md).
+
+    Every tolerance is *relative* to the scale of the covariance entries it guards, plus a
+    tiny absolute floor, because rounding in an EKF update is relative to the entries it
+    touches: a correct filter's covariance moves in the wrong direction by at most a few
+    ε·|P| per step (ε = 2.2e-16), so 1e-9 leaves a margin of about 10⁶ over rounding, while
+    the faults a developer plants or makes are 10⁻⁶…10⁻¹ of that scale.
+    """
+
+    robot: str = setting("robot1", doc="robot whose states are checked (names the bus keys; "
+                                       "the core ignores it)")
+
+    # -- covariance theorems (deterministic checks) ------------------------------------
+    rtol_growth: float = setting(
+        1e-9, doc="P_d / P_ii growth tolerance, relative to tr(P_ii) + tr(P_jj) of the older "
+                  "state (the entries P_d is computed from: cancellation-aware, P_d itself can "
+                  "be tiny)", min=0.0, flag="--rtol", group=_THEOREMS)
+    atol_growth: float = setting(1e-12, doc="absolute floor of every tolerance", unit="m²",
+                                 min=0.0, group=_THEOREMS)
+    rtol_symmetry: float = setting(1e-9, doc="|P_ab − P_ba| allowed, relative to "
+                                             "sqrt(P_aa·P_bb)", min=0.0, group=_THEOREMS)
+    rtol_psd: float = setting(1e-9, doc="smallest eigenvalue of P allowed down to "
+                                        "−rtol_psd·max(diag P) − atol_growth", min=0.0,
+                              group=_THEOREMS)
+    rtol_correlation: float = setting(1e-9, doc="|P_ab| ≤ sqrt(P_aa·P_bb)·(1 + "
+                                                "rtol_correlation) + atol_growth", min=0.0,
+                                      group=_THEOREMS)
+    check_prediction: bool = setting(
+        True, doc="check each predict step: P_mm unchanged, P_vm = Fx·P_vm(previous), "
+                  "Pvv − Fx·Pvv·Fxᵀ ≽ 0 (valid for any odometry model whose displacement "
+                  "turns with the heading)", group=_THEOREMS)
+    rtol_prediction: float = setting(1e-9, doc="prediction residual tolerance, relative to "
+                                               "sqrt(P_aa·P_bb) of the entry checked",
+                                     min=0.0, group=_THEOREMS)
+
+    # -- statistical tests -------------------------------------------------------------
+    significance: float = setting(1e-6, doc="two-sided α of each windowed test (one test per "
+                                            "completed window, not per state)", min=1e-15,
+                                  group=_STATISTICS)
+    nis_window: int = setting(50, doc="innovations per NIS window (innovations of a "
+                                      "consistent EKF are white: the band of the window mean "
+                                      "is χ²(2·N)/N)", min=1, group=_STATISTICS)
+    nees_window: int = setting(50, doc="states per NEES window (NEES along one run is "
+                                       "strongly autocorrelated: the band used is the "
+                                       "dependence-robust one of a single χ²(dof) sample)",
+                               min=1, group=_STATISTICS)
+    truth_tolerance_s: float = setting(0.02, doc="a truth / tracked pose matches a state if "
+                                                 "their stamps differ by at most this",
+                                       unit="s", min=0.0, group=_STATISTICS)
+    truth_pose_sigma: tuple[float, ...] = setting(
+        (0.0, 0.0, 0.0), doc="std devs (m, m, rad) of the truth pose itself (a camera-tracked "
+                             "pose); added to Pvv", metavar="SX,SY,STHETA", group=_STATISTICS)
+    nees_condition_max: float = setting(
+        1e10, doc="NEES skipped when the covariance's condition number exceeds this (e.g. the "
+                  "first steps from a zero initial covariance: rank-deficient, error dominated "
+                  "by linearisation)", min=1.0, group=_STATISTICS)
+
+    # -- pinpointing -------------------------------------------------------------------
+    evidence_half_life: float = setting(100.0, doc="blame evidence halves every this many "
+                                                   "states checked", min=1.0, group=_BLAME)
+    suspect_score: float = setting(
+        0.75, doc="a feature is a suspect while its evidence is at least this (1 = one full "
+                  "blame: it stays a suspect for 0.4 half-lives; a split blame of 1/2 alone is "
+                  "not enough) …", min=0.0, group=_BLAME)
+    suspect_ratio: float = setting(0.1, doc="… and at least this fraction of the strongest "
+                                            "suspect's evidence", min=0.0, group=_BLAME)
+    clear_after: int = setting(
+        200, doc="a violation stands (and keeps the verdict) until this many further states "
+                 "were checked without it; a fault also stands while any suspect is named "
+                 "(docs/monitor.md)", unit="states", min=1, group=_BLAME)
+    max_violations_per_kind: int = setting(
+        20, doc="Health lists at most this many violations per kind (the largest); counts are "
+                "in the statistics (pairs_growing …) and the blame uses all of them", min=1,
+        group=_BLAME)

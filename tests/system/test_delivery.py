@@ -1,0 +1,269 @@
+"""Delivery under faults (SPEC §7a), with real processes on loopback.
+
+Flood at full speed, SIGKILL and restart with and without a checkpoint, a router killed
+and restarted, SIGTERM in the middle of a flood: every input applied exactly once, every
+state published, the monitor checks or counts every state, every service exits cleanly.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from common.keys import Keys
+from common.messages import SlamState, peek_fields
+from common.session import BusSettings, free_tcp_endpoint, open_bus
+from tests.procs import Service, spawn, stop
+
+KEYS = Keys()
+ROBOT = "robot1"
+
+
+def final(proc: Service, out: str, name: str) -> dict:
+    """The JSON of a service's final line ``"{name} stopped: {...}"``."""
+    lines = [ln for ln in out.splitlines() if ln.startswith(f"{name} stopped: ")]
+    assert lines, f"{name} printed no final line; stdout:\n{out[-800:]}\nstderr:\n" \
+                  f"{''.join(proc.err[-20:])}"
+    return json.loads(lines[-1].split(": ", 1)[1])
+
+
+def driver_counts(out: str, name: str) -> dict:
+    line = next(ln for ln in out.splitlines() if ln.startswith(f"{name} done: "))
+    return json.loads(line.split(": ", 1)[1].split(" in ")[0])
+
+
+class States:
+    """Every state on the robot's key, through a recovering channel (as a recorder)."""
+
+    def __init__(self, endpoint: str) -> None:
+        self.bus = open_bus(BusSettings(connect=(endpoint,)))
+        self.channel = self.bus.channel(KEYS.state(ROBOT), recover=True, history_s=30.0)
+        self.heads: list[dict] = []
+        self.last: bytes | None = None
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            sample = self.channel.recv(timeout=0.2)
+            if sample is not None:
+                self.heads.append(peek_fields(sample.payload, ("seq", "epoch", "step")))
+                self.last = sample.payload
+
+    def wait(self, predicate, timeout: float = 60.0) -> bool:
+        deadline = time.monotonic() + timeout
+        while time.monotonic() < deadline:
+            if predicate(self):
+                return True
+            time.sleep(0.05)
+        return predicate(self)
+
+    def max_seq(self) -> int:
+        return max((h["seq"] for h in self.heads), default=-1)
+
+    def close(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2)
+        self.bus.close()
+
+
+@pytest.fixture
+def router() -> Service:
+    endpoint = free_tcp_endpoint()
+    proc = spawn("router", "--listen", endpoint)
+    proc.wait_for_line("router ready")
+    proc.endpoint = endpoint  # type: ignore[attr-defined]
+    yield proc
+    stop(proc)
+
+
+def _estimator(endpoint: str, *extra: str) -> Service:
+    proc = spawn("estimator", "--robot", ROBOT, "--connect", endpoint, *extra)
+    proc.wait_for_line("estimator ready")
+    return proc
+
+
+def test_flood_at_full_speed_every_input_applied_every_state_checked(router) -> None:
+    ep = router.endpoint
+    est = _estimator(ep)
+    mon = spawn("monitor", "--robot", ROBOT, "--connect", ep)
+    mon.wait_for_line("monitor ready")
+    states = States(ep)
+    try:
+        sim = spawn("sim", "--robot", ROBOT, "--rate", "0", "--loops", "8", "--seed", "2",
+                    "--connect", ep)
+        out, err = sim.communicate(timeout=300)
+        assert sim.returncode == 0, err
+        assert "all applied by the estimator" in out, out
+        counts = driver_counts(out, "sim")
+        inputs = counts["Odometry"] + counts["Observations"]
+        assert states.wait(lambda s: s.max_seq() >= inputs)
+        # the monitor checks every state, however far behind it fell: wait for the last
+        assert _wait(lambda: _health_seq(ep) >= inputs, timeout=120), _health_seq(ep)
+    finally:
+        est_out, _ = stop(est)
+        mon_out, _ = stop(mon, sig=signal.SIGINT)
+        states.close()
+    e = final(est, est_out, "estimator")
+    assert e["seq"] == inputs and e["odometry"] + e["observation_batches"] == inputs
+    assert e["lost"] == 0 and e["refused"] == 0
+    seqs = [h["seq"] for h in states.heads]
+    assert sorted(set(seqs)) == list(range(0, inputs + 1)), "a state never arrived"
+    m = final(mon, mon_out, "monitor")
+    assert m["checked"] + m["lost"] >= inputs, m
+    assert m["violations"] == 0 and m["suspects"] == [], m
+
+
+def _wait(predicate, timeout: float) -> bool:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.2)
+    return predicate()
+
+
+def _health_seq(ep: str) -> int:
+    """The seq of the state the monitor checked last (its Health, by ``get``)."""
+    bus = open_bus(BusSettings(connect=(ep,)))
+    try:
+        replies = bus.get(KEYS.health(ROBOT), timeout=2.0)
+        return int(peek_fields(replies[0].payload, ("seq",))["seq"]) if replies else -1
+    finally:
+        bus.close()
+
+
+def _sim(ep: str, *extra: str) -> Service:
+    return spawn("sim", "--robot", ROBOT, "--rate", "0", "--loops", "12", "--seed", "5",
+                 "--connect", ep, *extra)
+
+
+def _final_state(ep: str) -> SlamState:
+    bus = open_bus(BusSettings(connect=(ep,)))
+    try:
+        replies = bus.get(KEYS.state(ROBOT), timeout=5.0)
+        assert len(replies) == 1
+        return SlamState.from_bytes(replies[0].payload)
+    finally:
+        bus.close()
+
+
+def test_sigkill_and_restart_from_a_checkpoint_equals_an_uninterrupted_run(
+        router, tmp_path: Path) -> None:
+    ep = router.endpoint
+    # the uninterrupted run
+    est = _estimator(ep)
+    sim = _sim(ep)
+    out, err = sim.communicate(timeout=300)
+    assert sim.returncode == 0 and "all applied" in out, out + err
+    reference = _final_state(ep)
+    stop(est)
+
+    # the same run, the estimator killed in the middle and started again
+    checkpoints = tmp_path / "ckpt"
+    est = _estimator(ep, "--checkpoint", str(checkpoints))
+    states = States(ep)
+    sim = _sim(ep)
+    try:
+        ckpt_file = checkpoints / f"estimator-{ROBOT}.ckpt"
+        assert states.wait(lambda s: s.max_seq() >= reference.seq // 3 and ckpt_file.exists())
+        est.kill()
+        est.wait(10)
+        restarted = time.monotonic()
+        est = _estimator(ep, "--checkpoint", str(checkpoints))
+        out, err = sim.communicate(timeout=300)
+        assert sim.returncode == 0 and "all applied" in out, out + err
+        assert time.monotonic() - restarted < 60
+        resumed = _final_state(ep)
+    finally:
+        est_out, _ = stop(est)
+        states.close()
+    summary = final(est, est_out, "estimator")
+    assert summary["resumed"] is True and summary["lost"] == 0
+    assert resumed.seq == reference.seq
+    assert len({h["epoch"] for h in states.heads}) == 1  # one map, one epoch
+    np.testing.assert_array_equal(resumed.landmark_ids, reference.landmark_ids)
+    np.testing.assert_array_equal(resumed.covariance, reference.covariance)
+    np.testing.assert_array_equal(resumed.pose, reference.pose)
+
+
+def test_restart_without_checkpoint_is_a_new_epoch_the_monitor_says_so(router) -> None:
+    ep = router.endpoint
+    est = _estimator(ep)
+    mon = spawn("monitor", "--robot", ROBOT, "--connect", ep)
+    mon.wait_for_line("monitor ready")
+    states = States(ep)
+    sim = spawn("sim", "--robot", ROBOT, "--rate", "4", "--seed", "5", "--connect", ep)
+    try:
+        assert states.wait(lambda s: s.max_seq() >= 40)
+        first_epoch = states.heads[-1]["epoch"]
+        est.kill()
+        est.wait(10)
+        est = _estimator(ep)
+        assert states.wait(lambda s: any(h["epoch"] != first_epoch and h["seq"] >= 20
+                                         for h in s.heads))
+    finally:
+        stop(sim)
+        est_out, _ = stop(est)
+        mon_out, mon_err = stop(mon)
+        states.close()
+    assert "map restarted" in mon_err
+    m = final(mon, mon_out, "monitor")
+    assert m["restarts"] == 1 and m["violations"] == 0, m
+    assert final(est, est_out, "estimator")["resumed"] is False
+
+
+def test_a_router_killed_and_back_after_5_s_loses_nothing(tmp_path: Path) -> None:
+    ep = free_tcp_endpoint()
+    router = spawn("router", "--listen", ep)
+    router.wait_for_line("router ready")
+    est = _estimator(ep)
+    sim = spawn("sim", "--robot", ROBOT, "--rate", "2", "--seed", "1", "--connect", ep)
+    states = States(ep)
+    try:
+        assert states.wait(lambda s: s.max_seq() >= 30)
+        router.kill()
+        router.wait(10)
+        time.sleep(5.0)  # the fault itself: the router is down for 5 s
+        router = spawn("router", "--listen", ep)
+        router.wait_for_line("router ready")
+        out, err = sim.communicate(timeout=120)
+        assert sim.returncode == 0, err
+        counts = driver_counts(out, "sim")
+        inputs = counts["Odometry"] + counts["Observations"]
+        assert states.wait(lambda s: s.max_seq() >= inputs, timeout=30)
+    finally:
+        est_out, _ = stop(est)
+        states.close()
+        stop(router)
+    e = final(est, est_out, "estimator")
+    assert e["odometry"] + e["observation_batches"] == inputs, e
+    assert e["lost"] == 0 and e["duplicates"] >= 0
+
+
+def test_sigterm_in_the_middle_of_a_flood_every_service_exits_within_2_s(router) -> None:
+    ep = router.endpoint
+    est = _estimator(ep)
+    mon = spawn("monitor", "--robot", ROBOT, "--connect", ep)
+    mon.wait_for_line("monitor ready")
+    states = States(ep)
+    sim = spawn("sim", "--robot", ROBOT, "--rate", "0", "--loops", "200", "--seed", "4",
+                "--connect", ep)
+    try:
+        assert states.wait(lambda s: s.max_seq() >= 2000)
+    finally:
+        states.close()
+    for proc, name in ((sim, "sim"), (est, "estimator"), (mon, "monitor")):
+        started = time.monotonic()
+        out, _ = stop(proc, timeout=10)
+        took = time.monotonic() - started
+        assert proc.returncode == 0, f"{name} exited {proc.returncode}"
+        assert took < 2.0, f"{name} took {took:.1f} s to exit"
+        assert f"{name} stopped" in out, f"{name}: {out[-300:]}"

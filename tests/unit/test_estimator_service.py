@@ -1,0 +1,138 @@
+"""The estimator service's logic in-process (InProcessBus): order, exactly once, checkpoints.
+
+What crosses a real network is tested in tests/integration and tests/system; here the
+service's decisions are checked against an estimator fed the same inputs directly.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import itertools
+
+import numpy as np
+import pytest
+
+from common.bus import InProcessBus, Sample
+from common.keys import Keys
+from common.messages import Observations, Odometry, SlamState
+from services.slam import checkpoint as ckpt
+from services.slam.estimator import Estimator
+from services.slam.estimator_service import EstimatorService
+from services.slam.settings import EstimatorSettings
+from services.slam.sim import Simulator
+from services.slam.world import load_world
+
+KEYS = Keys("t")
+ROBOT = "r1"
+
+
+def _inputs(limit: int = 400) -> list[tuple[str, bytes]]:
+    """The paper run's first ``limit`` inputs as (key, payload), numbered like a driver."""
+    sim = Simulator(load_world("paper"), robot=ROBOT, seed=3)
+    out = []
+    seq = itertools.count(1)
+    for m in sim.events():
+        if isinstance(m, Odometry):
+            out.append((KEYS.odometry(ROBOT), dataclasses.replace(m, input_seq=next(seq))))
+        elif isinstance(m, Observations):
+            out.append((KEYS.observations(ROBOT), dataclasses.replace(m, input_seq=next(seq))))
+        if len(out) == limit:
+            break
+    return [(k, m.to_bytes()) for k, m in out]
+
+
+def _sample(key: str, payload: bytes, t: int) -> Sample:
+    return Sample(key, payload, source="driver", time=t)
+
+
+def _direct(inputs: list[tuple[str, bytes]], settings: EstimatorSettings) -> Estimator:
+    est = Estimator(settings)
+    for key, payload in inputs:
+        if key.endswith("odometry"):
+            o = Odometry.from_bytes(payload)
+            est.predict(v=o.v, w=o.w, dt=o.dt, stamp=o.stamp)
+        else:
+            b = Observations.from_bytes(payload)
+            est.observe(ids=b.ids, ranges=b.ranges, bearings=b.bearings, stamp=b.stamp)
+    return est
+
+
+def _service(settings: EstimatorSettings) -> tuple[InProcessBus, EstimatorService, list]:
+    bus = InProcessBus()
+    states: list[SlamState] = []
+    bus.subscribe(KEYS.state(ROBOT), lambda k, p: states.append(SlamState.from_bytes(p)))
+    return bus, EstimatorService(bus, keys=KEYS, settings=settings), states
+
+
+def test_shuffled_and_repeated_inputs_give_the_in_order_result() -> None:
+    settings = EstimatorSettings(robot=ROBOT)
+    inputs = _inputs(300)
+    _, service, states = _service(settings)
+    rng = np.random.default_rng(0)
+    # deliver in blocks whose order is scrambled, and every sample twice
+    arrivals = []
+    for start in range(0, len(inputs), 10):
+        block = list(enumerate(inputs[start:start + 10], start))
+        rng.shuffle(block)
+        arrivals += block + block[:3]
+    for t, (key, payload) in arrivals:
+        service.ingest(_sample(key, payload, t))
+    final = states[-1]
+    expected = _direct(inputs, settings)
+    assert final.seq == len(inputs) and service.order.stats.duplicates == 3 * 30
+    assert [s.seq for s in states] == list(range(len(inputs) + 1))  # init, then one each
+    np.testing.assert_array_equal(final.covariance, expected.covariance)
+    np.testing.assert_array_equal(final.pose, expected.pose)
+
+
+def test_checkpoint_resume_continues_the_same_map_bit_for_bit(tmp_path) -> None:
+    settings = EstimatorSettings(robot=ROBOT, checkpoint=str(tmp_path),
+                                 checkpoint_interval_s=1e-3)
+    inputs = _inputs(400)
+    _, first, first_states = _service(settings)
+    for t, (key, payload) in enumerate(inputs[:250]):
+        first.ingest(_sample(key, payload, t))
+    # "SIGKILL": no clean exit; what is on disk is whatever the writer last wrote
+    assert first._writer is not None
+    first._writer.close()
+    saved = ckpt.load(tmp_path, ROBOT)
+    assert saved is not None
+    at = SlamState.from_bytes(saved.state)
+    assert 0 < at.seq <= 250
+
+    _, second, states = _service(settings)
+    assert second.resumed and second.epoch == first.epoch
+    for t, (key, payload) in enumerate(inputs):  # the drivers' cache, from the start
+        second.ingest(_sample(key, payload, t))
+    assert [s.seq for s in states] == list(range(at.seq, len(inputs) + 1))
+    assert states[0].epoch == first.epoch and states[-1].epoch == first.epoch
+    expected = _direct(inputs, EstimatorSettings(robot=ROBOT))
+    np.testing.assert_array_equal(states[-1].covariance, expected.covariance)
+    np.testing.assert_array_equal(states[-1].landmarks, expected.landmarks)
+    assert second.order.stats.duplicates == at.seq
+
+
+def test_without_a_checkpoint_a_restart_is_a_new_epoch() -> None:
+    settings = EstimatorSettings(robot=ROBOT)
+    _, a, _ = _service(settings)
+    _, b, _ = _service(settings)
+    assert b.epoch > a.epoch and not b.resumed
+
+
+def test_an_unreadable_checkpoint_is_one_clear_error(tmp_path) -> None:
+    ckpt.checkpoint_path(tmp_path, ROBOT).write_bytes(b"not msgpack at all \xff")
+    with pytest.raises(ckpt.CheckpointError, match="unreadable"):
+        _service(EstimatorSettings(robot=ROBOT, checkpoint=str(tmp_path)))
+
+
+@pytest.mark.parametrize("payload", [
+    b"\x93\x01\x02",  # a msgpack list
+    b"\xc1",  # never valid msgpack
+    b"",
+])
+def test_garbage_is_counted_and_the_service_goes_on(payload: bytes) -> None:
+    _, service, states = _service(EstimatorSettings(robot=ROBOT))
+    assert service.ingest(_sample(KEYS.odometry(ROBOT), payload, 1)) == []
+    assert service.drops.total == 1
+    good = Odometry(robot=ROBOT, stamp=0.1, dt=0.1, v=0.1, w=0.0)
+    assert len(service.ingest(_sample(KEYS.odometry(ROBOT), good.to_bytes(), 2))) == 1
