@@ -454,6 +454,29 @@ class CameraPose(Message):
     T_world_from_camera: np.ndarray = _arr(_F8, (4, 4), "camera frame → world frame, m")
 
 
+@dataclass(frozen=True, eq=False)
+class CameraControl(Message):
+    """A request to the registration service of the camera named in its key (docs/protocol.md)."""
+
+    TYPE: ClassVar[str] = "CameraControl"
+    COMMANDS: ClassVar[tuple[str, ...]] = ("reregister",)
+    command: str = _scalar("str", "what to do: reregister (from the next frames)",
+                           choices=COMMANDS)
+    robot: str | None = field(default=None, metadata={
+        "doc": "only the service registering this robot obeys; None (absent): any"})
+
+    def _check(self) -> None:
+        if self.robot is not None and not isinstance(self.robot, str):
+            raise MessageError(self.TYPE, "robot", "a string or absent",
+                               type(self.robot).__name__)
+
+    def _wire_overrides(self, out: dict[str, Any]) -> dict[str, Any]:
+        if out["robot"] is None:  # absent on the wire, as a sender writes it by hand
+            del out["robot"]
+        return out
+
+
 MESSAGE_TYPES: tuple[type[Message], ...] = (
     Odometry, Observations, Truth, SlamState, Health, CameraFrame, Registration, CameraPose,
+    CameraControl,
 )
