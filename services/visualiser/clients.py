@@ -126,7 +126,7 @@ class ClientRegistry:
                 del self._views[key]  # forget renderers nobody asked for in a while
             return self.looked_at(now)
 
-    def publish(self, view: View, rendered: Rendered, inputs: tuple[Any, ...]) -> None:
+    def publish(self, view: View, rendered: Rendered, *, inputs: tuple[Any, ...]) -> None:
         """Make ``rendered`` (drawn from ``inputs``) the view's picture."""
         with self._lock:
             view.rendered, view.inputs = rendered, inputs

@@ -142,7 +142,7 @@ class RenderPipeline:
             seq=None if state is None else state.seq,
             stamp=None if state is None else state.stamp,
             image=image, jpeg=jpeg.tobytes(), rendered_at=time.monotonic())
-        self.clients.publish(view, rendered, frame.inputs)
+        self.clients.publish(view, rendered, inputs=frame.inputs)
         view.rate.tick()
         self.render_ms.append((time.perf_counter() - t0) * 1e3)
         for listener in list(self._listeners):

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from common.errors import ConfigError
+from common.errors import ConfigError, SlamlensError
 from common.messages import Health, SlamState, Truth
 from services.visualiser.camera_model import CameraModel
 from services.visualiser.clients import ClientRegistry
@@ -92,7 +92,7 @@ def test_a_view_is_active_for_its_ttl_and_current_only_for_its_inputs() -> None:
     assert view.settings == settings and not clients.is_current(settings, (1,))
     picture = Rendered(version=1, seq=4, stamp=0.4, image=np.zeros((2, 2, 3), np.uint8),
                        jpeg=b"jpeg", rendered_at=0.0)
-    clients.publish(view, picture, (1,))
+    clients.publish(view, picture, inputs=(1,))
     assert clients.latest(settings) is picture
     assert clients.is_current(settings, (1,)) and not clients.is_current(settings, (2,))
     assert clients.looked_at(now=view.touched + 0.1) == [view]
@@ -256,6 +256,8 @@ def test_parse_pairs_and_http_address() -> None:
     for bad in ("1-", "a-b", "1:2", "-1-2"):
         with pytest.raises(BadRequest):
             parse_pairs(bad)
+    with pytest.raises(SlamlensError, match="at most 32 pairs"):  # the CLI's one-line errors
+        parse_pairs(",".join(f"{k}-{k + 1}" for k in range(33)))
     assert parse_http("127.0.0.1:8080") == ("127.0.0.1", 8080)
     assert parse_http("[::1]:0") == ("::1", 0)
     for bad in ("8080", "host:", ":80", "host:99999", "host:http"):
