@@ -43,6 +43,7 @@ def _send(bus, key: str, kind, count: int, seed: int, *, batch: int = 2000,
     """Send ``count`` bad payloads in batches (a pause between them so that nothing is
     dropped in transit: what is measured is the service, not the link)."""
     pub = bus.publisher(key)
+    pub.wait_matched()  # a new publisher may drop what it puts before it matches
     started = time.monotonic()
     n = 0
     for payload in bad_payloads(kind, np.random.default_rng(seed), count):

@@ -245,6 +245,19 @@ class QueueChannel:
                 pass
 
 
+def _wait_matching(pub: Any, timeout: float) -> bool:
+    """Wait (event-driven) until a zenoh publisher's matching status is true."""
+    if pub.matching_status:
+        return True
+    matched = threading.Event()
+    listener = pub.declare_matching_listener(
+        lambda status: matched.set() if status.matching else None)
+    try:
+        return matched.wait(timeout) or bool(pub.matching_status)
+    finally:
+        listener.undeclare()
+
+
 def _sample_of(zsample: Any, key: str | None = None) -> Sample:
     """A :class:`Sample` from a ``zenoh.Sample`` (payload copied out of Zenoh's buffer)."""
     ts = zsample.timestamp
@@ -260,6 +273,12 @@ class _ZenohPublisher:
 
     def put(self, payload: bytes) -> None:
         self._pub.put(payload)
+
+    def wait_matched(self, timeout: float = 10.0) -> bool:
+        """Wait until this publisher itself knows a matching subscriber (its own matching
+        status: a *new* publisher may drop its first put even when another publisher of
+        the same session already matches)."""
+        return _wait_matching(self._pub, timeout)
 
     def undeclare(self) -> None:
         self._pub.undeclare()
@@ -409,15 +428,7 @@ class ZenohBus:
 
         probe = self.session.declare_publisher(key)
         try:
-            if probe.matching_status:
-                return True
-            matched = threading.Event()
-            listener = probe.declare_matching_listener(
-                lambda status: matched.set() if status.matching else None)
-            try:
-                return matched.wait(timeout) or bool(probe.matching_status)
-            finally:
-                listener.undeclare()
+            return _wait_matching(probe, timeout)
         except zenoh.ZError:  # the session closed while waiting
             return False
         finally:

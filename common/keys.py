@@ -103,8 +103,17 @@ class Keys:
         return key.rsplit("/", 1)[-1]
 
     def robot_of(self, key: str) -> str | None:
+        """The robot segment of a ``robot/{robot}/…`` key under this prefix, else None."""
+        return self._segment_after(key, "robot")
+
+    def camera_of(self, key: str) -> str | None:
+        """The camera segment of a ``camera/{camera}/…`` key under this prefix, else None."""
+        return self._segment_after(key, "camera")
+
+    def _segment_after(self, key: str, kind: str) -> str | None:
+        prefix = self.prefix.split("/")
         parts = key.split("/")
-        n = len(self.prefix.split("/"))
-        if len(parts) > n + 1 and parts[n] == "robot":
+        n = len(prefix)
+        if len(parts) > n + 1 and parts[:n] == prefix and parts[n] == kind:
             return parts[n + 1]
         return None

@@ -545,6 +545,18 @@ class CameraPose(Message):
     T_world_from_camera: np.ndarray = _arr(_F8, (4, 4), "camera frame → world frame, m")
 
 
+@dataclass(frozen=True, eq=False)
+class CameraControl(Message):
+    """A request to the registration service of the camera named in its key (docs/protocol.md)."""
+
+    TYPE: ClassVar[str] = "CameraControl"
+    COMMANDS: ClassVar[tuple[str, ...]] = ("reregister",)
+    command: str = _scalar("str", "what to do: reregister (from the next frames)",
+                           choices=COMMANDS)
+    robot: str | None = _scalar("str", "only the service registering this robot obeys; "
+                                "absent: any", optional=True)
+
+
 def peek_fields(payload: bytes | bytearray | memoryview,
                 names: tuple[str, ...]) -> dict[str, Any]:
     """The top-level fields ``names`` of a msgpack map, without decoding the others.
@@ -570,4 +582,5 @@ def peek_fields(payload: bytes | bytearray | memoryview,
 
 MESSAGE_TYPES: tuple[type[Message], ...] = (
     Odometry, Observations, Truth, SlamState, Health, CameraFrame, Registration, CameraPose,
+    CameraControl,
 )

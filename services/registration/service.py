@@ -4,13 +4,14 @@ Per camera (two for stereo) a :class:`CameraPipeline` runs two threads:
 
 * capture: read the source at its rate, JPEG-encode, publish ``CameraFrame`` latest-wins
   (congestion *drop*: a slow subscriber gets the newest frame and never slows the camera),
-  and leave the raw image in a one-slot mailbox;
+  and leave the raw image in a keep-newest slot (:class:`~common.latest.Latest`);
 * processing: take the newest image (skipping any it had no time for), detect markers,
   feed the :class:`~services.registration.tracking.Registrar`, publish ``Registration``
   (also answered to ``get``), the tracked robot pose and, head-mounted, ``CameraPose``.
 
-Control: a msgpack map ``{"schema": 1, "command": "reregister", "robot": R}`` on
-``keys.camera_control(camera)`` re-registers from the next frames ("robot" optional).
+Control: a :class:`~common.messages.CameraControl` (``{"schema": 1, "command":
+"reregister", "robot": R}``) on ``keys.camera_control(camera)`` re-registers from the next
+frames ("robot" optional).
 """
 
 from __future__ import annotations
@@ -24,13 +25,14 @@ from collections.abc import Callable, Sequence
 from typing import Any
 
 import cv2
-import msgpack
 import numpy as np
 
 from common.bus import Bus
+from common.drops import DropCounter
 from common.errors import MessageError, SlamlensError
 from common.keys import Keys
-from common.messages import CameraFrame, CameraPose, Registration, Truth
+from common.latest import Latest
+from common.messages import CameraControl, CameraFrame, CameraPose, Registration, Truth
 from services.registration.board import MarkerBoard, camera_pose_from_board
 from services.registration.calibration import CameraCalibration
 from services.registration.markers import MarkerDetector
@@ -46,27 +48,33 @@ log = logging.getLogger(__name__)
 TRACKER_TIMEOUT_S = 1.0  #: an external CameraPose older than this is not used
 
 
-class _Mailbox:
-    """One slot holding the newest item: a put replaces what was not taken yet."""
+@dataclasses.dataclass(frozen=True)
+class CameraSettings:
+    """How one camera is run: its names, rates and what it publishes."""
 
-    def __init__(self) -> None:
-        self._item: Any = None
-        self._cond = threading.Condition()
-        self.replaced = 0
+    camera: str  #: camera name (key segment)
+    robot: str  #: robot whose marker registers the map frame
+    fps: float  #: capture rate of sources that do not pace themselves, Hz
+    jpeg_quality: int = 80  #: of the published frames, 1-100
+    moving: bool = False  #: head-mounted: the camera's pose is found every frame
+    publish_tracked: bool = True  #: publish the tracked robot pose (one camera per robot)
+    registration_period_s: float = 1.0  #: a fixed camera's registration is re-published
 
-    def put(self, item: Any) -> None:
-        with self._cond:
-            if self._item is not None:
-                self.replaced += 1
-            self._item = item
-            self._cond.notify()
 
-    def take(self, timeout: float) -> Any:
-        with self._cond:
-            if self._item is None:
-                self._cond.wait(timeout)
-            item, self._item = self._item, None
-            return item
+@dataclasses.dataclass(frozen=True, eq=False)
+class CameraParts:
+    """What one camera works with: its frames, intrinsics, detector and registrar.
+
+    A moving camera's pose comes from ``tracker_pose`` if given (an external tracker),
+    else from ``board`` (the marker board in view); a fixed camera needs neither.
+    """
+
+    source: FrameSource
+    calib: CameraCalibration
+    detector: MarkerDetector
+    registrar: Registrar
+    board: MarkerBoard | None = None
+    tracker_pose: Callable[[], np.ndarray | None] | None = None
 
 
 @dataclasses.dataclass
@@ -76,11 +84,10 @@ class PipelineStats:
     captured: int = 0
     published: int = 0
     processed: int = 0
-    skipped: int = 0  #: frames the processing thread had no time for
+    skipped: int = 0  #: frames the processing thread had no time for (replaced unseen)
     registrations: int = 0
     tracked: int = 0
     camera_poses: int = 0
-    read_errors: int = 0
     size_mismatches: int = 0  #: frames of another size than the calibration's
     ended: bool = False
     publish_times: collections.deque = dataclasses.field(
@@ -90,33 +97,21 @@ class PipelineStats:
 class CameraPipeline:
     """Capture, publish and register one camera."""
 
-    def __init__(self, bus: Bus, keys: Keys, *, camera: str, robot: str, source: FrameSource,
-                 calib: CameraCalibration, detector: MarkerDetector, registrar: Registrar,
-                 fps: float, jpeg_quality: int = 80, moving: bool = False,
-                 board: MarkerBoard | None = None,
-                 tracker_pose: Callable[[], np.ndarray | None] | None = None,
-                 publish_tracked: bool = True, registration_period_s: float = 1.0) -> None:
-        self.bus, self.keys = bus, keys
-        self.camera, self.robot = camera, robot
-        self.source = source
-        self.calib = calib
-        self.detector = detector
-        self.registrar = registrar
-        self.fps = fps
-        self.jpeg_quality = jpeg_quality
-        self.moving = moving
-        self.board = board
-        self.tracker_pose = tracker_pose
-        self.publish_tracked = publish_tracked
-        self.registration_period_s = registration_period_s
+    def __init__(self, bus: Bus, keys: Keys, *, settings: CameraSettings,
+                 parts: CameraParts) -> None:
+        self.settings = settings
+        self.parts = parts
+        self.camera, self.robot = settings.camera, settings.robot
         self.stats = PipelineStats()
+        self.read_errors = DropCounter(log, burst=1)  #: failed reads of the source
         self._stop = threading.Event()
         self._reregister = threading.Event()
-        self._mailbox = _Mailbox()
+        self._frames: Latest[tuple[int, float, np.ndarray]] = Latest()
         self._latest_registration: Registration | None = None
         self._latest_bytes: bytes | None = None
         self._last_status = ""
         self._last_published = 0.0
+        camera, robot = self.camera, self.robot
         self._frame_pub = bus.publisher(keys.frame(camera), latest_wins=True)
         self._reg_pub = bus.publisher(keys.registration(camera, robot))
         self._tracked_pub = bus.publisher(keys.tracked(robot), latest_wins=True)
@@ -128,6 +123,14 @@ class CameraPipeline:
                          threading.Thread(target=self._process_loop, name=f"register-{camera}",
                                           daemon=True)]
 
+    @property
+    def source(self) -> FrameSource:
+        return self.parts.source
+
+    @property
+    def registrar(self) -> Registrar:
+        return self.parts.registrar
+
     # -- lifecycle ----------------------------------------------------------------
     def start(self) -> None:
         for t in self._threads:
@@ -135,6 +138,7 @@ class CameraPipeline:
 
     def stop(self, timeout: float = 5.0) -> None:
         self._stop.set()
+        self._frames.close()
         for t in self._threads:
             if t.is_alive():
                 t.join(timeout)
@@ -147,6 +151,11 @@ class CameraPipeline:
     def latest_registration(self) -> Registration | None:
         return self._latest_registration
 
+    @property
+    def status(self) -> str:
+        """The registrar's last status ("" before the first frame)."""
+        return self._last_status
+
     def publish_fps(self, window_s: float = 2.0) -> float:
         """Frames published per second over the last ``window_s`` seconds."""
         now = time.monotonic()
@@ -155,7 +164,7 @@ class CameraPipeline:
 
     # -- capture thread -------------------------------------------------------------
     def _capture_loop(self) -> None:
-        period = 1.0 / self.fps
+        period = 1.0 / self.settings.fps
         next_t = time.monotonic()
         seq = 0
         while not self._stop.is_set():
@@ -171,10 +180,7 @@ class CameraPipeline:
                             "registration", self.camera, exc)
                 return
             except Exception as exc:  # an unexpected source failure: count, keep going
-                self.stats.read_errors += 1
-                if self.stats.read_errors == 1 or self.stats.read_errors % 100 == 0:
-                    log.error("camera %s: reading a frame failed (%d so far): %s",
-                              self.camera, self.stats.read_errors, exc)
+                self.read_errors.drop(f"frame of camera {self.camera}", f"reading failed: {exc}")
                 self._stop.wait(period)
                 continue
             now = time.monotonic()
@@ -187,10 +193,11 @@ class CameraPipeline:
             self.stats.captured += 1
             seq += 1
             self._publish_frame(seq, stamp, image)
-            self._mailbox.put((seq, stamp, image))
+            self._frames.put((seq, stamp, image))
 
     def _publish_frame(self, seq: int, stamp: float, image: np.ndarray) -> None:
-        ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
+        ok, jpeg = cv2.imencode(".jpg", image,
+                                [cv2.IMWRITE_JPEG_QUALITY, self.settings.jpeg_quality])
         if not ok:
             log.error("camera %s: JPEG encoding of frame %d failed", self.camera, seq)
             return
@@ -203,19 +210,16 @@ class CameraPipeline:
 
     # -- processing thread ------------------------------------------------------------
     def _process_loop(self) -> None:
-        last_seq = 0
         finished = False
         while not self._stop.is_set():
-            item = self._mailbox.take(timeout=0.1)
+            item = self._frames.take(timeout=0.1)
             if item is None:
                 if self.stats.ended and not finished:
                     finished = True  # a short file: register from the frames it had
                     self._finish()
                 continue
             seq, stamp, image = item
-            if last_seq and seq > last_seq + 1:
-                self.stats.skipped += seq - last_seq - 1
-            last_seq = seq
+            self.stats.skipped = self._frames.dropped
             try:
                 self._process(stamp, image)
             except SlamlensError as exc:
@@ -231,18 +235,19 @@ class CameraPipeline:
             log.info("camera %s: robot %s registered from the last frames of the source "
                      "(reprojection error %.3f px)", self.camera, self.robot,
                      self.registrar.reprojection_error_px)
-            h, w = self.calib.height, self.calib.width
-            self._publish_registration(result, w, h)
+            calib = self.parts.calib
+            self._publish_registration(result, calib.width, calib.height)
 
     def _anchor_pose(self, detections: Sequence[Any], stamp: float) -> np.ndarray | None:
         """T_anchor_from_camera of this frame (identity for a fixed camera)."""
-        if not self.moving:
+        parts = self.parts
+        if not self.settings.moving:
             return np.eye(4)
-        if self.tracker_pose is not None:
-            return self.tracker_pose()
-        if self.board is None:
+        if parts.tracker_pose is not None:
+            return parts.tracker_pose()
+        if parts.board is None:
             return None
-        found = camera_pose_from_board(detections, self.board, self.calib)
+        found = camera_pose_from_board(detections, parts.board, parts.calib)
         if found is None:
             return None
         T_world_from_camera, _rms, _n = found
@@ -253,20 +258,20 @@ class CameraPipeline:
 
     def _process(self, stamp: float, image: np.ndarray) -> None:
         h, w = image.shape[:2]
-        if (w, h) != (self.calib.width, self.calib.height):
+        calib = self.parts.calib
+        if (w, h) != (calib.width, calib.height):
             # the intrinsics would be wrong for this frame: publish it, never register on it
             self.stats.size_mismatches += 1
             if self.stats.size_mismatches == 1:
                 log.error("camera %s: frames are %dx%d but the calibration is for %dx%d; "
-                          "not registering", self.camera, w, h, self.calib.width,
-                          self.calib.height)
+                          "not registering", self.camera, w, h, calib.width, calib.height)
             return
         if self._reregister.is_set():
             self._reregister.clear()
             self.registrar.reset()
             log.info("camera %s: re-registering robot %s from the next frames",
                      self.camera, self.robot)
-        detections = self.detector.detect(image)
+        detections = self.parts.detector.detect(image)
         T_anchor = self._anchor_pose(detections, stamp)
         result = self.registrar.observe(stamp, detections, T_anchor_from_camera=T_anchor)
         if result.registered_now:
@@ -274,7 +279,7 @@ class CameraPipeline:
             log.info("camera %s: robot %s registered (reprojection error %.3f px)",
                      self.camera, self.robot, self.registrar.reprojection_error_px)
         self._publish_registration(result, image.shape[1], image.shape[0])
-        if result.tracked_pose is not None and self.publish_tracked:
+        if result.tracked_pose is not None and self.settings.publish_tracked:
             msg = Truth(robot=self.robot, stamp=float(stamp), pose=result.tracked_pose,
                         landmark_ids=np.zeros(0, np.int64), landmarks=np.zeros((0, 2)))
             self._tracked_pub.put(msg.to_bytes())
@@ -291,11 +296,12 @@ class CameraPipeline:
             return
         now = time.monotonic()
         if result.T_camera_from_map is not None:
-            stamp = result.stamp if self.moving or self.registrar.stamp is None \
+            stamp = result.stamp if self.settings.moving or self.registrar.stamp is None \
                 else self.registrar.stamp
+            calib = self.parts.calib
             reg = Registration(
                 camera=self.camera, robot=self.robot, stamp=float(stamp),
-                K=self.calib.K, dist=self.calib.dist, width=width, height=height,
+                K=calib.K, dist=calib.dist, width=width, height=height,
                 T_camera_from_map=result.T_camera_from_map,
                 reprojection_error_px=self.registrar.reprojection_error_px,
                 status=result.status)
@@ -303,8 +309,8 @@ class CameraPipeline:
             reg = dataclasses.replace(self._latest_registration, status=result.status)
         else:
             return
-        due = (result.registered_now or status_changed or self.moving
-               or now - self._last_published >= self.registration_period_s)
+        due = (result.registered_now or status_changed or self.settings.moving
+               or now - self._last_published >= self.settings.registration_period_s)
         payload = reg.to_bytes()
         self._latest_registration, self._latest_bytes = reg, payload
         if due:
@@ -315,9 +321,10 @@ class CameraPipeline:
 class TrackerPoses:
     """Latest CameraPose per camera from an external tracker (head-mounted, "tracker")."""
 
-    def __init__(self, *, timeout_s: float = TRACKER_TIMEOUT_S) -> None:
+    def __init__(self, *, timeout_s: float = TRACKER_TIMEOUT_S,
+                 drops: DropCounter | None = None) -> None:
         self.timeout_s = timeout_s
-        self.bad = 0
+        self.drops = drops or DropCounter(log)  #: malformed CameraPose messages
         self._poses: dict[str, tuple[float, np.ndarray]] = {}
         self._lock = threading.Lock()
 
@@ -325,8 +332,7 @@ class TrackerPoses:
         try:
             pose = CameraPose.from_bytes(payload)
         except MessageError as exc:
-            self.bad += 1
-            log.warning("dropped a bad CameraPose on %s (%d so far): %s", key, self.bad, exc)
+            self.drops.drop(CameraPose.TYPE, f"on {key}: {exc}")
             return
         with self._lock:
             self._poses[pose.camera] = (time.monotonic(), np.array(pose.T_world_from_camera))
@@ -352,8 +358,7 @@ class RegistrationService:
         self.pipelines = list(pipelines)
         self.synthetic_sources = list(synthetic_sources)
         self.tracker = tracker
-        self.bad_truth = 0
-        self.bad_control = 0
+        self.drops = DropCounter(log)  #: malformed Truth and CameraControl messages
         if self.synthetic_sources:
             bus.subscribe(keys.truth(robot), self._on_truth)
         names = {p.camera for p in self.pipelines} | {base_camera}
@@ -368,33 +373,22 @@ class RegistrationService:
         try:
             truth = Truth.from_bytes(payload)
         except MessageError as exc:
-            self.bad_truth += 1
-            if self.bad_truth == 1 or self.bad_truth % 100 == 0:
-                log.warning("dropped a bad Truth on %s (%d so far): %s", key, self.bad_truth, exc)
+            self.drops.drop(Truth.TYPE, f"on {key}: {exc}")
             return
         for source in self.synthetic_sources:
             source.set_truth(truth)
 
     def _on_control(self, key: str, payload: bytes) -> None:
         try:
-            msg = msgpack.unpackb(payload, raw=False)
-            if not isinstance(msg, dict) or msg.get("schema") != 1:
-                raise ValueError("expected a msgpack map with schema 1")
-            if msg.get("command") != "reregister":
-                raise ValueError(f"unknown command {msg.get('command')!r}; known: reregister")
-            robot = msg.get("robot")
-            if robot is not None and not isinstance(robot, str):
-                raise ValueError(f"robot must be a string, got {robot!r}")
-        except Exception as exc:  # msgpack raises several unrelated types
-            self.bad_control += 1
-            log.warning("dropped a bad control message on %s (%d so far): %s",
-                        key, self.bad_control, exc)
+            request = CameraControl.from_bytes(payload)
+        except MessageError as exc:
+            self.drops.drop(CameraControl.TYPE, f"on {key}: {exc}")
             return
-        if robot is not None and robot != self.robot:
-            log.debug("reregister for robot %s ignored (serving %s)", robot, self.robot)
+        if request.robot is not None and request.robot != self.robot:
+            log.debug("reregister for robot %s ignored (serving %s)", request.robot, self.robot)
             return
-        camera = key.rsplit("/", 2)[-2]
-        for p in self.pipelines:
+        camera = self.keys.camera_of(key)
+        for p in self.pipelines:  # a stereo pair also obeys its base name
             if camera in (p.camera, p.camera.rsplit("-", 1)[0]):
                 p.request_reregister()
 
@@ -416,6 +410,6 @@ class RegistrationService:
                     s = p.stats
                     log.info("camera %s: %.1f fps published, %d processed, %d skipped, "
                              "status %s", p.camera, p.publish_fps(), s.processed, s.skipped,
-                             p._last_status or "starting")
+                             p.status or "starting")
         finally:
             self.stop()

@@ -46,6 +46,7 @@ class Inbox:
 
 def _flood(bus, key: str, kind, count: int, seed: int) -> int:
     pub = bus.publisher(key)
+    assert pub.wait_matched()  # a new publisher may drop what it puts before it matches
     n = 0
     for payload in bad_payloads(kind, np.random.default_rng(seed), count):
         pub.put(payload)

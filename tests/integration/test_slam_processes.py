@@ -139,12 +139,14 @@ def test_estimator_survives_garbage(router_endpoint, make_client, estimator):
     assert probe.wait_for_subscriber(KEYS.state("r1"))  # ours reached the router
     assert probe.wait_for_subscriber(KEYS.odometry("r1"))  # and the estimator's
     odo = client.publisher(KEYS.odometry("r1"))
+    obs = client.publisher(KEYS.observations("r1"))
+    assert odo.wait_matched() and obs.wait_matched()  # type: ignore[attr-defined]
     odo.put(b"\x00garbage")
     odo.put(msgpack.packb({"schema": 1, "robot": "r1", "stamp": 1.0, "dt": 0.1,
                            "v": float("nan"), "w": 0.0}))
     odo.put(msgpack.packb({"schema": 1, "robot": "r1", "stamp": 1.0, "dt": 0.1, "v": [1, 2],
                            "w": 0.0}))
-    client.publisher(KEYS.observations("r1")).put(msgpack.packb(
+    obs.put(msgpack.packb(
         {"schema": 1, "robot": "r1", "stamp": 1.0, "ids": [1, 2], "ranges": [1.0],
          "bearings": [0.0, 0.1]}))
     odo.put(msgpack.packb({"schema": 1, "robot": "r1", "stamp": 1.1, "dt": 0.1, "v": 0.1,
