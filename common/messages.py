@@ -533,6 +533,10 @@ class Registration(Message):
     reprojection_error_px: float = _scalar("float", "RMS reprojection error of the marker, px")
     status: str = field(default="registered", metadata={
         "kind": "str", "doc": "registered / tracking / marker not found …"})
+    epoch: int | None = _scalar(
+        "int", "optional: the epoch of the map this registration is for (SPEC §7a: a new "
+        "map has a new frame); absent: whichever map the camera saw the robot start",
+        optional=True, range=_UINT64)
 
 
 @dataclass(frozen=True, eq=False)
