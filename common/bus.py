@@ -122,7 +122,11 @@ class Bus(Protocol):
 
     def serve_latest(self, key: str, provider: Callable[[], bytes | None]) -> Any: ...
 
-    def get(self, key: str, *, timeout: float = 2.0) -> list[Sample]: ...
+    def answer(self, key: str, handler: Callable[[str, bytes | None], bytes | None]) -> Any:
+        ...
+
+    def get(self, key: str, *, timeout: float = 2.0, payload: bytes | None = None
+            ) -> list[Sample]: ...
 
     def declare_alive(self, key: str) -> Any: ...
 
@@ -445,9 +449,27 @@ class ZenohBus:
 
         return self._keep(self.session.declare_queryable(key, on_query))
 
-    def get(self, key: str, *, timeout: float = 2.0) -> list[Sample]:
+    def answer(self, key: str, handler: Callable[[str, bytes | None], bytes | None]) -> Any:
+        """Answer a ``get`` on ``key`` with ``handler(key, query payload)`` (a request, e.g.
+        a re-registration, from a client that may query but not publish). The handler runs
+        on Zenoh's thread: it must only decide and store, never wait."""
+        def on_query(query: Any) -> None:
+            try:
+                payload = query.payload.to_bytes() if query.payload is not None else None
+                reply = handler(str(query.key_expr), payload)
+                if reply is not None:
+                    query.reply(key, reply)
+            except Exception:
+                log.exception("queryable %s failed", key)
+
+        return self._keep(self.session.declare_queryable(key, on_query))
+
+    def get(self, key: str, *, timeout: float = 2.0, payload: bytes | None = None
+            ) -> list[Sample]:
         out = []
-        for reply in self.session.get(key, timeout=timeout):
+        replies = (self.session.get(key, timeout=timeout) if payload is None
+                   else self.session.get(key, payload=payload, timeout=timeout))
+        for reply in replies:
             if reply.ok is not None:
                 out.append(Sample(str(reply.ok.key_expr), reply.ok.payload.to_bytes()))
         return out
@@ -508,6 +530,7 @@ class InProcessBus:
     def __init__(self) -> None:
         self._subs: list[tuple[str, Callable[[Sample], None]]] = []
         self._queryables: list[tuple[str, Callable[[], bytes | None]]] = []
+        self._answerers: list[tuple[str, Callable[[str, bytes | None], bytes | None]]] = []
         self._alive: set[str] = set()
         self._clock = 0
         self._lock = threading.Lock()
@@ -555,13 +578,24 @@ class InProcessBus:
         self._queryables.append(entry)
         return entry
 
-    def get(self, key: str, *, timeout: float = 2.0) -> list[Sample]:
+    def answer(self, key: str, handler: Callable[[str, bytes | None], bytes | None]) -> Any:
+        entry = (key, handler)
+        self._answerers.append(entry)
+        return entry
+
+    def get(self, key: str, *, timeout: float = 2.0, payload: bytes | None = None
+            ) -> list[Sample]:
         out = []
         for pattern, provider in self._queryables:
             if _intersects(pattern, key):
-                payload = provider()
-                if payload is not None:
-                    out.append(Sample(pattern, payload))
+                reply = provider()
+                if reply is not None:
+                    out.append(Sample(pattern, reply))
+        for pattern, handler in self._answerers:
+            if _intersects(pattern, key):
+                reply = handler(key, payload)
+                if reply is not None:
+                    out.append(Sample(pattern, reply))
         return out
 
     def declare_alive(self, key: str) -> Any:
