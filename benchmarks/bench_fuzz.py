@@ -97,7 +97,7 @@ def fuzz_monitor(ep: str, count: int) -> None:
     try:
         for key, kind, seed in ((KEYS.state(ROBOT), SlamState, 3),
                                 (KEYS.truth(ROBOT), Truth, 4),
-                                (KEYS.tracked(ROBOT), Truth, 5)):
+                                (KEYS.tracked_by("overhead", ROBOT), Truth, 5)):
             n, took = _send(bus, key, kind, count, seed)
             print(f"monitor {key.rsplit('/', 1)[1]}: {n} payloads sent in {took:.1f} s "
                   f"({n / took:.0f}/s)")

@@ -116,7 +116,8 @@ class Bus(Protocol):
 
     def channel(self, key: str, *, latest_wins: bool = False, recover: bool = False,
                 history_s: float = 0.0, max_bytes: int = DEFAULT_QUEUE_BYTES,
-                accept: Callable[[str], bool] | None = None) -> Channel: ...
+                accept: Callable[[str], bool] | None = None,
+                also: tuple[str, ...] = ()) -> Channel: ...
 
     def wait_for_subscriber(self, key: str, *, timeout: float = 10.0) -> bool: ...
 
@@ -396,9 +397,10 @@ class ZenohBus:
 
     def channel(self, key: str, *, latest_wins: bool = False, recover: bool = False,
                 history_s: float = 0.0, max_bytes: int = DEFAULT_QUEUE_BYTES,
-                accept: Callable[[str], bool] | None = None) -> Channel:
-        """One ordered queue for ``key`` (module docstring); ``accept(key)`` filters
-        samples before their payload is copied."""
+                accept: Callable[[str], bool] | None = None,
+                also: tuple[str, ...] = ()) -> Channel:
+        """One ordered queue for ``key`` and the key expressions ``also`` (module
+        docstring); ``accept(key)`` filters samples before their payload is copied."""
         ch = QueueChannel(name=key, capacity=1 if latest_wins else None, max_bytes=max_bytes)
 
         def on_sample(sample: Any) -> None:
@@ -406,22 +408,23 @@ class ZenohBus:
             if accept is None or accept(sample_key):  # filter before copying the payload
                 ch.push(_sample_of(sample, sample_key))
 
-        if recover or history_s > 0:
-            import zenoh.ext as zext
+        for expr in (key, *also):
+            if recover or history_s > 0:
+                import zenoh.ext as zext
 
-            history = (zext.HistoryConfig(detect_late_publishers=True,
-                                          max_age=float(history_s))
-                       if history_s > 0 else None)
-            sub = zext.declare_advanced_subscriber(
-                self.session, key, on_sample, history=history,
-                recovery=zext.RecoveryConfig(periodic_queries=None, heartbeat=True),
-                subscriber_detection=True)
-            misses = sub.sample_miss_listener(lambda miss: ch.count_lost(int(miss.nb)))
-            ch._on_close.append(sub.undeclare)
-            ch._on_close.append(misses.undeclare)
-        else:
-            sub = self.session.declare_subscriber(key, on_sample)
-            ch._on_close.append(sub.undeclare)
+                history = (zext.HistoryConfig(detect_late_publishers=True,
+                                              max_age=float(history_s))
+                           if history_s > 0 else None)
+                sub = zext.declare_advanced_subscriber(
+                    self.session, expr, on_sample, history=history,
+                    recovery=zext.RecoveryConfig(periodic_queries=None, heartbeat=True),
+                    subscriber_detection=True)
+                misses = sub.sample_miss_listener(lambda miss: ch.count_lost(int(miss.nb)))
+                ch._on_close.append(sub.undeclare)
+                ch._on_close.append(misses.undeclare)
+            else:
+                sub = self.session.declare_subscriber(expr, on_sample)
+                ch._on_close.append(sub.undeclare)
         self._keep(ch)
         return ch
 
@@ -560,14 +563,16 @@ class InProcessBus:
 
     def channel(self, key: str, *, latest_wins: bool = False, recover: bool = False,
                 history_s: float = 0.0, max_bytes: int = DEFAULT_QUEUE_BYTES,
-                accept: Callable[[str], bool] | None = None) -> Channel:
+                accept: Callable[[str], bool] | None = None,
+                also: tuple[str, ...] = ()) -> Channel:
         ch = QueueChannel(name=key, capacity=1 if latest_wins else None, max_bytes=max_bytes)
 
         def push(sample: Sample) -> None:
             if accept is None or accept(sample.key):
                 ch.push(sample)
 
-        self._subs.append((key, push))
+        for expr in (key, *also):
+            self._subs.append((expr, push))
         return ch
 
     def wait_for_subscriber(self, key: str, *, timeout: float = 10.0) -> bool:

@@ -173,7 +173,7 @@ class CameraPipeline:
         camera, robot = self.camera, self.robot
         self._frame_pub = bus.publisher(keys.frame(camera), latest_wins=True)
         self._reg_pub = bus.publisher(keys.registration(camera, robot))
-        self._tracked_pub = bus.publisher(keys.tracked(robot), latest_wins=True)
+        self._tracked_pub = bus.publisher(keys.tracked_by(camera, robot), latest_wins=True)
         self._pose_pub = bus.publisher(keys.camera_pose(camera), latest_wins=True)
         bus.serve_latest(keys.registration(camera, robot), lambda: self._latest_bytes)
         bus.declare_alive(keys.camera_alive(camera))

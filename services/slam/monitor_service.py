@@ -61,8 +61,9 @@ class MonitorService:
         self._said_behind = 0.0
         self._publisher = bus.publisher(keys.health(robot), cache=HEALTH_CACHE)
         self._inputs = bus.channel(keys.robot_inputs(robot), recover=True,
-                                   accept=lambda key: key.endswith(("/state", "/truth",
-                                                                    "/tracked")))
+                                   also=(keys.tracked(robot),),
+                                   accept=lambda key: key.endswith(("/state", "/truth"))
+                                   or "/tracked/" in key)
         bus.serve_latest(keys.health(robot), self.latest_bytes)
 
     def latest_bytes(self) -> bytes | None:
@@ -75,7 +76,7 @@ class MonitorService:
         return self._inputs.backlog
 
     def handle(self, key: str, payload: bytes) -> Health | None:
-        leaf = self.keys.leaf_of(key)
+        leaf = "tracked" if "/tracked/" in key else self.keys.leaf_of(key)
         try:
             if leaf in ("truth", "tracked"):
                 self.monitor.add_truth(Truth.from_bytes(payload))

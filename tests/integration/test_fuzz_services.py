@@ -97,7 +97,7 @@ def test_monitor_survives_garbage_on_state_truth_and_tracked(router_endpoint,
     try:
         sent = _flood(client, KEYS.state(ROBOT), SlamState, PER_KEY, 3)
         sent += _flood(client, KEYS.truth(ROBOT), Truth, PER_KEY, 4)
-        sent += _flood(client, KEYS.tracked(ROBOT), Truth, PER_KEY, 5)
+        sent += _flood(client, KEYS.tracked_by("overhead", ROBOT), Truth, PER_KEY, 5)
         pub = client.publisher(KEYS.state(ROBOT))
         for seq in (1, 2):
             pub.put(valid(SlamState, robot=ROBOT, seq=seq).to_bytes())
