@@ -69,10 +69,6 @@ class Keys:
         """Camera ``camera``'s measured pose of ``robot``."""
         return self.camera(camera, f"tracked/{check_name('robot', robot)}")
 
-    def robot_inputs(self, robot: str) -> str:
-        """One expression covering odometry and observations, for one ordered subscriber."""
-        return self.robot(robot, "*")
-
     def estimator_alive(self, robot: str) -> str:
         """Liveliness token of the estimator serving ``robot``."""
         return self.robot(robot, "alive/estimator")

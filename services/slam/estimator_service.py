@@ -1,6 +1,6 @@
 """The EKF-SLAM estimator as a bus service (SPEC §4, §7, §7a).
 
-Inputs: one recovering channel on ``slamlens/robot/{robot}/*`` (an advanced subscriber:
+Inputs: one recovering channel on the robot's odometry and observations keys (advanced subscribers:
 what congestion, a link cut or a router restart made it miss comes back from the drivers'
 caches). Its Zenoh callback only queues the sample; one worker thread decodes, puts the
 inputs in publication order exactly once (:mod:`services.slam.input_order`) and applies
@@ -103,10 +103,11 @@ class EstimatorService:
         # The input channel is declared before the liveliness token, so a driver that
         # waits for the token never publishes into the void; after a resume it also asks
         # the drivers' caches for what was published while the estimator was down.
+        # One queue for both input keys (each subscribed on its own, so the router sends
+        # nothing else: not the truth, not our own states).
         self._inputs = bus.channel(
-            keys.robot_inputs(self.robot), recover=True,
-            history_s=settings.input_history_s if self.resumed else 0.0,
-            accept=lambda key: key.endswith(("/odometry", "/observations")))
+            keys.odometry(self.robot), also=(keys.observations(self.robot),), recover=True,
+            history_s=settings.input_history_s if self.resumed else 0.0)
         if init is None:
             init = self.estimator.to_state(seq=0, stamp=0.0, step="init", epoch=self.epoch,
                                            input_stamp=0.0)

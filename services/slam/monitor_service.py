@@ -60,10 +60,10 @@ class MonitorService:
         self._lock = threading.Lock()
         self._said_behind = 0.0
         self._publisher = bus.publisher(keys.health(robot), cache=HEALTH_CACHE)
-        self._inputs = bus.channel(keys.robot_inputs(robot), recover=True,
-                                   also=(keys.tracked(robot),),
-                                   accept=lambda key: key.endswith(("/state", "/truth"))
-                                   or "/tracked/" in key)
+        # one ordered queue for what it checks, each key subscribed on its own (the router
+        # sends nothing else: not the estimator's inputs, not our own health)
+        self._inputs = bus.channel(keys.state(robot), recover=True,
+                                   also=(keys.truth(robot), keys.tracked(robot)))
         bus.serve_latest(keys.health(robot), self.latest_bytes)
 
     def latest_bytes(self) -> bytes | None:
