@@ -26,11 +26,11 @@ import cv2
 import numpy as np
 
 from common.bus import Bus
+from common.clusters import ClusterTracker, cluster_labels
 from common.drops import DropCounter
 from common.keys import Keys
 from common.messages import CameraFrame, Health, Registration, SlamState, Truth
 from services.visualiser.camera_model import CameraModel
-from services.visualiser.clusters import ClusterTracker, cluster_labels
 from services.visualiser.intake import Queue, RateMeter, Slot, decode
 from services.visualiser.recording import Recorder, recording_name
 from services.visualiser.render import Renderer, side_by_side
