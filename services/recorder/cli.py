@@ -52,14 +52,16 @@ def _parse_address(address: str) -> tuple[str, int]:
 
 def _run_play(args: argparse.Namespace) -> int:
     from services.recorder.play import Player
+    from services.recorder.reading import Recording
 
     settings = settings_from_args(PlaySettings, args)
+    recording = Recording(settings.path)  # a bad file is one line before any bus
     stop = stop_event()
     bus = open_bus(bus_settings(args))
     control = None
     player = None
     try:
-        player = Player(bus, settings=settings, keys=keys_from(args))
+        player = Player(bus, settings=settings, keys=keys_from(args), recording=recording)
         player.check_estimators(stop)
         if settings.control:
             from services.recorder.control import ControlServer

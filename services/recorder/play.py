@@ -55,11 +55,12 @@ class Player:
     """Plays one recording on a bus (module docstring); ``control`` commands are
     thread-safe (the control page calls them)."""
 
-    def __init__(self, bus: Bus, *, settings: PlaySettings, keys: Keys) -> None:
+    def __init__(self, bus: Bus, *, settings: PlaySettings, keys: Keys,
+                 recording: Recording | None = None) -> None:
         self.bus = bus
         self.settings = settings
         self.keys = keys
-        self.recording = Recording(settings.path)
+        self.recording = recording if recording is not None else Recording(settings.path)
         topics = self.recording.playable_topics()
         if settings.robot:
             topics = [t for t in topics if keys.robot_of(t) in settings.robot]
