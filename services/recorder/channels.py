@@ -44,6 +44,7 @@ from services.recorder.layout import message_of_key
 from services.recorder.scene import MAP_FRAME, scene_update, timestamp
 from services.recorder.settings import SceneSettings
 
+PATH_PERIOD_S = 1.0  #: the path entity is sent at most once per this much robot time
 MAX_PLOTTED_PAIRS = 1000  #: beyond this many pairs the covariance message has no per-pair list
 
 
@@ -205,6 +206,7 @@ class _Robot:
     pending_health: tuple[bytes, int] | None = None
     last_health_stamp: float | None = None
     new_map: bool = True
+    last_path_stamp: float | None = None
 
 
 class FoxgloveTranslator:
@@ -300,7 +302,7 @@ class FoxgloveTranslator:
         robot = self._robot(name)
         if robot.epoch != epoch or seq < robot.last_seq:
             robot.path, robot.path_fx, robot.epoch, robot.new_map = [], [], epoch, True
-            robot.last_scene_stamp = None
+            robot.last_scene_stamp = robot.last_path_stamp = None
             robot.health = robot.health_raw = None
         robot.last_seq = seq
         point = (float(pose[0]), float(pose[1]))
@@ -316,11 +318,16 @@ class FoxgloveTranslator:
         return self._draw(robot, SlamState.from_bytes(payload, check_symmetry=False),
                           log_time_ns)
 
-    def _draw(self, robot: _Robot, state: SlamState, log_time_ns: int) -> list[FoxgloveMessage]:
+    def _draw(self, robot: _Robot, state: SlamState, log_time_ns: int, *,
+              final: bool = False) -> list[FoxgloveMessage]:
         robot.pending = None
         robot.last_scene_stamp = state.stamp
+        with_path = (final or robot.new_map or robot.last_path_stamp is None
+                     or abs(state.stamp - robot.last_path_stamp) >= PATH_PERIOD_S)
+        if with_path:
+            robot.last_path_stamp = state.stamp
         data, glyphs = scene_update(state, self.settings, log_time_ns=log_time_ns,
-                                    path_xy=robot.path_fx,
+                                    path_xy=robot.path_fx if with_path else None,
                                     health=self._latest_health(robot), new_map=robot.new_map)
         robot.new_map = False
         self.scenes += 1
@@ -338,7 +345,7 @@ class FoxgloveTranslator:
             if robot.pending is not None:
                 payload, log_time_ns = robot.pending
                 out += self._draw(robot, SlamState.from_bytes(payload, check_symmetry=False),
-                                  log_time_ns)
+                                  log_time_ns, final=True)
             if robot.pending_health is not None:
                 out += self._health_message(robot, *robot.pending_health)
         return out
@@ -348,4 +355,4 @@ class FoxgloveTranslator:
         """The scene of ``state`` now, whatever the rate (a live client just subscribed, or
         the settings changed)."""
         robot = self._robot(robot_name)
-        return self._draw(robot, state, log_time_ns)
+        return self._draw(robot, state, log_time_ns, final=True)

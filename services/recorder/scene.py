@@ -3,7 +3,8 @@
 What the viewer draws over the camera, as 3D entities in the ``map`` frame (z up):
 
 * ``robot``: a green cone whose tip is the 2D estimate, and a flat yellow heading arrow;
-* ``path``: the green line of the estimated positions so far (thinned beyond a length);
+* ``path``: the green line of the estimated positions so far (thinned beyond a length),
+  sent at most once a second of robot time (an entity stays until it is replaced);
 * ``features``: cyan cones, tips at the estimates, magenta for the monitor's suspects, and
   their ids as labels;
 * ``pairs``: a yellow line per pair drawn (per cluster pair, between the centroids, in
@@ -182,13 +183,14 @@ def path_points(path_xy: np.ndarray) -> list[Point3]:
 
 
 def scene_update(state: SlamState, settings: SceneSettings, *, log_time_ns: int,
-                 path_xy: np.ndarray | list[Point3], health: Health | None = None,
+                 path_xy: np.ndarray | list[Point3] | None, health: Health | None = None,
                  new_map: bool = False) -> tuple[bytes, PairGlyphs]:
     """The encoded ``foxglove.SceneUpdate`` of ``state`` (and the glyphs it holds).
 
     ``path_xy`` is the path (k, 2) or already as points (:func:`path_points`, which a
-    caller drawing many scenes keeps). ``new_map`` first deletes everything shown (a new
-    epoch: nothing of the old map stays).
+    caller drawing many scenes keeps); None leaves the path entity out (Foxglove keeps
+    showing the last one sent: it is the biggest entity, so it is sent less often).
+    ``new_map`` first deletes everything shown (a new epoch: nothing of the old map stays).
     """
     stamp = timestamp(log_time_ns)
     meta = [KeyValuePair(key="robot", value=state.robot),
@@ -208,8 +210,9 @@ def scene_update(state: SlamState, settings: SceneSettings, *, log_time_ns: int,
                        pose=Pose(position=Vector3(x=x, y=y, z=0.01), orientation=_yaw(theta)),
                        shaft_length=0.22, shaft_diameter=0.02, head_length=0.08,
                        head_diameter=0.07, color=_colour(HEADING))])
-    points_of_path = path_points(path_xy) if isinstance(path_xy, np.ndarray) else path_xy
-    path = entity("path", lines=[LinePrimitive(
+    points_of_path = [] if path_xy is None else (
+        path_points(path_xy) if isinstance(path_xy, np.ndarray) else path_xy)
+    path = None if path_xy is None else entity("path", lines=[LinePrimitive(
         type=LinePrimitiveLineType.LineStrip, thickness=0.015, scale_invariant=False,
         points=points_of_path, color=_colour(PATH))] if len(points_of_path) >= 2 else [])
     suspects = set() if health is None else set(health.suspects.tolist())
@@ -251,6 +254,6 @@ def scene_update(state: SlamState, settings: SceneSettings, *, log_time_ns: int,
     ellipsoids = entity("ellipsoids", spheres=spheres)
     deletions = [SceneEntityDeletion(timestamp=stamp, type=SceneEntityDeletionType.All)] \
         if new_map else []
-    update = SceneUpdate(deletions=deletions,
-                         entities=[robot, path, features, pairs, ellipsoids])
+    entities = [robot, features, pairs, ellipsoids] + ([path] if path is not None else [])
+    update = SceneUpdate(deletions=deletions, entities=entities)
     return update.encode(), glyphs
