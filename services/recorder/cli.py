@@ -10,6 +10,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import os
 
 from common.cli import bus_settings, keys_from, setup_logging, stop_event
 from common.config import settings_from_args
@@ -30,6 +31,8 @@ def _run_record(args: argparse.Namespace) -> int:
     from services.recorder.record import Recorder
 
     settings = settings_from_args(RecordSettings, args)
+    if settings.nice and hasattr(os, "nice"):
+        os.nice(settings.nice)  # a background consumer: the live services go first
     stop = stop_event()
     bus = open_bus(bus_settings(args))
     try:

@@ -82,6 +82,9 @@ class RecordSettings(SceneSettings):
     flush_s: float = setting(1.0, doc="write the open chunk out at least this often (what a "
                                       "killed recorder can lose)", unit="s", min=0.05)
     overwrite: bool = setting(False, doc="replace FILE.mcap if it exists")
+    nice: int = setting(10, doc="lower the recorder's CPU priority by this much: on a busy "
+                                "machine the estimator goes first and the recorder catches "
+                                "up afterwards (it drops nothing)", min=0, max=19)
     progress: bool = setting(True, doc="show a progress line on a terminal")
     def __post_init__(self) -> None:
         _names("robot", self.robot)
