@@ -83,6 +83,14 @@ def paper_run(*, record: Path | None, camera: bool) -> dict:
         assert sim.returncode == 0 and "all applied" in out, out + err
         result = {"sim_s": _wall(out, "sim")}
         if rec is not None:
+            # let the recorder (nice 10) catch up: the file stops growing for 3 flushes
+            assert record is not None
+            last, still = -1, time.monotonic()
+            while time.monotonic() - still < 3.0:
+                size = record.stat().st_size
+                if size != last:
+                    last, still = size, time.monotonic()
+                time.sleep(0.2)
             rec_out, _ = stop(rec)
             line = next(ln for ln in rec_out.splitlines() if ln.startswith("record stopped"))
             result["record"] = json.loads(line.split(": ", 1)[1])

@@ -96,6 +96,7 @@ class Recorder:
             bus.channel(expr, recover=True, history_s=settings.history_s)
             for expr in self.expressions]
         self._closed = False
+        self.unwritten = 0  #: samples still queued when the recorder was stopped
 
     # -- writing ----------------------------------------------------------------------
     def _channel_id(self, key: str) -> int:
@@ -212,6 +213,10 @@ class Recorder:
             self.close()
 
     def close(self) -> None:
+        self.unwritten = self.backlog
+        if self.unwritten:
+            log.warning("stopped with %d samples received and not written: the exit budget "
+                        "(2 s) ran out before the recorder caught up", self.unwritten)
         with self._lock:
             if self._closed:
                 return
@@ -229,6 +234,7 @@ class Recorder:
                 "file_bytes": self.path.stat().st_size if self.path.exists() else 0,
                 "channels": len(self.per_key), "lost": self.lost,
                 "duplicates": self.duplicates, "bad": self.bad.total,
+                "unwritten": self.unwritten,
                 "scenes": self.translator.scenes if self.translator else 0}
 
 
