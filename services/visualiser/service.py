@@ -26,11 +26,11 @@ from collections.abc import Callable
 import numpy as np
 
 from common.bus import Bus
+from common.clusters import ClusterTracker, cluster_labels
 from common.drops import DropCounter
 from common.keys import Keys
 from services.visualiser.api import ViewerApi
 from services.visualiser.clients import ClientRegistry
-from services.visualiser.clusters import ClusterTracker, cluster_labels
 from services.visualiser.compose import Composer
 from services.visualiser.intake import Intake
 from services.visualiser.pipeline import RenderPipeline
