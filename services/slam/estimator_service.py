@@ -85,7 +85,8 @@ class EstimatorService:
         self.estimator = Estimator(settings)
         self.stats = EstimatorStats()
         self.drops = DropCounter(log)
-        self.order = InputOrder(gap_wait_s=settings.input_gap_wait_s)
+        self.order = InputOrder(gap_wait_s=settings.input_gap_wait_s,
+                                reorder_s=settings.input_reorder_s)
         self._seq = 0
         self._input_stamp = 0.0
         self._origin_stamp: float | None = None  #: when the robot stood at the map origin
