@@ -41,6 +41,8 @@ from typing import Any, Protocol
 log = logging.getLogger(__name__)
 
 Callback = Callable[[str, bytes], None]
+#: a queryable's handler: (key, query payload or None, selector parameters) → reply or None
+Answer = Callable[[str, "bytes | None", str], "bytes | None"]
 
 DEFAULT_QUEUE_BYTES = 1 << 30  #: 1 GiB of payloads waiting in one channel, then drop oldest
 _LOST_LOG_EVERY = 1000
@@ -123,8 +125,7 @@ class Bus(Protocol):
 
     def serve_latest(self, key: str, provider: Callable[[], bytes | None]) -> Any: ...
 
-    def answer(self, key: str, handler: Callable[[str, bytes | None], bytes | None]) -> Any:
-        ...
+    def answer(self, key: str, handler: Answer) -> Any: ...
 
     def get(self, key: str, *, timeout: float = 2.0, payload: bytes | None = None
             ) -> list[Sample]: ...
@@ -452,14 +453,15 @@ class ZenohBus:
 
         return self._keep(self.session.declare_queryable(key, on_query))
 
-    def answer(self, key: str, handler: Callable[[str, bytes | None], bytes | None]) -> Any:
-        """Answer a ``get`` on ``key`` with ``handler(key, query payload)`` (a request, e.g.
-        a re-registration, from a client that may query but not publish). The handler runs
-        on Zenoh's thread: it must only decide and store, never wait."""
+    def answer(self, key: str, handler: Answer) -> Any:
+        """Answer a ``get`` on ``key`` with ``handler(key, query payload, parameters)`` (a
+        request, e.g. a re-registration, from a client that may query but not publish; or
+        a selector such as ``state?header``). The handler runs on Zenoh's thread: it must
+        only decide and store, never wait."""
         def on_query(query: Any) -> None:
             try:
                 payload = query.payload.to_bytes() if query.payload is not None else None
-                reply = handler(str(query.key_expr), payload)
+                reply = handler(str(query.key_expr), payload, str(query.parameters))
                 if reply is not None:
                     query.reply(key, reply)
             except Exception:
@@ -533,7 +535,7 @@ class InProcessBus:
     def __init__(self) -> None:
         self._subs: list[tuple[str, Callable[[Sample], None]]] = []
         self._queryables: list[tuple[str, Callable[[], bytes | None]]] = []
-        self._answerers: list[tuple[str, Callable[[str, bytes | None], bytes | None]]] = []
+        self._answerers: list[tuple[str, Answer]] = []
         self._alive: set[str] = set()
         self._clock = 0
         self._lock = threading.Lock()
@@ -583,7 +585,7 @@ class InProcessBus:
         self._queryables.append(entry)
         return entry
 
-    def answer(self, key: str, handler: Callable[[str, bytes | None], bytes | None]) -> Any:
+    def answer(self, key: str, handler: Answer) -> Any:
         entry = (key, handler)
         self._answerers.append(entry)
         return entry
@@ -592,13 +594,14 @@ class InProcessBus:
             ) -> list[Sample]:
         out = []
         for pattern, provider in self._queryables:
-            if _intersects(pattern, key):
+            if _intersects(pattern, key.partition("?")[0]):
                 reply = provider()
                 if reply is not None:
                     out.append(Sample(pattern, reply))
+        base, _, parameters = key.partition("?")
         for pattern, handler in self._answerers:
-            if _intersects(pattern, key):
-                reply = handler(key, payload)
+            if _intersects(pattern, base):
+                reply = handler(base, payload, parameters)
                 if reply is not None:
                     out.append(Sample(pattern, reply))
         return out

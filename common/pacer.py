@@ -27,26 +27,34 @@ PACE_WINDOW = 200
 class Pacer:
     """Holds a driver back to ``window`` inputs ahead of the estimator's ``input_stamp``.
 
-    It watches the robot's state key (latest wins) and reads only the state's header; the
-    stamps of the inputs still unapplied are kept in publication order.
+    The stamps of the inputs not yet applied are kept in publication order. When ``window``
+    of them wait, the pacer asks the estimator where it is (a ``get`` on
+    ``slamlens/robot/R/state?header``: the newest state's header only, not the map) until
+    half of them are applied, so the estimator always has work queued and the driver never
+    receives the states it does not need.
     """
 
     def __init__(self, bus: Bus, *, keys: Keys, robot: str, window: int = PACE_WINDOW,
-                 stall_log_s: float = 10.0) -> None:
-        self.window = max(1, int(window))
-        self._states = bus.channel(keys.state(robot), latest_wins=True)
+                 stall_log_s: float = 10.0, poll_s: float = 0.001) -> None:
+        self.window = max(2, int(window))
+        self._bus = bus
+        self._key = keys.state(robot) + "?header"
         self._pending: deque[float] = deque()
         self._acked = float("-inf")
         self._epoch: int | None = None
         self._stall_log_s = stall_log_s
+        self._poll_s = poll_s
         self.waited_s = 0.0
+        self.polls = 0
 
-    def _take(self, timeout: float) -> bool:
-        sample = self._states.recv(timeout=timeout)
-        if sample is None:
+    def _poll(self) -> bool:
+        """Ask the estimator for its newest state's header; False if none answered."""
+        self.polls += 1
+        replies = self._bus.get(self._key, timeout=1.0)
+        if not replies:
             return False
         try:
-            head = peek_fields(sample.payload, ("epoch", "input_stamp", "stamp"))
+            head = peek_fields(replies[0].payload, ("epoch", "input_stamp", "stamp"))
         except MessageError:
             return False
         stamp = head.get("input_stamp", head.get("stamp"))
@@ -61,27 +69,30 @@ class Pacer:
             self._pending.popleft()
         return True
 
-    def before(self, stamp: float, stop: threading.Event) -> None:
-        """Wait (until ``stop``) while ``window`` inputs are unapplied, then count one more."""
-        started = time.monotonic()
-        said = started
-        while len(self._pending) >= self.window and not stop.is_set():
-            self._take(0.2)
+    def _wait_below(self, level: int, stop: threading.Event, *, deadline: float) -> None:
+        started = said = time.monotonic()
+        while len(self._pending) > level and not stop.is_set() \
+                and time.monotonic() < deadline:
+            answered = self._poll()
+            if len(self._pending) > level:
+                stop.wait(self._poll_s if answered else 0.2)
             if time.monotonic() - said >= self._stall_log_s:
                 said = time.monotonic()
                 log.warning("the estimator applied nothing for %.0f s (input stamp %.3f); "
                             "holding %d inputs", said - started, self._acked,
                             len(self._pending))
-        self._take(0.0)
         self.waited_s += time.monotonic() - started
+
+    def before(self, stamp: float, stop: threading.Event) -> None:
+        """Wait (until ``stop``) while ``window`` inputs are unapplied, then count one more."""
+        if len(self._pending) >= self.window:
+            self._wait_below(self.window // 2, stop, deadline=float("inf"))
         self._pending.append(stamp)
 
     def drain(self, stop: threading.Event, *, timeout_s: float = 10.0) -> bool:
         """Wait until the estimator applied everything published (or ``timeout_s``)."""
-        deadline = time.monotonic() + timeout_s
-        while self._pending and not stop.is_set() and time.monotonic() < deadline:
-            self._take(0.2)
+        self._wait_below(0, stop, deadline=time.monotonic() + timeout_s)
         return not self._pending
 
     def close(self) -> None:
-        self._states.close()
+        """Nothing to undeclare (the pacer only queries)."""

@@ -576,7 +576,7 @@ class RegistrationService:
                 taken = True
         return "accepted: re-registering from the next frames" if taken else "no such camera"
 
-    def _on_control_query(self, key: str, payload: bytes | None) -> bytes:
+    def _on_control_query(self, key: str, payload: bytes | None, parameters: str) -> bytes:
         """The same request as a Zenoh query (a viewer may query but not publish)."""
         answer = self._control(key, payload or b"")
         return msgpack.packb({"schema": 1, "answer": answer}, use_bin_type=True)

@@ -22,6 +22,7 @@ import threading
 import time
 from dataclasses import dataclass
 
+import msgpack
 import numpy as np
 
 from common.bus import Bus, Sample
@@ -113,7 +114,8 @@ class EstimatorService:
             init = self.estimator.to_state(seq=0, stamp=0.0, step="init", epoch=self.epoch,
                                            input_stamp=0.0)
         self._latest = init.to_bytes()
-        bus.serve_latest(keys.state(self.robot), self.latest_bytes)
+        self._header = self._header_of(init)
+        bus.answer(keys.state(self.robot), self._on_query)
         self._publisher.put(self._latest)
         bus.declare_alive(keys.estimator_alive(self.robot))
 
@@ -157,6 +159,20 @@ class EstimatorService:
     def latest_bytes(self) -> bytes:
         with self._lock:
             return self._latest
+
+    @staticmethod
+    def _header_of(state: SlamState) -> bytes:
+        """``get state?header``'s answer: what a driver paces on, not the map."""
+        return msgpack.packb({"schema": 1, "robot": state.robot, "seq": state.seq,
+                              "stamp": state.stamp, "step": state.step,
+                              "epoch": state.epoch, "input_stamp": state.input_stamp,
+                              "origin_stamp": state.origin_stamp}, use_bin_type=True)
+
+    def _on_query(self, key: str, payload: bytes | None, parameters: str) -> bytes:
+        """The latest state, or with ``?header`` only its header (SPEC §7: a ``get`` on
+        the state key answers the latest state; the header is ours, docs/protocol.md)."""
+        with self._lock:
+            return self._header if "header" in parameters.split(";") else self._latest
 
     def handle(self, key: str, payload: bytes) -> SlamState | None:
         """Decode and apply one input now (no ordering); the state published, or None."""
@@ -212,8 +228,9 @@ class EstimatorService:
                                         epoch=self.epoch, input_stamp=stamp,
                                         origin_stamp=self._origin_stamp)
         payload = state.to_bytes()
+        header = self._header_of(state)
         with self._lock:
-            self._latest = payload
+            self._latest, self._header = payload, header
         self._publisher.put(payload)
         self.stats.states += 1
         return state
