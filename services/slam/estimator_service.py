@@ -160,13 +160,15 @@ class EstimatorService:
         with self._lock:
             return self._latest
 
-    @staticmethod
-    def _header_of(state: SlamState) -> bytes:
-        """``get state?header``'s answer: what a driver paces on, not the map."""
+    def _header_of(self, state: SlamState) -> bytes:
+        """``get state?header``'s answer: what a driver paces on, not the map (and the
+        service's counters)."""
         return msgpack.packb({"schema": 1, "robot": state.robot, "seq": state.seq,
                               "stamp": state.stamp, "step": state.step,
                               "epoch": state.epoch, "input_stamp": state.input_stamp,
-                              "origin_stamp": state.origin_stamp}, use_bin_type=True)
+                              "origin_stamp": state.origin_stamp,
+                              "dropped": self.drops.total, "lost": self.order.stats.lost},
+                             use_bin_type=True)
 
     def _on_query(self, key: str, payload: bytes | None, parameters: str) -> bytes:
         """The latest state, or with ``?header`` only its header (SPEC §7: a ``get`` on
