@@ -101,6 +101,15 @@ class Channel(Protocol):
         ...
 
     @property
+    def backlog_bytes(self) -> int:
+        """Payload bytes received and not yet taken."""
+        ...
+
+    def take_all(self) -> list[Sample]:
+        """Everything queued now, oldest first, without waiting."""
+        ...
+
+    @property
     def dropped(self) -> int:
         """Samples discarded on purpose (latest wins) or for lack of memory."""
         ...
@@ -188,6 +197,18 @@ class QueueChannel:
     @property
     def backlog(self) -> int:
         return len(self._items)
+
+    @property
+    def backlog_bytes(self) -> int:
+        """Payload bytes received and not yet taken."""
+        return self._bytes
+
+    def take_all(self) -> list[Sample]:
+        """Everything queued now, oldest first, without waiting."""
+        with self._cond:
+            items, self._items = list(self._items), deque()
+            self._bytes = 0
+        return items
 
     @property
     def dropped(self) -> int:
