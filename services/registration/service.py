@@ -147,6 +147,11 @@ class CameraPipeline:
     def latest_registration(self) -> Registration | None:
         return self._latest_registration
 
+    @property
+    def status(self) -> str:
+        """The registrar's last status ("" before the first frame)."""
+        return self._last_status
+
     def publish_fps(self, window_s: float = 2.0) -> float:
         """Frames published per second over the last ``window_s`` seconds."""
         now = time.monotonic()

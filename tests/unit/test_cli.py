@@ -20,7 +20,13 @@ from common.errors import ConfigError
 from services.cli import COMMANDS, Command, command_parser, main
 from services.cli_reference import DOC, reference
 from services.registration.settings import CalibrateSettings, RegistrationSettings
-from services.settings import CertsSettings, DemoSettings, FigureSettings
+from services.settings import (
+    CertsSettings,
+    DemoSettings,
+    FigureSettings,
+    LaunchSettings,
+    RegisterSettings,
+)
 from services.slam.settings import (
     EstimatorSettings,
     MonitorSettings,
@@ -67,6 +73,12 @@ LEGACY_FLAGS = {
              "--log-dir", "--loops", "--no-camera", "--prefix", "--quiet", "--rate", "--robot",
              "--seed", "--verbose", "--zenoh-config"],
     "certs": ["--host", "--name", "--quiet", "--verbose"],  # SPEC §7b, §9
+    # issue 10 (SPEC §9): launch files, status, re-registration
+    "launch": ["--check", "--log-dir", "--quiet", "--set", "--verbose"],
+    "status": ["--connect", "--interval", "--json", "--listen", "--once", "--prefix",
+               "--quiet", "--secure", "--name", "--timeout", "--verbose", "--zenoh-config"],
+    "register": ["--camera", "--connect", "--listen", "--prefix", "--quiet", "--robot",
+                 "--secure", "--name", "--timeout", "--verbose", "--zenoh-config"],
 }
 
 
@@ -163,14 +175,15 @@ def test_legacy_flags_set_the_same_settings(command: str, argv: list[str], expec
 def test_no_flags_give_the_documented_defaults(command: str) -> None:
     cls = COMMANDS[command].settings_class()
     required = {"replay": ["p"], "calibrate": ["a.jpg", "-o", "c.yml"],
-                "serial": ["--port", "loop://"], "certs": ["pki", "--name", "robot-r1"]}.get(
-                    command, [])
+                "serial": ["--port", "loop://"], "certs": ["pki", "--name", "robot-r1"],
+                "launch": ["robot.toml"], "register": ["--camera", "c"]}.get(command, [])
     given = settings_from_args(cls, _parse(command, *required))
     expected = {"replay": ReplaySettings(path="p"),
                 "calibrate": CalibrateSettings(images=("a.jpg",), output="c.yml"),
                 "serial": SerialSettings(port="loop://"),
-                "certs": CertsSettings(directory="pki", names=("robot-r1",))}.get(
-                    command) or cls()
+                "certs": CertsSettings(directory="pki", names=("robot-r1",)),
+                "launch": LaunchSettings(file="robot.toml"),
+                "register": RegisterSettings(camera="c")}.get(command) or cls()
     assert given == expected
 
 

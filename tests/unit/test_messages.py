@@ -11,12 +11,14 @@ import pytest
 from common.errors import MessageError
 from common.messages import (
     MESSAGE_TYPES,
+    CameraControl,
     CameraFrame,
     CameraPose,
     Health,
     Observations,
     Odometry,
     Registration,
+    ServiceStatus,
     SlamState,
     Truth,
     Violation,
@@ -49,6 +51,11 @@ SAMPLES = [
     Registration(camera="c", robot="r1", stamp=0.6, K=np.eye(3), dist=np.zeros(5), width=640,
                  height=480, T_camera_from_map=np.eye(4), reprojection_error_px=0.2),
     CameraPose(camera="c", stamp=0.7, T_world_from_camera=np.eye(4)),
+    CameraControl(command="reregister", robot="r1"),
+    ServiceStatus(service="monitor", name="monitor-r1", host="lab", pid=42, version="0.1.0",
+                  started=1.7e9, uptime_s=12.5, state="ok", robot="r1", epoch=3,
+                  counts={"checked": 120.0, "violations": 0.0}, rates={"checked": 9.5},
+                  dropped=1, lost=2),
 ]
 
 
