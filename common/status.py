@@ -102,14 +102,17 @@ class StatusAnnouncer:
 
     def __init__(self, bus: Bus, keys: Keys, *, service: str, name: str, provider: Provider,
                  robot: str | None = None, camera: str | None = None,
-                 period_s: float = PERIOD_S) -> None:
+                 period_s: float = PERIOD_S,
+                 clock: Callable[[], float] = time.monotonic) -> None:
         self.service, self.name = service, name
+        self._bus = bus  # the token and the queryable live as long as its session
         self.robot, self.camera = robot or None, camera or None
         self.key = keys.status(name, service, secrets.token_hex(4))
         self._provider = provider
         self._period_s = period_s
+        self._clock = clock
         self._started_wall = time.time()
-        self._started = time.monotonic()
+        self._started = clock()
         self._host = socket.gethostname()
         self._version = version()
         self._history: deque[tuple[float, Mapping[str, float]]] = deque()
@@ -144,7 +147,7 @@ class StatusAnnouncer:
 
     def _build(self) -> ServiceStatus:
         report = self._report()
-        now = time.monotonic()
+        now = self._clock()
         counts = {str(k): float(v) for k, v in report.counts.items()}
         with self._lock:
             self._history.append((now, counts))
