@@ -19,9 +19,9 @@ A launch file is TOML (deploy/robot.toml is an example; docs/launch.md the refer
     checkpoint = "state"          #   as in docs/cli.md), a bus flag, config, verbose …
 
 Per service the launch keys are ``command``, ``after``, ``ready`` (text of the stdout line
-that says it is ready; default: the command's own "… ready" line, or ready once started for
-commands that print none), ``respawn``, ``required`` (its exit ends the whole group as a
-failure) and ``args`` (extra arguments, verbatim). Every other key must be a setting of
+that says it is ready; default: the command's own "… ready" line, which every service
+prints; "" = ready once started), ``respawn``, ``required`` (its exit ends the whole group
+as a failure) and ``args`` (extra arguments, verbatim). Every other key must be a setting of
 the command; its value is checked (type, choices, bounds) and turned into the flag the
 command takes, then the whole command line is parsed by the command's own parser and its
 settings built, ``--config`` file included — so a typo is one line naming the launch file,
@@ -59,7 +59,8 @@ from services.cli import COMMANDS, command_parser
 #: the line each command prints on stdout when it is ready to serve
 READY_LINES = {"router": "router ready", "estimator": "estimator ready",
                "monitor": "monitor ready", "registration": "registration ready",
-               "viewer": "viewer ready", "serial": "serial ready"}
+               "viewer": "viewer ready", "serial": "serial ready", "sim": "sim ready",
+               "replay": "replay ready"}
 #: commands that are not services (they do not run under a launch)
 NOT_SERVICES = ("launch", "demo", "certs", "calibrate", "figures")
 _LAUNCH_KEYS = ("command", "after", "ready", "respawn", "required", "args")

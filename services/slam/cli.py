@@ -80,6 +80,7 @@ def _run_sim(args: argparse.Namespace) -> int:
         out = Fleet(bus, keys=keys_from(args), robots=s.robots())
         state = {"now": "waiting for an estimator"}
         announce(bus, args, "sim", _driver_status(out, state), robot=",".join(s.robots()))
+        print("sim ready", flush=True)
         if not _estimator_ready(out, stop, s):
             return 0
         who = f"{len(sims)} robots ({s.robot})" if len(sims) > 1 else s.robot
@@ -191,6 +192,7 @@ def _run_replay(args: argparse.Namespace) -> int:
         out = Fleet(bus, keys=keys_from(args), robots=names)
         state = {"now": "waiting for an estimator"}
         announce(bus, args, "replay", _driver_status(out, state), robot=",".join(names))
+        print("replay ready", flush=True)
         if not _estimator_ready(out, stop, s):
             return 0
         if len(runs) > 1:

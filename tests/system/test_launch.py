@@ -138,6 +138,11 @@ def test_a_killed_service_is_respawned_with_back_off(tmp_path: Path) -> None:
         bus = open_bus(BusSettings(connect=(endpoint,)))
         before = _estimator_status(bus)
         assert before is not None and before.epoch
+        checkpoint = tmp_path / "ckpt" / "estimator-robot1.ckpt"
+        deadline = time.monotonic() + 30
+        while not checkpoint.exists():  # written within a second of the start
+            assert time.monotonic() < deadline, "the estimator wrote no checkpoint"
+            time.sleep(0.05)
         waits = []
         pid = int(re.search(r"pid (\d+)", first).group(1))  # type: ignore[union-attr]
         for _ in range(2):

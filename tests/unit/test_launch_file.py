@@ -71,7 +71,7 @@ def test_a_group_in_start_order_with_its_flags() -> None:
     # each after what it waits for, else in the file's order
     assert [s.name for s in plan.services] == ["router", "monitor", "estimator", "sim"]
     sim = plan.service("sim")
-    assert sim.command == "sim" and not sim.respawn and sim.ready == ""
+    assert sim.command == "sim" and not sim.respawn and sim.ready == "sim ready"
     assert sim.argv == ("--connect", "tcp/127.0.0.1:7999", "--prefix", "lab",
                         "--robot", "r7", "--rate", "0.0", "--hold", "1.5", "--no-wait",
                         "--anonymous", "--marker-ids", "4")
