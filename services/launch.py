@@ -190,6 +190,10 @@ class Supervisor:
         child.exit_code = code
         was_ready, child.ready = child.ready, False
         how = f"code {code}" if code >= 0 else f"signal {signal.Signals(-code).name}"
+        if code in (-signal.SIGINT, -signal.SIGTERM):  # stopped from outside (a Ctrl-C
+            child.finished = True                      # reaching it before its handler)
+            self._say(f"{child.name} stopped by {how} (not respawned)")
+            return
         if not child.ever_ready and code != 0:
             last = next((ln for ln in reversed(child.tail) if ln.strip()), "")
             self.failure = (f"{child.name} (`{child.spec.shell()}`) exited with {how} before "

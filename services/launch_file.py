@@ -306,8 +306,9 @@ def plan_from_mapping(raw: Mapping[str, Any], *, source: str,
     specs = []
     for name, table in tables.items():
         where = f"{source} [service.{name}]"
-        if not _NAME.match(name):
-            raise ConfigError(f"{where}: a service name is letters, digits, '-' and '_'")
+        if not _NAME.match(name) or name == "launch":
+            raise ConfigError(f"{where}: a service name is letters, digits, '-' and '_', "
+                              "and not 'launch' (the supervisor's own name in the log)")
         if not isinstance(table, Mapping):
             raise ConfigError(f"{source} key 'service.{name}' must be a table")
         command = table.get("command")

@@ -183,3 +183,25 @@ def test_random_payloads_raise_only_message_error(cls) -> None:
             cls.from_bytes(payload)
         except MessageError:
             pass
+
+
+def test_camera_control_is_the_documented_map_and_robot_is_optional() -> None:
+    assert CameraControl(command="reregister").to_dict() == {"schema": 1,
+                                                              "command": "reregister"}
+    hand_made = msgpack.packb({"schema": 1, "command": "reregister", "robot": "robot1"})
+    assert CameraControl.from_bytes(hand_made) == CameraControl(command="reregister",
+                                                                robot="robot1")
+    with pytest.raises(MessageError, match="command"):
+        CameraControl(command="explode")
+
+
+def test_truth_may_say_the_robots_marker() -> None:
+    plain = Truth(robot="r", stamp=0.0, pose=[0, 0, 0], landmark_ids=[],
+                  landmarks=np.zeros((0, 2)))
+    assert "marker_id" not in plain.to_dict() and plain.marker_id is None
+    marked = Truth.from_bytes(Truth(robot="r", stamp=0.0, pose=[0, 0, 0], landmark_ids=[],
+                                    landmarks=np.zeros((0, 2)), marker_id=3).to_bytes())
+    assert marked.marker_id == 3
+    with pytest.raises(MessageError, match="marker_id"):
+        Truth(robot="r", stamp=0.0, pose=[0, 0, 0], landmark_ids=[],
+              landmarks=np.zeros((0, 2)), marker_id=-1)
