@@ -7,9 +7,12 @@ from __future__ import annotations
 
 import json
 import subprocess
+import time
 from pathlib import Path
 
-from common.session import free_tcp_endpoint
+from common.keys import Keys
+from common.messages import Health
+from common.session import BusSettings, free_tcp_endpoint, open_bus
 from tests.procs import REPO, Service, slamlens_cmd, spawn, stop
 
 FIXTURE = REPO / "tests" / "fixtures" / "mrclam_small"
@@ -22,6 +25,21 @@ def _final(out: str, name: str) -> dict:
 
 def _counts(out: str, name: str) -> dict:
     return json.loads(out.split(f"{name} done: ", 1)[1].split(" in ")[0])
+
+
+def _wait_for_health(endpoint: str, robot: str, *, seq: int, timeout: float = 120.0) -> None:
+    bus = open_bus(BusSettings(connect=(endpoint,)))
+    try:
+        deadline = time.monotonic() + timeout
+        last = -1
+        while last < seq:
+            assert time.monotonic() < deadline, f"{robot}'s monitor stopped at seq {last}"
+            replies = bus.get(Keys().health(robot))
+            last = Health.from_bytes(replies[0].payload).seq if replies else -1
+            if last < seq:
+                time.sleep(0.2)
+    finally:
+        bus.close()
 
 
 def _group(endpoint: str, robots: list[str], *, monitors: bool) -> list[tuple[str, Service]]:
@@ -52,6 +70,8 @@ def test_three_simulated_robots_each_estimated_and_checked(tmp_path: Path) -> No
         assert "all applied by the estimator" in sim.stdout
         counts = _counts(sim.stdout, "sim")
         assert counts == {"Odometry": 3 * 545, "Observations": 3 * 545, "Truth": 3 * 546}
+        for robot in robots:  # each monitor checks at its own pace: wait for its last state
+            _wait_for_health(endpoint, robot, seq=1090)
     finally:
         outputs = {name: stop(proc)[0] for name, proc in reversed(procs)}
     assert [p.returncode for _, p in procs] == [0] * len(procs)
