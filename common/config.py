@@ -185,6 +185,31 @@ def load_settings(cls: type[T], path: str | Path | None = None,
     return settings_from_mapping(cls, values, source=str(path) if path else "flags")
 
 
+def _checked(key: str, value: Any, f: dataclasses.Field, hint: Any) -> Any:
+    """``value`` coerced to the field's type and checked against its choices and bounds."""
+    spec = spec_of(f)
+    coerced = _coerce(key, value, hint)
+    if spec.choices is not None and coerced not in spec.choices:
+        raise ConfigError(f"setting {key!r}: {coerced!r} is not one of {list(spec.choices)}")
+    if spec.min is not None and coerced is not None and coerced < spec.min:
+        raise ConfigError(f"setting {key!r}: {coerced!r} is below the minimum {spec.min}")
+    if spec.max is not None and coerced is not None and coerced > spec.max:
+        raise ConfigError(f"setting {key!r}: {coerced!r} is above the maximum {spec.max}")
+    return coerced
+
+
+def check_value(cls: type, key: str, value: Any) -> Any:
+    """One setting of ``cls`` checked alone (type, choices, bounds): its coerced value.
+
+    For a part of the settings given somewhere else (a launch file's service table);
+    required fields and cross-field checks are the whole settings' (:func:`load_settings`).
+    """
+    fields = {f.name: f for f in dataclasses.fields(cls)}
+    if key not in fields:
+        raise ConfigError(f"unknown setting {key!r}; known: {', '.join(sorted(fields))}")
+    return _checked(key, value, fields[key], typing.get_type_hints(cls)[key])
+
+
 def settings_from_mapping(cls: type[T], values: Mapping[str, Any], *, source: str = "") -> T:
     """Validate a plain mapping into ``cls`` (unknown keys and bad values rejected)."""
     fields = {f.name: f for f in dataclasses.fields(cls)}  # type: ignore[arg-type]
@@ -194,17 +219,8 @@ def settings_from_mapping(cls: type[T], values: Mapping[str, Any], *, source: st
         where = f" in {source}" if source else ""
         raise ConfigError(f"unknown setting(s){where}: {', '.join(unknown)}; "
                           f"known: {', '.join(sorted(fields))}")
-    kwargs = {}
-    for key, value in values.items():
-        spec = spec_of(fields[key])
-        coerced = _coerce(key, value, hints[key])
-        if spec.choices is not None and coerced not in spec.choices:
-            raise ConfigError(f"setting {key!r}: {coerced!r} is not one of {list(spec.choices)}")
-        if spec.min is not None and coerced is not None and coerced < spec.min:
-            raise ConfigError(f"setting {key!r}: {coerced!r} is below the minimum {spec.min}")
-        if spec.max is not None and coerced is not None and coerced > spec.max:
-            raise ConfigError(f"setting {key!r}: {coerced!r} is above the maximum {spec.max}")
-        kwargs[key] = coerced
+    kwargs = {key: _checked(key, value, fields[key], hints[key])
+              for key, value in values.items()}
     for key, f in fields.items():
         spec = spec_of(f)
         if spec.required and kwargs.get(key, default_of(f)) in ("", (), None):

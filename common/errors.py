@@ -15,6 +15,7 @@ error                    raised when
 :class:`GeometryError`   a geometric computation has no answer (no pose, no mean)
 :class:`RenderError`     a picture cannot be drawn or encoded
 :class:`SecurityError`   a certificate, key or identity is missing, wrong or foreign
+:class:`ServiceError`    a service failed at what it was asked (exited, never answered)
 =======================  ======================================================
 """
 
@@ -74,3 +75,8 @@ class RenderError(SlamlensError):
 class SecurityError(SlamlensError):
     """A certificate, key or identity is missing, malformed or not of this authority
     (the file and the reason are named in the message)."""
+
+
+class ServiceError(SlamlensError):
+    """A service did not do what it was asked: it exited before it was ready, or it never
+    answered (``slamlens launch``, ``slamlens register``)."""

@@ -93,11 +93,35 @@ class Keys:
         """Requests to the registration service, e.g. re-register (docs/protocol.md)."""
         return self.camera(camera, "control")
 
+    def registrations(self, camera: str) -> str:
+        """The registrations of ``camera``, for every robot it registers."""
+        return self.camera(camera, "registration/*")
+
     def camera_alive(self, camera: str) -> str:
         return self.camera(camera, "alive/registration")
 
     def any_camera_alive(self) -> str:
         return f"{self.prefix}/camera/*/alive/registration"
+
+    # -- services -----------------------------------------------------------------
+    def status(self, name: str, service: str, instance: str) -> str:
+        """Where one running service holds its liveliness token and answers status
+        queries: under its identity ``name`` (docs/protocol.md, ``slamlens status``)."""
+        return (f"{self.prefix}/status/{check_name('identity', name)}/"
+                f"{check_name('service', service)}/{check_name('instance', instance)}")
+
+    def any_status(self) -> str:
+        """Every service's status key, on every host."""
+        return f"{self.prefix}/status/**"
+
+    def status_of(self, key: str) -> tuple[str, str, str] | None:
+        """(name, service, instance) of a :meth:`status` key, else None."""
+        prefix = self.prefix.split("/")
+        parts = key.split("/")
+        n = len(prefix)
+        if len(parts) == n + 4 and parts[:n] == prefix and parts[n] == "status":
+            return parts[n + 1], parts[n + 2], parts[n + 3]
+        return None
 
     # -- parsing ------------------------------------------------------------------
     def leaf_of(self, key: str) -> str:

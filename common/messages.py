@@ -325,6 +325,10 @@ class Truth(Message):
     pose: np.ndarray = _arr(_F8, (3,), "true pose (x m, y m, θ rad) in the map frame")
     landmark_ids: np.ndarray = _arr(_I8, (None,), "landmark ids int64[n]")
     landmarks: np.ndarray = _arr(_F8, (None, 2), "true landmark positions [n,2], m, map frame")
+    marker_id: int | None = _scalar(
+        "int", "optional: the id of the fiducial marker the robot carries (the simulator "
+        "says it, so a synthetic camera can draw each robot's own marker)", optional=True,
+        range=(0, 2 ** 31 - 1))
 
     def _check(self) -> None:
         _count_check(self.TYPE, "landmarks", self.landmarks, self.landmark_ids.shape[0],
@@ -572,6 +576,43 @@ class CameraControl(Message):
         "registration it causes)", optional=True)
 
 
+@dataclass(frozen=True, eq=False)
+class ServiceStatus(Message):
+    """What one running service says about itself, answered to a ``get`` on its status key
+    (``slamlens status``; docs/protocol.md)."""
+
+    TYPE: ClassVar[str] = "ServiceStatus"
+    service: str = _scalar("str", "the slamlens command it runs: router, estimator, sim …")
+    name: str = _scalar("str", "its identity: the certificate name with --secure, else the "
+                               "name of its role (robot-R, camera-C, monitor-R, viewer-…, "
+                               "router-…)")
+    host: str = _scalar("str", "host name of its machine")
+    pid: int = _scalar("int", "process id on that host", range=(0, 2 ** 63 - 1))
+    version: str = _scalar("str", "slamlens version")
+    started: float = _scalar("float", "when it started, s since the Unix epoch")
+    uptime_s: float = _scalar("float", "seconds since it started")
+    state: str = _scalar("str", "what it is doing, in a few words: running, waiting for "
+                                "an estimator, registered, fault …")
+    robot: str | None = _scalar("str", "the robot(s) it serves, comma-separated",
+                                optional=True)
+    camera: str | None = _scalar("str", "the camera(s) it serves, comma-separated",
+                                 optional=True)
+    epoch: int | None = _scalar("int", "the map epoch it is on (SPEC §7a)", optional=True,
+                                range=_UINT64)
+    counts: dict[str, float] = field(
+        default_factory=dict, metadata={"kind": "stats",
+                                        "doc": "running totals: states, frames, inputs …; "
+                                               "the first is its main output"})
+    rates: dict[str, float] = field(
+        default_factory=dict, metadata={"kind": "stats",
+                                        "doc": "per second over the last few seconds, one per "
+                                               "count"})
+    dropped: int = _scalar("int", "messages it discarded: malformed, foreign or refused",
+                           default=0, range=_UINT64)
+    lost: int = _scalar("int", "samples it knows it missed and could not recover",
+                        default=0, range=_UINT64)
+
+
 def peek_fields(payload: bytes | bytearray | memoryview,
                 names: tuple[str, ...]) -> dict[str, Any]:
     """The top-level fields ``names`` of a msgpack map, without decoding the others.
@@ -597,5 +638,5 @@ def peek_fields(payload: bytes | bytearray | memoryview,
 
 MESSAGE_TYPES: tuple[type[Message], ...] = (
     Odometry, Observations, Truth, SlamState, Health, CameraFrame, Registration, CameraPose,
-    CameraControl,
+    CameraControl, ServiceStatus,
 )

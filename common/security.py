@@ -14,7 +14,9 @@ common name, default deny:
 * ``robot-R`` may put, delete, reply, declare queryables and liveliness tokens under
   ``PREFIX/robot/R/**`` only; ``camera-C`` under ``PREFIX/camera/C/**`` only; ``monitor-R``
   on ``PREFIX/robot/R/health`` only; ``viewer-…`` nothing; ``router-…`` links routers and may
-  send anything under the prefix (a router enforces the roles of its own clients).
+  send anything under the prefix (a router enforces the roles of its own clients);
+* every identity ``NAME`` may also announce and answer its own status (:mod:`common.status`):
+  hold a liveliness token, declare a queryable and reply under ``PREFIX/status/NAME/**``.
 
 Zenoh's advanced publishers and subscribers (SPEC §7a) talk in key spaces under the data key:
 a publisher's cache queryable, heartbeat puts and detection token live on
@@ -55,6 +57,8 @@ READ_MESSAGES = ("declare_subscriber", "query", "liveliness_query",
                  "declare_liveliness_subscriber")
 #: what saying something needs: data, answers, presence
 WRITE_MESSAGES = ("put", "delete", "reply", "declare_queryable", "liveliness_token")
+#: what announcing one's own status needs (common/status.py): presence and answers
+STATUS_MESSAGES = ("liveliness_token", "declare_queryable", "reply")
 
 
 @dataclass(frozen=True)
@@ -87,6 +91,11 @@ def write_scope(identity: Identity, prefix: str) -> list[str]:
     return []  # viewers say nothing
 
 
+def status_scope(identity: Identity, prefix: str) -> list[str]:
+    """Key expressions where ``identity`` announces and answers its own status."""
+    return [f"{prefix}/status/{identity.name}/**"]
+
+
 def access_control(prefix: str, identities: Iterable[Identity]) -> dict[str, Any]:
     """Zenoh's ``access_control`` config enforcing the roles of ``identities``."""
     people = sorted({i.name: i for i in identities}.values(), key=lambda i: i.name)
@@ -104,14 +113,21 @@ def access_control(prefix: str, identities: Iterable[Identity]) -> dict[str, Any
         policies.append({"id": "everyone", "rules": ["read", "announce-subscribers", "deliver"],
                          "subjects": [i.name for i in people]})
     for identity in people:
+        own: list[str] = []
         scope = write_scope(identity, prefix)
-        if not scope:
-            continue
-        rule = f"say {identity.name}"
-        messages = ALL_MESSAGES if identity.role == "router" else WRITE_MESSAGES
-        rules.append({"id": rule, "permission": "allow", "flows": ["ingress"],
-                      "messages": list(messages), "key_exprs": scope})
-        policies.append({"id": identity.name, "rules": [rule], "subjects": [identity.name]})
+        if scope:
+            rule = f"say {identity.name}"
+            messages = ALL_MESSAGES if identity.role == "router" else WRITE_MESSAGES
+            rules.append({"id": rule, "permission": "allow", "flows": ["ingress"],
+                          "messages": list(messages), "key_exprs": scope})
+            own.append(rule)
+        if identity.role != "router":  # a router may say anything under the prefix anyway
+            rule = f"status {identity.name}"
+            rules.append({"id": rule, "permission": "allow", "flows": ["ingress"],
+                          "messages": list(STATUS_MESSAGES),
+                          "key_exprs": status_scope(identity, prefix)})
+            own.append(rule)
+        policies.append({"id": identity.name, "rules": own, "subjects": [identity.name]})
     return {
         "enabled": True,
         "default_permission": "deny",

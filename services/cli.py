@@ -72,6 +72,13 @@ COMMANDS: dict[str, Command] = {
                         "protocol", "services.recorder.settings:FoxgloveSettings"),
     "certs": Command("services.certs", "create or extend the certificate authority of "
                      "SPEC §7b", "services.settings:CertsSettings", bus=False, config=False),
+    "launch": Command("services.launch", "a described group of services, supervised: order, "
+                      "readiness, respawn, one log", "services.settings:LaunchSettings",
+                      bus=False, config=False),
+    "status": Command("services.status", "every live service across hosts, with rates, drops "
+                      "and epoch", "services.settings:StatusSettings", config=False),
+    "register": Command("services.register", "re-register a camera and print the new "
+                        "registration", "services.settings:RegisterSettings", config=False),
 }
 
 

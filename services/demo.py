@@ -1,10 +1,16 @@
 """``slamlens demo``: the whole system on one machine, as real separate processes.
 
-It starts a Zenoh router on loopback, then the estimator, the behaviour monitor, the
-synthetic overhead camera with registration, the AR viewer and, last, the simulated
-robot — each a ``slamlens`` process of its own, exactly as they would run on several
-machines — prints the browser link and a live one-line summary, and stops them all on
-Ctrl-C (or after ``--duration``). Their logs go to one folder, named at start.
+The demo is a launch (:mod:`services.launch`): from its settings it builds a launch plan —
+a Zenoh router on loopback, the estimator, the behaviour monitor, the synthetic overhead
+camera with registration, the AR viewer and, once they are all ready, the simulated robot
+(which first stands still while the camera registers) — writes it to ``LOG_DIR/demo.toml``
+(``slamlens launch LOG_DIR/demo.toml`` runs the same group), and supervises it: each
+service a ``slamlens`` process of its own, exactly as on several machines, its output in
+``LOG_DIR/NAME.log``. It prints the browser link and a live one-line summary, and stops
+everything on Ctrl-C (or after ``--duration``).
+
+A taken port is refused, not replaced: the router's (``--listen``, default 7447) and the
+viewer's (``--http``); port 0 asks for any free one, and the link printed is the real one.
 """
 
 from __future__ import annotations
@@ -12,100 +18,147 @@ from __future__ import annotations
 import argparse
 import importlib.util
 import logging
-import os
+import re
 import socket
-import subprocess
 import sys
 import tempfile
 import threading
 import time
-from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from common.bus import ZenohBus
 from common.cli import bus_flags, setup_logging, stop_event
 from common.config import settings_from_args
-from common.errors import ConfigError, MessageError, SlamlensError
+from common.errors import ConfigError, MessageError, ServiceError
 from common.geometry import all_relative_covariances, pd_size_m
 from common.keys import Keys
 from common.messages import Health, SlamState
 from common.session import BusSettings, free_tcp_endpoint, open_bus
+from services.launch import Supervisor
+from services.launch_file import plan_from_mapping, to_toml
 from services.settings import DemoSettings
 
 log = logging.getLogger("slamlens.demo")
 
-@dataclass
-class _Child:
-    name: str
-    proc: subprocess.Popen
-    log_path: Path
+DEFAULT_ROUTER_PORT = 7447
 
 
-def _free_http(host_port: str) -> str:
-    """``host_port`` if its port is free, else (or for port 0) a free port on the host."""
-    host, _, port = host_port.rpartition(":")
+def _port_taken(host: str, port: int) -> bool:
     with socket.socket() as s:
         try:
-            if int(port) == 0:
-                raise OSError("port 0: pick one")
-            s.bind((host, int(port)))
-            return host_port
-        except (OSError, ValueError):
-            s.bind((host, 0))
-            return f"{host}:{s.getsockname()[1]}"
+            s.bind((host, port))
+        except OSError:
+            return True
+    return False
 
 
 def _router_endpoint(listen: tuple[str, ...]) -> str:
-    if listen:
-        endpoint = str(listen[0])
-        if endpoint.startswith("tcp/") and endpoint.endswith(":0"):
-            return free_tcp_endpoint(endpoint[4:].rsplit(":", 1)[0])
-        return endpoint
-    with socket.socket() as s:
-        try:
-            s.bind(("127.0.0.1", 7447))
-            return "tcp/127.0.0.1:7447"
-        except OSError:
-            return free_tcp_endpoint()
+    """Where the demo's router listens: ``--listen`` (port 0: a free one), else 7447 on
+    loopback; a taken port is an error (another router or demo is running there)."""
+    endpoint = str(listen[0]) if listen else f"tcp/127.0.0.1:{DEFAULT_ROUTER_PORT}"
+    proto, _, address = endpoint.partition("/")
+    host, _, port = address.rpartition(":")
+    if proto != "tcp" or not port.isdigit():
+        raise ConfigError(f"--listen {endpoint}: the demo's router listens on tcp/HOST:PORT")
+    if int(port) == 0:
+        return free_tcp_endpoint(host)
+    if _port_taken(host, int(port)):
+        raise ConfigError(f"port {port} on {host} is taken (another slamlens router or demo? "
+                          "`slamlens status` lists what runs): stop it, or give --listen "
+                          f"tcp/{host}:PORT (port 0: any free port)")
+    return endpoint
+
+
+def _check_http(host_port: str) -> str:
+    """The viewer's address, if its port is free (port 0: the viewer picks one)."""
+    host, _, port = host_port.rpartition(":")
+    if not host or not port.isdigit():
+        raise ConfigError(f"--http {host_port}: expected HOST:PORT, e.g. 127.0.0.1:8080")
+    if int(port) and _port_taken(host, int(port)):
+        raise ConfigError(f"viewer address {host_port} is taken (another viewer or demo?): "
+                          f"stop it, or give --http {host}:PORT (port 0: any free port)")
+    return host_port
+
+
+def demo_launch(s: DemoSettings, *, endpoint: str, prefix: str, http: str | None,
+                camera: str | None) -> dict[str, Any]:
+    """The demo as a launch file's tables (:mod:`services.launch_file`)."""
+    bus = {"connect": [endpoint], "prefix": prefix}
+    services: dict[str, dict[str, Any]] = {
+        "router": {"command": "router", "listen": [endpoint], "prefix": prefix},
+    }
+    estimator: dict[str, Any] = {"command": "estimator", "after": ["router"], "robot": s.robot,
+                                 **bus}
+    if s.faulty:
+        estimator.update(fault=s.fault, faulty_features=list(s.faulty_features),
+                         fault_onset=s.fault_onset)
+        magnitude = s.fault_magnitude
+        if magnitude is None and s.fault == "map-update":
+            magnitude = 5e-4
+        if magnitude is not None:
+            estimator["fault_magnitude"] = magnitude
+    services["estimator"] = estimator
+    services["monitor"] = {"command": "monitor", "after": ["router"], "robot": s.robot, **bus}
+    if camera:
+        services["registration"] = {"command": "registration", "after": ["router"],
+                                    "camera": camera, "robot": s.robot,
+                                    "source": "synthetic", **bus}
+    if http is not None:
+        viewer: dict[str, Any] = {"command": "viewer", "after": ["router"], "robot": s.robot,
+                                  "http": http, **bus}
+        if camera:
+            viewer["camera"] = camera
+        services["viewer"] = viewer
+    sim: dict[str, Any] = {"command": "sim", "after": [n for n in services if n != "router"],
+                           "robot": s.robot, "seed": s.seed, "rate": s.rate,
+                           "loops": s.loops, "required": False, **bus}
+    if camera:
+        sim["hold_s"] = 3.0  # stand still at the start pose while the camera registers
+    services["sim"] = sim
+    for table in services.values():  # a failure ends the demo with what it said
+        table["respawn"] = False
+        table.setdefault("required", True)
+    return {"launch": {"description": "slamlens demo: every service on one machine",
+                       "respawn": False},
+            "service": services}
 
 
 class _Summary:
-    """Collects states and health for the live one-line summary."""
+    """The live one-line summary. The Zenoh callbacks only keep the newest payload and
+    count; states are decoded by whoever asks for the line (the demo's own loop)."""
 
     def __init__(self) -> None:
         self.lock = threading.Lock()
         self.states = 0
-        self.last: SlamState | None = None
-        self.health: Health | None = None
+        self._state: bytes | None = None
+        self._health: bytes | None = None
         self.times: list[float] = []
 
     def on_state(self, key: str, payload: bytes) -> None:
-        try:
-            state = SlamState.from_bytes(payload)
-        except MessageError:
-            return
         with self.lock:
             self.states += 1
-            self.last = state
+            self._state = payload
             self.times.append(time.monotonic())
             if len(self.times) > 200:
                 del self.times[:100]
 
     def on_health(self, key: str, payload: bytes) -> None:
-        try:
-            health = Health.from_bytes(payload)
-        except MessageError:
-            return
         with self.lock:
-            self.health = health
+            self._health = payload
 
     def line(self) -> str:
         with self.lock:
-            state, health = self.last, self.health
+            state_bytes, health_bytes = self._state, self._health
             now = time.monotonic()
             recent = [t for t in self.times if now - t <= 2.0]
+        state = health = None
+        try:
+            state = SlamState.from_bytes(state_bytes) if state_bytes else None
+            health = Health.from_bytes(health_bytes) if health_bytes else None
+        except MessageError:
+            pass
         if state is None:
             return "waiting for the estimator's first state…"
         rate = len(recent) / 2.0
@@ -121,102 +174,61 @@ class _Summary:
         return text
 
 
-def _wait_alive(bus: ZenohBus, key: str, stop: threading.Event,
-                children: list[_Child], timeout_s: float = 120.0) -> None:
-    """Wait for a service's liveliness token (e.g. the camera) before going on."""
-    deadline = time.monotonic() + timeout_s
-    while not stop.is_set() and time.monotonic() < deadline:
-        if bus.alive(key, timeout=1.0):
-            return
-        for child in children:
-            if child.proc.poll() is not None:
-                return  # the main loop reports it
-        time.sleep(0.2)
-
-
 def run(command: str, args: argparse.Namespace) -> int:
-    if bus_flags(args).secure or bus_flags(args).name:
+    flags = bus_flags(args)
+    if flags.secure or flags.name:
         raise ConfigError("the demo runs every service on loopback without TLS; for a secure "
                           "set-up start the services with their own identities "
                           "(docs/security.md)")
     setup_logging(args, "demo")
     s = settings_from_args(DemoSettings, args)
-    flags = bus_flags(args)
     stop = stop_event()
     keys = Keys(flags.prefix)
     endpoint = _router_endpoint(flags.listen)
-    log_dir = Path(s.log_dir or tempfile.mkdtemp(prefix="slamlens-demo-"))
-    log_dir.mkdir(parents=True, exist_ok=True)
     have_camera = importlib.util.find_spec("services.registration.service") is not None
     have_viewer = importlib.util.find_spec("services.visualiser.service") is not None
-    http = _free_http(s.http) if have_viewer else ""
-    common = ["--connect", endpoint, "--prefix", flags.prefix]
+    http = _check_http(s.http) if have_viewer else None
+    camera = s.camera if have_camera and s.synthetic_camera else None
+    raw = demo_launch(s, endpoint=endpoint, prefix=flags.prefix, http=http, camera=camera)
+    plan = plan_from_mapping(raw, source="slamlens demo")
+    log_dir = Path(s.log_dir or tempfile.mkdtemp(prefix="slamlens-demo-"))
+    log_dir.mkdir(parents=True, exist_ok=True)
+    (log_dir / "demo.toml").write_text(
+        "# `slamlens demo` as a launch file: `slamlens launch THIS_FILE` runs the same group\n"
+        + to_toml(raw))
 
-    plan: list[tuple[str, list[str]]] = [
-        ("router", ["router", "--listen", endpoint, "--prefix", flags.prefix]),
-    ]
-    estimator = ["estimator", "--robot", s.robot, *common]
-    if s.faulty:
-        estimator += ["--fault", s.fault,
-                      "--faulty-features", ",".join(map(str, s.faulty_features)),
-                      "--fault-onset", str(s.fault_onset)]
-        magnitude = s.fault_magnitude
-        if magnitude is None and s.fault == "map-update":
-            magnitude = 5e-4
-        if magnitude is not None:
-            estimator += ["--fault-magnitude", str(magnitude)]
-    plan.append(("estimator", estimator))
-    plan.append(("monitor", ["monitor", "--robot", s.robot, *common]))
-    camera = None
-    if have_camera and s.synthetic_camera:
-        camera = s.camera
-        plan.append(("registration", ["registration", "--camera", camera, "--robot", s.robot,
-                                      "--source", "synthetic", *common]))
-    if have_viewer:
-        viewer = ["viewer", "--robot", s.robot, "--http", http, *common]
-        if camera:
-            viewer += ["--camera", camera]
-        plan.append(("viewer", viewer))
-    sim = ["sim", "--robot", s.robot, "--seed", str(s.seed), "--rate", str(s.rate),
-           "--loops", str(s.loops), *common]
-    if camera:
-        sim += ["--hold", "3"]  # stand still at the start pose while the camera registers
-    plan.append(("sim", sim))
+    supervisor = Supervisor(plan, echo=False, log_dir=str(log_dir))
+    group_stop = threading.Event()
+    errors: list[BaseException] = []
 
-    children: list[_Child] = []
-    env = dict(os.environ, PYTHONUNBUFFERED="1")
-    bus: ZenohBus | None = None
+    def supervise() -> None:
+        try:
+            supervisor.run(group_stop)
+        except BaseException as exc:  # said by the demo's own loop
+            errors.append(exc)
+
+    thread = threading.Thread(target=supervise, name="demo launch")
+    thread.start()
+    bus = None
     try:
-        for name, argv in plan:
-            if name == "sim" and camera and bus is not None:
-                _wait_alive(bus, keys.camera_alive(camera), stop, children)
-            path = log_dir / f"{name}.log"
-            handle = path.open("w")
-            proc = subprocess.Popen([sys.executable, "-m", "services", *argv], env=env,
-                                    stdout=handle, stderr=subprocess.STDOUT)
-            children.append(_Child(name, proc, path))
-            if name == "router":
-                time.sleep(0.5)  # the others connect to it
-                bus = open_bus(BusSettings(connect=(endpoint,)))
-        assert bus is not None
+        if not supervisor.wait_ready("router", stop):
+            return _finish(thread, group_stop, errors, log_dir)
+        bus = open_bus(BusSettings(connect=(endpoint,), prefix=flags.prefix))
         summary = _Summary()
         bus.subscribe(keys.state(s.robot), summary.on_state)
         bus.subscribe(keys.health(s.robot), summary.on_health)
         print(f"slamlens demo: router {endpoint}, logs in {log_dir}", flush=True)
-        if have_viewer:
-            print(f"open http://{http}/ in a browser", flush=True)
+        if http is not None:
+            ready = supervisor.wait_ready("viewer", stop)
+            url = re.search(r"(http://\S+?)/?$", ready)
+            if url:
+                print(f"open {url.group(1)}/ in a browser", flush=True)
         else:
             print("(the viewer is not installed: showing the summary only)", flush=True)
         deadline = time.monotonic() + s.duration_s if s.duration_s else None
         tty = sys.stdout.isatty()
         last_print = 0.0
-        while not stop.wait(0.25):
-            for child in children:
-                code = child.proc.poll()
-                if code is not None and child.name != "sim":
-                    tail = child.log_path.read_text(errors="replace").splitlines()[-5:]
-                    raise SlamlensError(f"{child.name} exited with code {code}; its log "
-                                        f"({child.log_path}) ends:\n  " + "\n  ".join(tail))
+        while not stop.wait(0.25) and not errors and supervisor.failure is None:
             now = time.monotonic()
             if tty:
                 print("\r" + summary.line()[:150].ljust(150), end="", flush=True)
@@ -227,17 +239,22 @@ def run(command: str, args: argparse.Namespace) -> int:
                 break
         if tty:
             print()
-        print("final: " + summary.line(), flush=True)
+        if supervisor.failure is None and not errors:
+            print("final: " + summary.line(), flush=True)
     finally:
         if bus is not None:
             bus.close()
-        for child in reversed(children):
-            if child.proc.poll() is None:
-                child.proc.terminate()
-        for child in reversed(children):
-            try:
-                child.proc.wait(timeout=10)
-            except subprocess.TimeoutExpired:
-                child.proc.kill()
-                child.proc.wait()
+        code = _finish(thread, group_stop, errors, log_dir)
+    return code
+
+
+def _finish(thread: threading.Thread, group_stop: threading.Event,
+            errors: list[BaseException], log_dir: Path) -> int:
+    group_stop.set()
+    thread.join()
+    if errors:
+        error = errors[0]
+        if isinstance(error, ServiceError):
+            raise ServiceError(f"{error} (logs in {log_dir})")
+        raise error
     return 0

@@ -18,9 +18,11 @@ import argparse
 import json
 import logging
 
+from common.bus import ZenohBus
 from common.cli import bus_settings, setup_logging, stop_event
 from common.config import settings_from_args
 from common.session import build_config, effective_endpoints, open_bus, router_settings
+from common.status import Report, announce
 from services.router_log import ZenohLog
 from services.settings import RouterSettings
 
@@ -53,6 +55,7 @@ def run(command: str, args: argparse.Namespace) -> int:
                      settings.name, endpoints, linked, ", ".join(names) or "nobody")
         else:
             log.info("router listening on %s%s", endpoints, linked)
+        announce(bus, args, "router", lambda: _report(bus, zenoh_log))
         print("router ready", flush=True)
         stop.wait()
     finally:
@@ -61,3 +64,24 @@ def run(command: str, args: argparse.Namespace) -> int:
     refused = zenoh_log.reader.refused_total()
     print(f"router stopped{f': refused {refused} messages' if refused else ''}", flush=True)
     return 0
+
+
+def _report(bus: ZenohBus, zenoh_log: ZenohLog) -> Report:
+    """The router's status: the sessions linked to it (its admin space) and what it refused."""
+    sessions = {"client": 0, "peer": 0, "router": 0}
+    zid = str(bus.session.info.zid())
+    for reply in bus.session.get(f"@/{zid}/session/transport/unicast/*", timeout=0.5):
+        if reply.ok is not None:
+            try:
+                kind = json.loads(reply.ok.payload.to_bytes()).get("whatami", "")
+            except ValueError:
+                continue
+            if kind in sessions:
+                sessions[kind] += 1
+    refused = zenoh_log.reader.refused_total()
+    linked = f", {sessions['router']} routers" if sessions["router"] else ""
+    return Report(state=f"{sessions['client']} clients{linked}",
+                  counts={"clients": float(sessions["client"]),
+                          "routers": float(sessions["router"]),
+                          "peers": float(sessions["peer"]), "refused": float(refused)},
+                  dropped=refused, rated=("refused",))

@@ -27,8 +27,8 @@ class DemoSettings:
     synthetic_camera: bool = setting(True, doc="run the synthetic camera with registration "
                                                "(without it the viewer shows the map view)",
                                      flag="--no-camera")
-    http: str = setting("127.0.0.1:8080", doc="viewer address (taken: a free port on the "
-                                              "host)", metavar="HOST:PORT")
+    http: str = setting("127.0.0.1:8080", doc="viewer address; port 0 = any free port (a "
+                                              "taken port is refused)", metavar="HOST:PORT")
     rate: float = setting(1.0, doc="× real time", min=0.0)
     seed: int = setting(0, doc="simulator seed")
     loops: int = setting(1000, doc="laps of the loop: practically endless by default",
@@ -99,3 +99,45 @@ class CertsSettings:
     hosts: tuple[str, ...] = setting(
         (), doc="DNS name or IP address clients dial a router at (repeatable); added to the "
                 "router-… certificates", flag="--host", action="append", metavar="HOST")
+
+
+@dataclass(frozen=True)
+class LaunchSettings:
+    """``slamlens launch``: a described group of services, supervised (docs/launch.md)."""
+
+    file: str = setting("", doc="the launch file (TOML; deploy/robot.toml …)", positional=True,
+                        required=True, metavar="FILE.toml")
+    values: tuple[str, ...] = setting(
+        (), doc="give the launch file's variable NAME this value (repeatable; over its [vars])",
+        flag="--set", action="append", metavar="NAME=VALUE")
+    log_dir: str = setting("", doc="also write each service's output to DIR/NAME.log; empty = "
+                                   "the file's [launch] log_dir, if any", metavar="DIR")
+    check: bool = setting(False, doc="check the file, print each service's command line in "
+                                     "start order, and exit")
+
+
+@dataclass(frozen=True)
+class StatusSettings:
+    """``slamlens status``: every live service on every host linked to the router."""
+
+    json: bool = setting(False, doc="print one JSON document (a list of services) and exit, "
+                                    "for scripts")
+    once: bool = setting(False, doc="print the table once and exit (default: refresh it "
+                                    "until Ctrl-C)")
+    interval_s: float = setting(1.0, doc="time between refreshes", unit="s", min=0.1,
+                                flag="--interval", metavar="SECONDS")
+    timeout_s: float = setting(2.0, doc="how long to wait for the services' answers", unit="s",
+                               min=0.1, flag="--timeout", metavar="SECONDS")
+
+
+@dataclass(frozen=True)
+class RegisterSettings:
+    """``slamlens register``: re-register a camera (its registration service does it)."""
+
+    camera: str = setting("", doc="camera to re-register (its registration service must run)",
+                          required=True)
+    robot: str = setting("", doc="only the registration of this robot; empty = whichever robot "
+                                 "the camera registers")
+    timeout_s: float = setting(15.0, doc="how long to wait for the new registration (the "
+                                         "robot must stand still at its map origin, in view)",
+                               unit="s", min=0.1, flag="--timeout", metavar="SECONDS")

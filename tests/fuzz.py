@@ -28,6 +28,7 @@ from common.messages import (
     Observations,
     Odometry,
     Registration,
+    ServiceStatus,
     SlamState,
     Truth,
     Violation,
@@ -65,6 +66,13 @@ def valid(kind: type[Message], *, robot: str = "robot1", camera: str = "cam1",
         return CameraControl(command="reregister", robot=robot)
     if kind is CameraPose:
         return CameraPose(camera=camera, stamp=1.0, T_world_from_camera=np.eye(4))
+    if kind is CameraControl:
+        return CameraControl(command="reregister", robot=robot)
+    if kind is ServiceStatus:
+        return ServiceStatus(service="estimator", name=f"robot-{robot}", host="h", pid=1,
+                             version="0", started=1.0, uptime_s=2.0, state="running",
+                             robot=robot, epoch=7, counts={"states": 3.0},
+                             rates={"states": 1.5})
     raise TypeError(kind)
 
 

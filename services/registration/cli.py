@@ -15,6 +15,7 @@ from common.cli import bus_settings, keys_from, log_flags, setup_logging, stop_e
 from common.config import settings_from_args
 from common.errors import ConfigError
 from common.session import open_bus
+from common.status import Report, announce
 from services.registration.settings import CalibrateSettings, RegistrationSettings
 
 log = logging.getLogger("slamlens")
@@ -36,11 +37,28 @@ def _run_registration(args: argparse.Namespace) -> int:
         cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
     settings = settings_from_args(RegistrationSettings, args)
     keys = keys_from(args)
+    # a missing --source file or --calibration is said before the network is tried
+    check_inputs(settings)
     stop = stop_event()
     bus = open_bus(bus_settings(args))
     try:
         service = build_service(bus, keys, settings)
         names = ", ".join(p.camera for p in service.pipelines)
+
+        def status() -> Report:
+            pipes = service.pipelines
+            states = sorted({p.status or "starting" for p in pipes})
+            return Report(state=", ".join(states), counts={
+                "frames": float(sum(p.stats.published for p in pipes)),
+                "registrations": float(sum(p.stats.registrations for p in pipes)),
+                "tracked": float(sum(p.stats.tracked for p in pipes)),
+                "skipped": float(sum(p.stats.skipped for p in pipes)),
+                "refused": float(sum(p.stats.refused for p in pipes))},
+                epoch=next((p.epoch for p in pipes if p.epoch is not None), None),
+                dropped=int(service.summary()["dropped"]))
+
+        announce(bus, args, "registration", status, robot=settings.robot,
+                 camera=",".join(p.camera for p in service.pipelines))
         log.info("camera %s (%s, %s) registering robot %s with marker %d", names,
                  settings.source, settings.mode, settings.robot, settings.marker_id)
         print(f"registration ready: {names}", flush=True)
@@ -49,6 +67,20 @@ def _run_registration(args: argparse.Namespace) -> int:
     finally:
         bus.close()
     return 0
+
+
+def check_inputs(settings: RegistrationSettings) -> None:
+    """The files the settings name exist and read (ConfigError naming the file if not)."""
+    from services.registration.calibration import load_calibration
+    from services.registration.sources import open_capture
+
+    if not settings.synthetic:
+        open_capture(settings.source)  # a missing path fails here; a device is not opened
+        if not settings.calibration:
+            raise ConfigError("a real camera needs --calibration FILE.yml (see slamlens "
+                              "calibrate)")
+    if settings.calibration:
+        load_calibration(settings.calibration)
 
 
 def _run_calibrate(args: argparse.Namespace) -> int:

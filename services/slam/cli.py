@@ -9,6 +9,7 @@ built from the settings by ``services/cli.py``.
 from __future__ import annotations
 
 import argparse
+import heapq
 import itertools
 import json
 import logging
@@ -21,6 +22,7 @@ from common.cli import bus_settings, keys_from, setup_logging, stop_event
 from common.config import settings_from_args
 from common.errors import ConfigError
 from common.session import open_bus
+from common.status import Report, announce, counts_of
 from services.slam.settings import (
     EstimatorSettings,
     MonitorSettings,
@@ -44,39 +46,66 @@ def _estimator_ready(out: Any, stop: threading.Event, s: SimSettings | ReplaySet
         return True
     if stop.is_set():
         return False
-    raise ConfigError(f"no estimator for robot {s.robot!r} appeared within "
+    robots = ", ".join(out.robots)
+    raise ConfigError(f"no estimator for robot {robots} appeared within "
                       f"{s.wait_timeout_s:g} s (use --no-wait to publish anyway)")
 
 
+def _driver_status(out: Any, state: dict[str, str]) -> Any:
+    """The status provider of a driver: what it published, and whether it waits."""
+    def status() -> Report:
+        counts = out.counts
+        inputs = counts.get("Odometry", 0) + counts.get("Observations", 0)
+        return Report(state=state["now"], counts={"inputs": float(inputs),
+                                                  **{k: float(v) for k, v in counts.items()}})
+    return status
+
+
 def _run_sim(args: argparse.Namespace) -> int:
-    from services.slam.drivers import RobotPublisher, play
-    from services.slam.sim import Simulator
+    from services.slam.drivers import Fleet, play
+    from services.slam.sim import Simulator, staggered
     from services.slam.world import load_world
 
     s = settings_from_args(SimSettings, args)
     world = load_world(s.scenario)
-    sim = Simulator(world, robot=s.robot, seed=s.seed, anonymous=s.anonymous,
-                    loops=s.loops or None)
+    sims = []
+    for k, robot in enumerate(s.robots()):
+        mine, origin = staggered(world, k)
+        sims.append(Simulator(mine, robot=robot, seed=s.seed + k, anonymous=s.anonymous,
+                              loops=s.loops or None, truth_origin=origin,
+                              marker_id=s.marker_id_of(k)))
     stop = stop_event()
     bus = open_bus(bus_settings(args))
     try:
-        out = RobotPublisher(bus, keys=keys_from(args), robot=s.robot)
+        out = Fleet(bus, keys=keys_from(args), robots=s.robots())
+        state = {"now": "waiting for an estimator"}
+        announce(bus, args, "sim", _driver_status(out, state), robot=",".join(s.robots()))
+        print("sim ready", flush=True)
         if not _estimator_ready(out, stop, s):
             return 0
-        log.info("simulating %s, seed %d, %.0f s of robot time at %s", world.name, s.seed,
-                 sim.duration_s, f"{s.rate:g}× real time" if s.rate else "full speed")
-        events = iter(sim.events())
-        first = next(events)  # the Truth at t = 0: the robot at its start pose
+        who = f"{len(sims)} robots ({s.robot})" if len(sims) > 1 else s.robot
+        log.info("simulating %s with %s, seed %d, %.0f s of robot time at %s", world.name,
+                 who, s.seed, sims[0].duration_s,
+                 f"{s.rate:g}× real time" if s.rate else "full speed")
+        streams = [iter(sim.events()) for sim in sims]
+        firsts = [next(events) for events in streams]  # the Truth at t = 0: the start poses
         if s.hold_s:
+            state["now"] = "holding at the start pose"
             log.info("standing at the start pose for %.1f s", s.hold_s)
             hold_until = time.monotonic() + s.hold_s
             while time.monotonic() < hold_until and not stop.is_set():
-                out.publish(first)
+                for first in firsts:
+                    out.publish(first)
                 stop.wait(0.1)
         if s.rate == 0 and s.wait_for_estimator:
             out.pace_on_estimator()
-        wall = play(itertools.chain([first], events), out, stop, rate=s.rate,
+        state["now"] = "driving"
+        events = heapq.merge(*(itertools.chain([first], rest)
+                               for first, rest in zip(firsts, streams, strict=True)),
+                             key=lambda m: m.stamp)  # type: ignore[attr-defined]
+        wall = play(events, out, stop, rate=s.rate,
                     progress_every_s=10.0 if s.rate and s.rate <= 5 else 0.0)
+        state["now"] = "done"
         _finish("sim", out, stop, wall)
     finally:
         bus.close()
@@ -113,6 +142,18 @@ def _run_estimator(args: argparse.Namespace) -> int:
     bus = open_bus(bus_settings(args))
     try:
         service = EstimatorService(bus, keys=keys_from(args), settings=settings)
+
+        def status() -> Report:
+            summary = service.summary()
+            return Report(state="resumed" if service.resumed else "running",
+                          counts=counts_of(summary, "states", "odometry",
+                                           "observation_batches", "landmarks",
+                                           "duplicates"),
+                          dropped=int(summary["dropped"]),  # type: ignore[call-overload]
+                          lost=int(summary["lost"]),  # type: ignore[call-overload]
+                          epoch=service.epoch)
+
+        announce(bus, args, "estimator", status, robot=settings.robot)
         fault = "" if settings.fault == "none" else (
             f", planted fault {settings.fault} on {list(settings.faulty_features)}")
         log.info("estimator for %s ready%s", settings.robot, fault)
@@ -124,23 +165,46 @@ def _run_estimator(args: argparse.Namespace) -> int:
     return 0
 
 
+def _replay_robots(s: ReplaySettings) -> list[tuple[int, str]]:
+    """(dataset robot number, name) of each robot to replay."""
+    from services.slam.mrclam import available_robots
+
+    if not s.robots:
+        return [(s.robot_index, s.robot)]
+    numbers = available_robots(s.path) if s.robots == "all" else \
+        [int(k) for k in s.robots.split(",") if k.strip()]
+    if not numbers:
+        raise ConfigError(f"--robots {s.robots}: no Robot{{K}}_Odometry.dat in {s.path}")
+    return [(k, f"robot{k}") for k in numbers]
+
+
 def _run_replay(args: argparse.Namespace) -> int:
-    from services.slam.drivers import RobotPublisher, play
+    from services.slam.drivers import Fleet, play
     from services.slam.mrclam import load_mrclam
 
     s = settings_from_args(ReplaySettings, args)
-    run_ = load_mrclam(s.path, robot=s.robot_index, robot_name=s.robot)
+    robots = _replay_robots(s)
+    runs = [load_mrclam(s.path, robot=k, robot_name=name) for k, name in robots]
+    names = [name for _, name in robots]
     stop = stop_event()
     bus = open_bus(bus_settings(args))
     try:
-        out = RobotPublisher(bus, keys=keys_from(args), robot=s.robot)
+        out = Fleet(bus, keys=keys_from(args), robots=names)
+        state = {"now": "waiting for an estimator"}
+        announce(bus, args, "replay", _driver_status(out, state), robot=",".join(names))
+        print("replay ready", flush=True)
         if not _estimator_ready(out, stop, s):
             return 0
-        events = run_.events(start=s.start_s or None,
-                             end=(s.start_s + s.duration_s) if s.duration_s else None)
+        if len(runs) > 1:
+            log.info("replaying %d robots of %s: %s", len(runs), s.path, ", ".join(names))
+        end = (s.start_s + s.duration_s) if s.duration_s else None
+        events = heapq.merge(*(run_.events(start=s.start_s or None, end=end) for run_ in runs),
+                             key=lambda m: m.stamp)  # type: ignore[attr-defined]
         if s.rate == 0 and s.wait_for_estimator:
             out.pace_on_estimator()
+        state["now"] = "replaying"
         wall = play(events, out, stop, rate=s.rate, progress_every_s=30.0)
+        state["now"] = "done"
         _finish("replay", out, stop, wall)
     finally:
         bus.close()
@@ -157,6 +221,7 @@ def _run_serial(args: argparse.Namespace) -> int:
     link = SerialLink(s.port, baudrate=s.baudrate, robot=s.robot)
     try:
         out = RobotPublisher(bus, keys=keys_from(args), robot=s.robot)
+        announce(bus, args, "serial", _driver_status(out, {"now": "running"}), robot=s.robot)
         print("serial ready", flush=True)
         for message in link.messages(stop):
             out.publish(message)
@@ -178,6 +243,19 @@ def _run_monitor(args: argparse.Namespace) -> int:
     bus = open_bus(bus_settings(args))
     try:
         service = MonitorService(bus, keys=keys_from(args), robot=robot, settings=settings)
+
+        def status() -> Report:
+            summary = service.summary()
+            return Report(state=str(summary["verdict"]) if service.checked else
+                          "no verdict yet",
+                          counts={"checked": float(service.checked),
+                                  "violations": float(service.violations),
+                                  "behind": float(service.behind)},
+                          dropped=int(summary["dropped"]),  # type: ignore[call-overload]
+                          lost=int(summary["lost"]),  # type: ignore[call-overload]
+                          epoch=service.epoch)
+
+        announce(bus, args, "monitor", status, robot=robot)
         print("monitor ready", flush=True)
         service.run(stop)
         print(f"monitor stopped: {json.dumps(service.summary())}", flush=True)

@@ -89,11 +89,59 @@ class RobotPublisher:
             self.pacer.close()
 
 
+class Fleet:
+    """Several robots' publishers driven as one (a simulator or a replay of several robots):
+    each message goes to its robot's :class:`RobotPublisher`."""
+
+    def __init__(self, bus: Bus, *, keys: Keys, robots: Iterable[str]) -> None:
+        self.publishers = {r: RobotPublisher(bus, keys=keys, robot=r) for r in robots}
+
+    @property
+    def robots(self) -> list[str]:
+        return list(self.publishers)
+
+    @property
+    def counts(self) -> dict[str, int]:
+        """Messages published per type, over every robot."""
+        total: dict[str, int] = {}
+        for p in self.publishers.values():
+            for kind, n in p.counts.items():
+                total[kind] = total.get(kind, 0) + n
+        return total
+
+    @property
+    def pacer(self) -> Fleet | None:
+        """Itself once pacing (``drain`` then waits for every robot's estimator), else None."""
+        return self if any(p.pacer is not None for p in self.publishers.values()) else None
+
+    def pace_on_estimator(self, *, window: int = PACE_WINDOW) -> None:
+        for p in self.publishers.values():
+            p.pace_on_estimator(window=window)
+
+    def publish(self, message: Message, stop: threading.Event | None = None) -> None:
+        self.publishers[message.robot].publish(message, stop)  # type: ignore[attr-defined]
+
+    def wait_for_estimator(self, stop: threading.Event, *, timeout_s: float) -> bool:
+        """Wait until every robot's estimator is there (see RobotPublisher)."""
+        deadline = time.monotonic() + timeout_s
+        return all(p.wait_for_estimator(stop, timeout_s=max(0.1, deadline - time.monotonic()))
+                   for p in self.publishers.values())
+
+    def drain(self, stop: threading.Event, *, timeout_s: float = 10.0) -> bool:
+        deadline = time.monotonic() + timeout_s
+        return all(p.pacer.drain(stop, timeout_s=max(0.0, deadline - time.monotonic()))
+                   for p in self.publishers.values() if p.pacer is not None)
+
+    def close(self) -> None:
+        for p in self.publishers.values():
+            p.close()
+
+
 def _stamp(message: Message) -> float:
     return float(message.stamp)  # type: ignore[attr-defined]
 
 
-def play(events: Iterable[Message], publisher: RobotPublisher, stop: threading.Event, *,
+def play(events: Iterable[Message], publisher: RobotPublisher | Fleet, stop: threading.Event, *,
          rate: float, progress_every_s: float = 0.0) -> float:
     """Publish ``events`` paced at ``rate`` × their own time (0 = as fast as possible:
     paced on the estimator if ``publisher`` has a pacer). Returns the wall seconds."""

@@ -74,6 +74,11 @@ class MonitorService:
             return self._latest
 
     @property
+    def epoch(self) -> int | None:
+        """The epoch of the last state checked (None before the first)."""
+        return None if self._position is None else self._position[0]
+
+    @property
     def behind(self) -> int:
         """Samples received and not yet checked."""
         return self._inputs.backlog

@@ -29,7 +29,12 @@ def _robot() -> str:
 class SimSettings:
     """``slamlens sim``: the simulated robot (docs/simulator.md)."""
 
-    robot: str = _robot()
+    robot: str = setting("robot1", doc="robot name, a key segment; several, comma-separated, "
+                                       "drive the same loop in one arena, each from the next "
+                                       "corner", metavar="R[,R…]")
+    marker_ids: tuple[int, ...] = setting(
+        (), doc="the fiducial marker id each robot carries, in --robot order (in its Truth, "
+                "for a synthetic camera); empty = 0, 1, 2 …", metavar="ID,ID")
     scenario: str = setting("paper", doc="world: a packaged world name (paper, grid) or the "
                                          "path of a world TOML file", metavar="WORLD")
     seed: int = setting(0, doc="random seed: same seed, same run")
@@ -46,6 +51,24 @@ class SimSettings:
                  "camera can register the map frame there (paper §3.1)", unit="s", min=0.0,
         flag="--hold", metavar="SECONDS")
 
+    def __post_init__(self) -> None:
+        robots = self.robots()
+        if len(set(robots)) != len(robots):
+            raise ConfigError(f"setting 'robot': {self.robot!r} names a robot twice")
+        if self.marker_ids and len(self.marker_ids) != len(robots):
+            raise ConfigError(f"setting 'marker_ids': {len(self.marker_ids)} ids for "
+                              f"{len(robots)} robots ({self.robot})")
+        if any(i < 0 for i in self.marker_ids):
+            raise ConfigError("setting 'marker_ids': ids must be ≥ 0")
+
+    def robots(self) -> list[str]:
+        """The robot names, in order (one unless --robot lists several)."""
+        return [r.strip() for r in self.robot.split(",") if r.strip()] or [self.robot]
+
+    def marker_id_of(self, index: int) -> int:
+        """The marker id of the ``index``-th robot."""
+        return int(self.marker_ids[index]) if self.marker_ids else index
+
 
 @dataclass(frozen=True)
 class ReplaySettings:
@@ -57,6 +80,10 @@ class ReplaySettings:
     format: str = setting("mrclam", doc="dataset format", choices=("mrclam",))
     robot_index: int = setting(1, doc="which robot of the dataset: MRCLAM Robot{k}_*.dat",
                                min=1)
+    robots: str = setting(
+        "", doc="publish several robots of the dataset at once: all, or their numbers "
+                "K,K; each is named robot{K} (--robot and --robot-index are then unused); "
+                "empty = one robot", metavar="all|K,K")
     rate: float = setting(1.0, doc="× real time; 0 = as fast as possible", min=0.0)
     start_s: float = setting(0.0, doc="dataset seconds to skip from the start", unit="s",
                              flag="--start", metavar="SECONDS")
@@ -67,6 +94,16 @@ class ReplaySettings:
         flag="--no-wait")
     wait_timeout_s: float = setting(60.0, doc="give up waiting for the estimator after this",
                                     unit="s", min=0.0)
+
+    def __post_init__(self) -> None:
+        if self.robots and self.robots != "all":
+            try:
+                numbers = [int(k) for k in self.robots.split(",") if k.strip()]
+            except ValueError:
+                numbers = []
+            if not numbers or any(k < 1 for k in numbers):
+                raise ConfigError(f"setting 'robots': {self.robots!r} is neither 'all' nor "
+                                  "robot numbers K,K (from 1)")
 
 
 @dataclass(frozen=True)

@@ -16,6 +16,7 @@ start pose (SPEC §3).
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -24,7 +25,7 @@ import numpy as np
 
 from common.arrays import frozen_array
 from common.errors import ConfigError
-from common.geometry import wrap_angle
+from common.geometry import compose2, inverse2, transform2, wrap_angle
 from common.messages import Observations, Odometry, Truth
 from services.slam.world import World
 
@@ -145,17 +146,55 @@ def first_seen_times(world: World, *, loops: int | None = None) -> dict[int, flo
     return seen
 
 
+def staggered(world: World, k: int) -> tuple[World, np.ndarray]:
+    """Robot ``k`` (from 0) of several driving the same loop in one arena.
+
+    Robot 0 is the world as it is. Robot k ≥ 1 starts on waypoint k − 1, facing waypoint
+    k, and visits the loop in the same order from there, so at the same speed the robots
+    stay a side of the loop apart. Returns its world and the pose of its start in robot 0's
+    map frame (the arena frame its truth is said in: SPEC §3 gives each robot its own map
+    frame, its start pose).
+    """
+    m = world.waypoints_xy.shape[0]
+    if k == 0:
+        return world, np.zeros(3)
+    if k >= m:
+        raise ConfigError(f"world {world.name!r} has {m} waypoints: at most {m} robots "
+                          "(one per start on the loop)")
+    start_xy, ahead = world.waypoints_xy[k - 1], world.waypoints_xy[k]
+    heading = math.atan2(ahead[1] - start_xy[1], ahead[0] - start_xy[0])
+    start = np.array([start_xy[0], start_xy[1], heading])
+    if np.hypot(*(start_xy - world.start_pose[:2])) < 2 * world.motion.waypoint_tolerance_m:
+        raise ConfigError(f"world {world.name!r}: robot {k + 1} would start where robot 1 "
+                          f"does (waypoint {k - 1} is the start pose); use fewer robots")
+    waypoints = np.roll(world.waypoints_xy, -k, axis=0)
+    waypoints.setflags(write=False)
+    start.setflags(write=False)
+    mine = dataclasses.replace(world, start_pose=start, waypoints_xy=waypoints)
+    return mine, compose2(inverse2(world.start_pose), start)
+
+
 class Simulator:
-    """A simulated robot driver: ``events()`` yields the SPEC §7 messages in stream order."""
+    """A simulated robot driver: ``events()`` yields the SPEC §7 messages in stream order.
+
+    ``truth_origin`` is the pose of the robot's map frame in the frame its ``Truth`` is said
+    in (several robots in one arena, :func:`staggered`); ``marker_id`` goes in every Truth.
+    """
 
     def __init__(self, world: World, *, robot: str = "robot1", seed: int = 0,
                  anonymous: bool = False, loops: int | None = None,
-                 start_time_s: float = 0.0) -> None:
+                 start_time_s: float = 0.0, truth_origin: np.ndarray | None = None,
+                 marker_id: int | None = None) -> None:
         self.world = world
         self.robot = robot
         self.seed = seed
         self.anonymous = anonymous
+        self.marker_id = marker_id
         self.trajectory = plan_trajectory(world, loops=loops, start_time_s=start_time_s)
+        self._origin = None if truth_origin is None or not np.any(truth_origin) \
+            else np.asarray(truth_origin, dtype=float)
+        self._truth_landmarks = self.trajectory.landmarks_xy if self._origin is None \
+            else frozen_array(transform2(self._origin, self.trajectory.landmarks_xy), "<f8")
 
     @property
     def duration_s(self) -> float:
@@ -205,6 +244,9 @@ class Simulator:
                                bearings=z_bearing)
 
     def _truth(self, k: int) -> Truth:
-        return Truth(robot=self.robot, stamp=float(self.trajectory.stamps[k]),
-                     pose=self.trajectory.poses[k], landmark_ids=self.world.landmark_ids,
-                     landmarks=self.trajectory.landmarks_xy)
+        pose = self.trajectory.poses[k]
+        if self._origin is not None:
+            pose = compose2(self._origin, pose)
+        return Truth(robot=self.robot, stamp=float(self.trajectory.stamps[k]), pose=pose,
+                     landmark_ids=self.world.landmark_ids, landmarks=self._truth_landmarks,
+                     marker_id=self.marker_id)

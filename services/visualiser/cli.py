@@ -12,6 +12,7 @@ import logging
 from common.cli import bus_settings, keys_from, setup_logging, stop_event
 from common.config import settings_from_args
 from common.session import open_bus
+from common.status import Report, announce
 from services.visualiser.settings import ViewerConfig
 
 log = logging.getLogger("slamlens.viewer")
@@ -32,6 +33,19 @@ def run(command: str, args: argparse.Namespace) -> int:
     try:
         service.start()
         url = web.start()
+
+        def status() -> Report:
+            now = service.api.status()
+            state = now.get("state") or {}
+            rates = {"states": float(state.get("rate_hz") or 0.0),
+                     "rendered": float(now.get("fps") or 0.0)}
+            return Report(state=f"serving {url}" if state else f"serving {url}, no state yet",
+                          counts={"views": float(now.get("views_active") or 0),
+                                  "clients": float(now.get("clients") or 0)},
+                          rates=rates, rated=(),
+                          dropped=int(sum(now.get("bad_messages", {}).values())))
+
+        announce(bus, args, "viewer", status, robot=config.robot, camera=config.camera)
         log.info("web viewer at %s", url)
         print(f"viewer ready {url}", flush=True)
         stop.wait()

@@ -223,6 +223,47 @@ def test_roles_of_monitor_and_camera(connect, secure_router) -> None:
                            "slamlens/camera/other/frame")
 
 
+def test_every_identity_announces_its_own_status_and_only_its_own(connect,
+                                                                  secure_router) -> None:
+    """The status protocol (common/status.py) through the roles: each identity holds its
+    token and answers under slamlens/status/NAME/**; one robot posing as another is
+    refused both, and the reader never sees it."""
+    from common.keys import Keys
+    from common.messages import ServiceStatus
+    from common.status import Report, StatusAnnouncer
+
+    keys = Keys()
+    reader = connect("viewer-lab")
+    announcers = [StatusAnnouncer(connect(name), keys, service=service, name=name,
+                                  provider=lambda: Report(counts={"n": 1.0}))
+                  for name, service in (("robot-r1", "estimator"), ("monitor-r1", "monitor"),
+                                        ("camera-overhead", "registration"),
+                                        ("viewer-lab", "viewer"))]
+    poser = StatusAnnouncer(connect("robot-r2"), keys, service="estimator", name="robot-r1",
+                            provider=lambda: Report(state="forged"))
+    try:
+        honest = sorted(a.key for a in announcers)
+
+        def clients(found: list[str]) -> list[str]:  # not the router's own
+            return sorted(k for k in found if "/router-ws/" not in k)
+
+        assert _until(lambda: clients(reader.alive(keys.any_status())) == honest or None,
+                      "every honest token is seen")
+        replies = _until(lambda: (r := [s for s in reader.get(keys.any_status())
+                                        if "/router-ws/" not in s.key]) and len(r) >= 4 and r,
+                         "every honest status answers")
+        statuses = {s.key: ServiceStatus.from_bytes(s.payload) for s in replies}
+        assert sorted(statuses) == honest
+        assert {st.name for st in statuses.values()} == {"robot-r1", "monitor-r1",
+                                                         "camera-overhead", "viewer-lab"}
+        secure_router.wait_log("refused: robot-r2 may not ")
+        assert poser.key not in reader.alive(keys.any_status())
+        assert poser.key not in {s.key for s in reader.get(keys.any_status())}
+    finally:
+        for a in [*announcers, poser]:
+            a.close()
+
+
 def _advanced_publisher(bus: ZenohBus, key: str):
     return zx.declare_advanced_publisher(
         bus.session, key, cache=zx.CacheConfig(max_samples=100),

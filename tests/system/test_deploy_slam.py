@@ -51,8 +51,9 @@ def test_paper_run_from_deploy_configs(router, estimator_config, expected_suspec
             assert probe.wait_for_subscriber(KEYS.state("robot1"))
         finally:
             probe.close()
+        # the file runs in real time after a hold for a camera; flat out here (no camera)
         sim = subprocess.run(slamlens_cmd("sim", "--config", str(DEPLOY / "sim_paper.toml"),
-                                          "--connect", router),
+                                          "--rate", "0", "--hold", "0", "--connect", router),
                              cwd=REPO, capture_output=True, text=True, timeout=180)
         assert sim.returncode == 0, sim.stderr
         assert "sim done" in sim.stdout

@@ -21,7 +21,13 @@ from services.cli import COMMANDS, Command, command_parser, main
 from services.cli_reference import DOC, reference
 from services.recorder.settings import PlaySettings, RecordSettings
 from services.registration.settings import CalibrateSettings, RegistrationSettings
-from services.settings import CertsSettings, DemoSettings, FigureSettings
+from services.settings import (
+    CertsSettings,
+    DemoSettings,
+    FigureSettings,
+    LaunchSettings,
+    RegisterSettings,
+)
 from services.slam.settings import (
     EstimatorSettings,
     MonitorSettings,
@@ -74,6 +80,12 @@ LEGACY_FLAGS = {
              "--quiet", "--verbose"],
     "foxglove": ["--robot", "--camera", "--mode", "--cluster-threshold", "--connect",
                  "--config", "--quiet", "--verbose"],
+    # issue 10 (SPEC §9): launch files, status, re-registration
+    "launch": ["--check", "--log-dir", "--quiet", "--set", "--verbose"],
+    "status": ["--connect", "--interval", "--json", "--listen", "--once", "--prefix",
+               "--quiet", "--secure", "--name", "--timeout", "--verbose", "--zenoh-config"],
+    "register": ["--camera", "--connect", "--listen", "--prefix", "--quiet", "--robot",
+                 "--secure", "--name", "--timeout", "--verbose", "--zenoh-config"],
 }
 
 
@@ -171,14 +183,17 @@ def test_no_flags_give_the_documented_defaults(command: str) -> None:
     cls = COMMANDS[command].settings_class()
     required = {"replay": ["p"], "calibrate": ["a.jpg", "-o", "c.yml"],
                 "serial": ["--port", "loop://"], "certs": ["pki", "--name", "robot-r1"],
-                "record": ["a.mcap"], "play": ["a.mcap"]}.get(command, [])
+                "record": ["a.mcap"], "play": ["a.mcap"],
+                "launch": ["robot.toml"], "register": ["--camera", "c"]}.get(command, [])
     given = settings_from_args(cls, _parse(command, *required))
     expected = {"replay": ReplaySettings(path="p"),
                 "calibrate": CalibrateSettings(images=("a.jpg",), output="c.yml"),
                 "serial": SerialSettings(port="loop://"),
                 "certs": CertsSettings(directory="pki", names=("robot-r1",)),
                 "record": RecordSettings(path="a.mcap"),
-                "play": PlaySettings(path="a.mcap")}.get(command) or cls()
+                "play": PlaySettings(path="a.mcap"),
+                "launch": LaunchSettings(file="robot.toml"),
+                "register": RegisterSettings(camera="c")}.get(command) or cls()
     assert given == expected
 
 

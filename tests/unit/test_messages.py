@@ -18,6 +18,7 @@ from common.messages import (
     Observations,
     Odometry,
     Registration,
+    ServiceStatus,
     SlamState,
     Truth,
     Violation,
@@ -51,6 +52,10 @@ SAMPLES = [
                  height=480, T_camera_from_map=np.eye(4), reprojection_error_px=0.2),
     CameraPose(camera="c", stamp=0.7, T_world_from_camera=np.eye(4)),
     CameraControl(command="reregister", robot="r1"),
+    ServiceStatus(service="monitor", name="monitor-r1", host="lab", pid=42, version="0.1.0",
+                  started=1.7e9, uptime_s=12.5, state="ok", robot="r1", epoch=3,
+                  counts={"checked": 120.0, "violations": 0.0}, rates={"checked": 9.5},
+                  dropped=1, lost=2),
 ]
 
 
@@ -190,3 +195,25 @@ def test_random_payloads_raise_only_message_error(cls) -> None:
             cls.from_bytes(payload)
         except MessageError:
             pass
+
+
+def test_camera_control_is_the_documented_map_and_robot_is_optional() -> None:
+    assert CameraControl(command="reregister").to_dict() == {"schema": 1,
+                                                              "command": "reregister"}
+    hand_made = msgpack.packb({"schema": 1, "command": "reregister", "robot": "robot1"})
+    assert CameraControl.from_bytes(hand_made) == CameraControl(command="reregister",
+                                                                robot="robot1")
+    with pytest.raises(MessageError, match="command"):
+        CameraControl(command="explode")
+
+
+def test_truth_may_say_the_robots_marker() -> None:
+    plain = Truth(robot="r", stamp=0.0, pose=[0, 0, 0], landmark_ids=[],
+                  landmarks=np.zeros((0, 2)))
+    assert "marker_id" not in plain.to_dict() and plain.marker_id is None
+    marked = Truth.from_bytes(Truth(robot="r", stamp=0.0, pose=[0, 0, 0], landmark_ids=[],
+                                    landmarks=np.zeros((0, 2)), marker_id=3).to_bytes())
+    assert marked.marker_id == 3
+    with pytest.raises(MessageError, match="marker_id"):
+        Truth(robot="r", stamp=0.0, pose=[0, 0, 0], landmark_ids=[],
+              landmarks=np.zeros((0, 2)), marker_id=-1)

@@ -53,7 +53,17 @@ def test_generated_roles(pki) -> None:
     assert _rule(acl, "say router-ws")["key_exprs"] == ["lab/slamlens/**",
                                                         "lab/slamlens/**/@adv/**"]
     assert len(_rule(acl, "say router-ws")["messages"]) == 9
-    assert not [r for r in acl["rules"] if "viewer" in r["id"]]  # a viewer says nothing
+    # a viewer says nothing but its own status; everyone may announce only their own
+    assert [r["id"] for r in acl["rules"] if "viewer" in r["id"]] == ["status viewer-lab"]
+    assert _rule(acl, "status viewer-lab") == {
+        "id": "status viewer-lab", "permission": "allow", "flows": ["ingress"],
+        "messages": ["liveliness_token", "declare_queryable", "reply"],
+        "key_exprs": ["lab/slamlens/status/viewer-lab/**"]}
+    for name in NAMES:
+        if not name.startswith("router-"):
+            assert _rule(acl, f"status {name}")["key_exprs"] == [
+                f"lab/slamlens/status/{name}/**"]
+    assert not [r for r in acl["rules"] if r["id"] == "status router-ws"]  # says anything
     read = _rule(acl, "read")
     assert read["flows"] == ["ingress"] and "put" not in read["messages"]
     assert read["key_exprs"] == ["lab/slamlens/**", "lab/slamlens/**/@adv/**"]
@@ -61,9 +71,12 @@ def test_generated_roles(pki) -> None:
     assert _rule(acl, "deliver")["flows"] == ["egress"]
     policies = {p["id"]: p for p in acl["policies"]}
     assert policies["everyone"]["subjects"] == sorted(NAMES)
-    assert policies["robot-r1"] == {"id": "robot-r1", "rules": ["say robot-r1"],
+    assert policies["robot-r1"] == {"id": "robot-r1",
+                                    "rules": ["say robot-r1", "status robot-r1"],
                                     "subjects": ["robot-r1"]}
-    assert "viewer-lab" not in policies
+    assert policies["viewer-lab"] == {"id": "viewer-lab", "rules": ["status viewer-lab"],
+                                      "subjects": ["viewer-lab"]}
+    assert policies["router-ws"]["rules"] == ["say router-ws"]
 
 
 def test_a_router_config_carries_tls_and_the_roles(pki) -> None:

@@ -8,8 +8,9 @@ import math
 import numpy as np
 import pytest
 
+from common.geometry import compose2, inverse2
 from common.messages import Observations, Odometry, Truth
-from services.slam.sim import Simulator, first_seen_times, plan_trajectory
+from services.slam.sim import Simulator, first_seen_times, plan_trajectory, staggered
 from services.slam.world import NoiseModel, World, load_world
 
 PAPER = load_world("paper")
@@ -223,3 +224,62 @@ def test_plan_shapes_and_read_only() -> None:
     assert traj.poses.shape == (traj.controls.shape[0] + 1, 3)
     assert traj.stamps[0] == 0.0
     assert not traj.poses.flags.writeable
+
+
+# -- several robots in one arena (issue 10 item 3) -----------------------------------------
+def _fleet(n: int, **kw) -> list[Simulator]:
+    sims = []
+    for k in range(n):
+        world, origin = staggered(PAPER, k)
+        sims.append(Simulator(world, robot=f"r{k + 1}", seed=k, loops=1, truth_origin=origin,
+                              marker_id=10 + k, **kw))
+    return sims
+
+
+def test_several_robots_start_on_the_loop_one_corner_apart() -> None:
+    sims = _fleet(4)
+    starts = [next(iter(s.events())) for s in sims]
+    assert all(isinstance(t, Truth) for t in starts)
+    # in the arena frame (robot 1's map frame): the start, then corners 1..3 of the square,
+    # each facing the next corner
+    expected = [(0.0, 0.0, 0.0), (1.0, 0.0, math.pi / 2), (1.0, 1.0, -math.pi),
+                (0.0, 1.0, -math.pi / 2)]
+    for truth, pose in zip(starts, expected, strict=True):
+        assert np.allclose(truth.pose, pose, atol=1e-12)
+    assert [t.marker_id for t in starts] == [10, 11, 12, 13]
+    for truth in starts[1:]:  # one arena: the same landmarks wherever a robot starts
+        assert np.allclose(truth.landmarks, starts[0].landmarks, atol=1e-12)
+        assert np.array_equal(truth.landmark_ids, starts[0].landmark_ids)
+
+
+def test_each_robot_drives_the_loop_in_its_own_map_frame_and_they_stay_apart() -> None:
+    sims = _fleet(3)
+    runs = [split(list(s.events())) for s in sims]
+    n = min(len(truths) for _, truths, _ in runs)
+    for k, (odometry, truths, _) in enumerate(runs):
+        assert all(o.robot == f"r{k + 1}" for o in odometry + truths)
+        assert len(odometry) == len(sims[0].trajectory.controls)  # the same loop, shifted
+        # its own map frame is its start (SPEC §3): the truth re-expressed there (what the
+        # monitor does with origin_stamp) is its trajectory, which starts at 0
+        at_start = inverse2(truths[0].pose)
+        for truth, pose in zip(truths, sims[k].trajectory.poses, strict=True):
+            assert np.allclose(compose2(at_start, truth.pose), pose, atol=1e-9)
+    for i in range(n):  # congruent motion, a side of the square apart: never collide
+        a, b, c = (runs[k][1][i].pose[:2] for k in range(3))
+        assert min(np.hypot(*(a - b)), np.hypot(*(b - c)), np.hypot(*(a - c))) > 0.5
+
+
+def test_more_robots_than_corners_is_refused() -> None:
+    from common.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="at most 4 robots"):
+        staggered(PAPER, 4)
+
+
+def test_one_robot_is_the_plain_simulator() -> None:
+    world, origin = staggered(PAPER, 0)
+    assert world is PAPER and not np.any(origin)
+    plain = list(Simulator(PAPER, seed=3, loops=1).events())
+    same = list(Simulator(world, seed=3, loops=1, truth_origin=origin).events())
+    assert plain == same
+    assert all(t.marker_id is None for t in plain if isinstance(t, Truth))
