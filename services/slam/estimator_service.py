@@ -30,8 +30,10 @@ from common.errors import EstimationError, MessageError
 from common.keys import Keys
 from common.messages import Observations, Odometry, SlamState
 from services.slam import checkpoint as ckpt
+from services.slam.ekf import RefusedStepError
 from services.slam.estimator import Estimator
 from services.slam.input_order import Input, InputOrder
+from services.slam.plausibility import ImplausibleInputError
 from services.slam.settings import EstimatorSettings
 
 log = logging.getLogger("slamlens.estimator")
@@ -47,7 +49,7 @@ class EstimatorStats:
     observation_batches: int = 0
     states: int = 0
     foreign_robot: int = 0
-    refused: int = 0  #: inputs the estimator refused (NaN, dt < 0 …)
+    refused: int = 0  #: inputs the estimator refused, whatever the reason (no state for them)
 
 
 def _warm_up(settings: EstimatorSettings) -> None:
@@ -88,6 +90,7 @@ class EstimatorService:
         self.order = InputOrder(gap_wait_s=settings.input_gap_wait_s)
         self._seq = 0
         self._input_stamp = 0.0
+        self._said: set[str] = set()  #: refusal reasons already logged (once each)
         self._origin_stamp: float | None = None  #: when the robot stood at the map origin
         self._lock = threading.Lock()
         self._writer: ckpt.CheckpointWriter | None = None
@@ -107,12 +110,16 @@ class EstimatorService:
             keys.robot_inputs(self.robot), recover=True,
             history_s=settings.input_history_s if self.resumed else 0.0,
             accept=lambda key: key.endswith(("/odometry", "/observations")))
+        #: a new map's init state is published with the first input, stamped at the map
+        #: origin in the data's own time (until then a ``get`` answers it at stamp 0.0)
+        self._init_pending = init is None
         if init is None:
             init = self.estimator.to_state(seq=0, stamp=0.0, step="init", epoch=self.epoch,
                                            input_stamp=0.0)
         self._latest = init.to_bytes()
         bus.serve_latest(keys.state(self.robot), self.latest_bytes)
-        self._publisher.put(self._latest)
+        if not self._init_pending:
+            self._publisher.put(self._latest)  # a resumed map: its state has its time
         bus.declare_alive(keys.estimator_alive(self.robot))
 
     # -- checkpoints ------------------------------------------------------------------
@@ -187,20 +194,55 @@ class EstimatorService:
             if isinstance(message, Odometry):
                 self.estimator.predict(v=message.v, w=message.w, dt=message.dt,
                                        stamp=message.stamp)
-                if self._origin_stamp is None:  # the map origin: where this step began
+                first = self._origin_stamp is None
+                if first:  # the map origin: where this step began
                     self._origin_stamp = message.stamp - message.dt
                 self.stats.odometry += 1
+                self._restamp_init(first)
                 return self._publish(stamp=message.stamp, step="predict", report=None)
             report = self.estimator.observe(ids=message.ids, ranges=message.ranges,
                                             bearings=message.bearings, stamp=message.stamp)
-            if self._origin_stamp is None:
+            first = self._origin_stamp is None
+            if first:
                 self._origin_stamp = message.stamp
             self.stats.observation_batches += 1
+            self._restamp_init(first)
             return self._publish(stamp=message.stamp, step="update", report=report)
+        except (ImplausibleInputError, RefusedStepError) as exc:
+            self.stats.refused += 1
+            self._say_refused(item.leaf, exc.reason, str(exc))
         except EstimationError as exc:  # the estimator refused the input (NaN, bad control…)
             self.stats.refused += 1
             self.drops.drop(item.leaf, f"refused: {exc}")
         return None
+
+    def _say_refused(self, leaf: str, reason: str, detail: str) -> None:
+        """One log line per reason (the rest are counted: ``status()``, the final line)."""
+        if reason in self._said:
+            return
+        self._said.add(reason)
+        last = self.estimator.last_refusal
+        what = f" (the input: {last.input} at stamp {last.stamp!r})" if last else ""
+        log.warning("refused %s (%s): %s%s; further %s refusals are counted, not logged",
+                    leaf, reason, detail, what, reason)
+
+    def _restamp_init(self, first: bool) -> None:
+        """The first input of a new map: publish the init state (seq 0, the map before any
+        input) stamped at the map origin in the data's own time, just before the state of
+        that input. At start-up nothing says what time it is, so a new map's init state is
+        not published then (a ``get`` answers it at stamp 0.0). input_stamp stays 0.0:
+        nothing is folded in it. A map resumed from a checkpoint published its state at
+        start-up and is not touched."""
+        if not (first and self._init_pending) or self._origin_stamp is None:
+            return
+        self._init_pending = False
+        # the init state is the map before this input: the prior, which the input (just
+        # applied) has not changed for the landmarks it cannot have (an empty map) — but
+        # the pose has moved, so it is rebuilt from the settings' prior, not the estimator
+        init = Estimator(self.settings).to_state(seq=0, stamp=self._origin_stamp, step="init",
+                                                 epoch=self.epoch, input_stamp=0.0,
+                                                 origin_stamp=self._origin_stamp)
+        self._publisher.put(init.to_bytes())
 
     def _publish(self, *, stamp: float, step: str, report: object) -> SlamState:
         self._seq += 1
@@ -240,10 +282,13 @@ class EstimatorService:
 
     def status_line(self) -> str:
         o = self.order.stats
+        refused = ", ".join(f"{k} {v}" for k, v in sorted(self.estimator.refusals.items()))
         return (f"epoch {self.epoch} seq {self._seq}, {self.estimator.n} landmarks, "
                 f"{self.stats.odometry} odometry + {self.stats.observation_batches} "
                 f"observation batches applied, backlog {self._inputs.backlog}, "
-                f"{o.duplicates} duplicates, {o.lost} lost, {self.drops.total} dropped")
+                f"{o.duplicates} duplicates, {o.lost} lost, {self.drops.total} dropped, "
+                f"{self.stats.refused} refused{f' ({refused})' if refused else ''}, "
+                f"{self.estimator.gated} gated")
 
     def run(self, stop: threading.Event, *, status_every_s: float = 10.0) -> None:
         """Apply events until ``stop`` is set, then write a last checkpoint."""
@@ -260,7 +305,22 @@ class EstimatorService:
 
     def summary(self) -> dict[str, object]:
         """What the service did (the final line at exit)."""
-        return {"epoch": self.epoch, "seq": self._seq, "landmarks": self.estimator.n,
+        est = self.estimator
+        return {"epoch": self.epoch, "seq": self._seq, "landmarks": est.n,
                 "resumed": self.resumed, **dataclasses.asdict(self.stats),
+                "refused_by": dict(sorted(est.refusals.items())), "gated": est.gated,
                 "duplicates": self.order.stats.duplicates, "lost": self.order.stats.lost,
                 "dropped": self.drops.total}
+
+    def status(self) -> dict[str, object]:
+        """What ``slamlens status`` (or anyone) can read about this estimator: the
+        :meth:`summary` plus the inputs refused by reason, the last refusal and the
+        plausibility bounds in force. Thread-safe to call from another thread (a snapshot
+        of counters; plain reads)."""
+        est = self.estimator
+        last = est.last_refusal
+        bounds = dataclasses.asdict(est.gates.bounds)
+        return {**self.summary(), "input_stamp": self._input_stamp,
+                "refused_updates": est.refused_updates, "stamp_resyncs": est.gates.resyncs,
+                "last_refused": None if last is None else dataclasses.asdict(last),
+                "bounds": bounds}

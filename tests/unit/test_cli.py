@@ -27,6 +27,7 @@ from services.slam.settings import (
     ReplaySettings,
     SerialSettings,
     SimSettings,
+    TuneSettings,
 )
 from services.visualiser.settings import ViewerConfig, ViewSettings
 from tests.procs import REPO
@@ -67,6 +68,8 @@ LEGACY_FLAGS = {
              "--log-dir", "--loops", "--no-camera", "--prefix", "--quiet", "--rate", "--robot",
              "--seed", "--verbose", "--zenoh-config"],
     "certs": ["--host", "--name", "--quiet", "--verbose"],  # SPEC §7b, §9
+    "tune": ["--config", "--gate-chi2", "--motion-model", "--output", "--quiet",
+             "--robot-index", "--truth", "--verbose", "-o"],  # SPEC §9 (issue 11)
 }
 
 
@@ -163,14 +166,14 @@ def test_legacy_flags_set_the_same_settings(command: str, argv: list[str], expec
 def test_no_flags_give_the_documented_defaults(command: str) -> None:
     cls = COMMANDS[command].settings_class()
     required = {"replay": ["p"], "calibrate": ["a.jpg", "-o", "c.yml"],
-                "serial": ["--port", "loop://"], "certs": ["pki", "--name", "robot-r1"]}.get(
-                    command, [])
+                "serial": ["--port", "loop://"], "certs": ["pki", "--name", "robot-r1"],
+                "tune": ["p"]}.get(command, [])
     given = settings_from_args(cls, _parse(command, *required))
     expected = {"replay": ReplaySettings(path="p"),
                 "calibrate": CalibrateSettings(images=("a.jpg",), output="c.yml"),
                 "serial": SerialSettings(port="loop://"),
-                "certs": CertsSettings(directory="pki", names=("robot-r1",))}.get(
-                    command) or cls()
+                "certs": CertsSettings(directory="pki", names=("robot-r1",)),
+                "tune": TuneSettings(path="p")}.get(command) or cls()
     assert given == expected
 
 
