@@ -58,14 +58,27 @@ class GatedObservationError(EstimationError):
         self.innovation = innovation  #: (ν_r, ν_φ, S_rr, S_rφ, S_φφ)
 
 
+#: "Finite" for the guard: a state entry (m, rad) above this, or a covariance entry (m², …)
+#: above its square, is refused — the next step multiplies such numbers and overflows.
+STATE_LIMIT = 1e150
+COVARIANCE_LIMIT = STATE_LIMIT * STATE_LIMIT
+
+
+def _bounded(values: np.ndarray, limit: float) -> bool:
+    """|every value| ≤ limit (False for NaN); two O(N) reductions, no temporary."""
+    if not values.size:
+        return True
+    return bool(values.max() <= limit and values.min() >= -limit)
+
+
 @dataclass(frozen=True)
 class Guard:
     """What the kernels check before they write a step (docs/estimator.md, "A filter that
     cannot be poisoned"). Every check is O(N): the state and the entries a step writes must
-    stay finite and, unless ``psd_rtol`` is None, no variance may go below
-    −(``psd_rtol``·its old value + ``atol``) and the robot block stays PSD within it.
-    ``psd_rtol = None`` keeps only the finiteness checks (the planted faults break PSD on
-    purpose)."""
+    stay finite — within :data:`STATE_LIMIT` (state) and :data:`COVARIANCE_LIMIT` (P) — and,
+    unless ``psd_rtol`` is None, no variance may go below −(``psd_rtol``·its old value +
+    ``atol``) and the robot block stays PSD within it. ``psd_rtol = None`` keeps only the
+    finiteness checks (the planted faults break PSD on purpose)."""
 
     psd_rtol: float | None = 1e-9
     atol: float = 1e-12
@@ -338,7 +351,8 @@ def predict(x: np.ndarray, L: np.ndarray, n: int, *, v: float, w: float, dt: flo
     n11 = p11 + fb * p21 + fb * n21 + qv * s * s
     n22 = p22 + qw
     if guard is not None:
-        if not math.isfinite(x0 + x1 + x2 + n00 + n10 + n11 + n20 + n21 + n22 + fa + fb):
+        if not (max(abs(x0), abs(x1), abs(fa), abs(fb)) <= STATE_LIMIT and max(
+                abs(n00), abs(n10), abs(n11), abs(n20), abs(n21), abs(n22)) <= COVARIANCE_LIMIT):
             raise RefusedStepError("non-finite", f"prediction (v={v!r}, w={w!r}, dt={dt!r}) "
                                                  "would make the pose or P_vv non-finite")
         if guard.psd_rtol is not None and not _psd3(
@@ -356,7 +370,7 @@ def predict(x: np.ndarray, L: np.ndarray, n: int, *, v: float, w: float, dt: flo
         buf[0] += pm[:, 0]
         np.multiply(pm[:, 2], fb, out=buf[1])
         buf[1] += pm[:, 1]
-        if not math.isfinite(float(buf.sum())):
+        if not _bounded(buf, COVARIANCE_LIMIT):
             raise RefusedStepError("non-finite", f"prediction (v={v!r}, w={w!r}, dt={dt!r}) "
                                                  "would make P_vm non-finite")
         pm[:, 0] = buf[0]
@@ -463,7 +477,7 @@ def _check_update(L: np.ndarray, N: int, xs: np.ndarray, vt: np.ndarray, scratch
     np.multiply(vt[0], vt[0], out=sq)
     np.multiply(vt[1], vt[1], out=tmp)
     sq += tmp  # ‖V_i‖² = what the downdate takes from P_ii
-    if not math.isfinite(float(sq.sum())):
+    if not float(sq.max()) <= COVARIANCE_LIMIT:  # V_i bounded, so V Vᵀ is (and not NaN)
         raise RefusedStepError("non-finite", f"update of landmark {j} would make P "
                                              "non-finite")
     if guard.psd_rtol is not None:
@@ -480,7 +494,7 @@ def _check_update(L: np.ndarray, N: int, xs: np.ndarray, vt: np.ndarray, scratch
     sq += xs
     np.multiply(vt[1], u1, out=tmp)
     sq += tmp
-    if not math.isfinite(float(sq.sum())):
+    if not _bounded(sq, STATE_LIMIT):
         raise RefusedStepError("non-finite", f"update of landmark {j} would make the state "
                                              "non-finite")
     xs[...] = sq
@@ -517,7 +531,9 @@ def initialise(x: np.ndarray, L: np.ndarray, n: int, *, z_range: float, z_bearin
     m11 = b1 + b2 * g12 + rr * s * s + rb * c * c
     mx, my = float(x[0]) + z_range * c, float(x[1]) + z_range * s
     if guard is not None:
-        if not math.isfinite(float(new.sum()) + m00 + m10 + m11 + mx + my):
+        if not (_bounded(new[:, :N], COVARIANCE_LIMIT)
+                and max(abs(m00), abs(m10), abs(m11)) <= COVARIANCE_LIMIT
+                and max(abs(mx), abs(my)) <= STATE_LIMIT):
             raise RefusedStepError("non-finite", f"a landmark at range {z_range!r} would make "
                                                  "the state non-finite")
         if guard.psd_rtol is not None and not _psd2(

@@ -44,7 +44,7 @@ class Bounds:
     max_speed: float = 10.0
     max_turn_rate: float = 10.0
     max_range: float = 100.0
-    max_abs_bearing: float = math.pi
+    max_abs_bearing: float = 2 * math.pi
     max_stamp_jump_s: float = 60.0
     stamp_resync: int = 20
     max_batch: int = 500

@@ -196,8 +196,9 @@ class EstimatorSettings:
     max_range: float = setting(100.0, doc="a batch with a range above this is refused",
                                unit="m", min=0.0, group=_PLAUSIBLE)
     max_abs_bearing: float = setting(
-        math.pi, doc="a batch with a |bearing| above this is refused (bearings are wrapped "
-                     "to [−π, π) by SPEC §4)", unit="rad", min=0.0, group=_PLAUSIBLE)
+        2 * math.pi, doc="a batch with a |bearing| above this is refused (one turn: an "
+                         "unwrapped angle is still an angle, 1e6 rad is not)", unit="rad",
+        min=0.0, group=_PLAUSIBLE)
     max_stamp_jump_s: float = setting(
         60.0, doc="an input stamped further than this (either way) from the newest input "
                   "applied is refused …", unit="s", min=0.0, group=_PLAUSIBLE)
