@@ -36,7 +36,8 @@ class PipelineResult:
     estimator: dict = field(default_factory=dict)  #: its final line
     monitor: dict = field(default_factory=dict)  #: its final line
     replay_line: str = ""
-    monitor_log: str = ""
+    monitor_log: str = ""  #: its stderr
+    monitor_out: str = ""  #: its stdout (the verdict in words, the final line)
     wall_s: float = 0.0
 
 
@@ -156,7 +157,7 @@ def run_pipeline(robot_index: int, *, profile: Path = PROFILE, data: Path = DATA
             evaluation=evaluation, states=collector.count, last_seq=last.seq,
             verdicts=dict(collector.verdicts), fault_healths=collector.faults,
             estimator=estimator, monitor=monitor, replay_line=replay_line.strip(),
-            monitor_log=mon_err, wall_s=wall)
+            monitor_log=mon_err, monitor_out=mon_out, wall_s=wall)
     finally:
         if collector is not None:
             collector.close()

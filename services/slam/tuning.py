@@ -148,6 +148,9 @@ class Evaluation:
     map_rotation_deg: float  #: the rigid fit's rotation
     dead_reckoning: np.ndarray | None = None  #: float64[T, 3] errors of odometry alone
     counts: dict[str, float] = field(default_factory=dict)  #: gated, refused …
+    poses: np.ndarray | None = None  #: float64[T, 3] the estimates scored (for plots)
+    sigmas: np.ndarray | None = None  #: float64[T, 3] their standard deviations
+    landmarks: np.ndarray | None = None  #: float64[n, 2] the final map (ids above)
     band: tuple[float, float] = field(default_factory=nees_band)
 
     @property
@@ -218,12 +221,16 @@ class Scorer:
         self._nees: list[float] = []
         self._errors: list[np.ndarray] = []
         self._dr: list[np.ndarray] = []
+        self._poses: list[np.ndarray] = []
+        self._sigmas: list[np.ndarray] = []
 
     def add(self, stamp: float, pose: np.ndarray, pose_covariance: np.ndarray) -> None:
         """One state: its stamp, pose and P_vv. States outside the truth are skipped."""
         true = self.truth.pose_at(stamp)
         if true is None:
             return
+        self._poses.append(np.array(pose, dtype=float))
+        self._sigmas.append(np.sqrt(np.maximum(np.diag(pose_covariance), 0.0)))
         e = true - pose
         e[2] = float(wrap_angle(e[2]))
         self._stamps.append(stamp)
@@ -253,7 +260,8 @@ class Scorer:
             errors=np.array(self._errors).reshape(-1, 3), landmark_ids=ids,
             landmark_errors=err, landmark_rmse=rmse, landmark_rmse_rigid=rigid,
             map_rotation_deg=rotation, dead_reckoning=np.array(self._dr).reshape(-1, 3),
-            counts=dict(counts or {}))
+            counts=dict(counts or {}), poses=np.array(self._poses).reshape(-1, 3),
+            sigmas=np.array(self._sigmas).reshape(-1, 3), landmarks=est)
 
 
 def dead_reckoning_track(run: MrclamRun, start: float | None = None,
