@@ -91,9 +91,9 @@ class TuneSettings:
         (1,), doc="robots of the dataset to fit together (one profile for all of them)",
         metavar="K,K")
     motion_model: str = setting(
-        "distance", doc="odometry noise to fit: distance = the opt-in terms growing with "
-                        "distance and turn (not SPEC §4); spec = SPEC §4's σv, σω",
-        choices=("distance", "spec"))
+        "spec", doc="odometry noise to fit: spec = SPEC §4's σv, σω; distance = the opt-in "
+                    "terms growing with distance and turn instead (not SPEC §4)",
+        choices=("spec", "distance"))
     gate_chi2: float = setting(13.82, doc="innovation gate written into the profile (χ²₂ "
                                           "99.9 %); 0 = none", min=0.0)
     output: str = setting("", doc="settings TOML to write; empty = print it", short="-o",

@@ -14,9 +14,9 @@ How a profile is made (docs/estimator.md, "Tuning on real data"):
 2. **Odometry residuals.** Windows of 1, 2, 4 … 64 s; in each, the commanded controls
    are integrated with the SPEC §4 model from the true pose at the window's start, and the
    error at its end is split into along-track and heading. Their variances are modelled
-   per window as Σ σv²dt² (SPEC §4, ``motion_model = "spec"``) or as k_d²·distance and
-   k_t²·turn + k_hd²·distance (the opt-in terms, ``motion_model = "distance"``), fitted the
-   same way, each window length weighted equally.
+   per window as Σ σv²dt² (SPEC §4, ``motion_model = "spec"``, the default) or as
+   k_d²·distance and k_t²·turn + k_hd²·distance (the opt-in terms,
+   ``motion_model = "distance"``), fitted the same way, each window length weighted equally.
 3. **Check and scale.** The estimator runs over every run with the fitted settings and its
    time-averaged pose NEES is measured against the truth. Scaling every σ by c leaves the
    estimate unchanged and scales P by c² (the gain does not change), so NEES/c²: the
@@ -148,6 +148,7 @@ class Evaluation:
     map_rotation_deg: float  #: the rigid fit's rotation
     dead_reckoning: np.ndarray | None = None  #: float64[T, 3] errors of odometry alone
     counts: dict[str, float] = field(default_factory=dict)  #: gated, refused …
+    nis: np.ndarray | None = None  #: float64[k] NIS νᵀS⁻¹ν of every update (2 expected)
     poses: np.ndarray | None = None  #: float64[T, 3] the estimates scored (for plots)
     sigmas: np.ndarray | None = None  #: float64[T, 3] their standard deviations
     landmarks: np.ndarray | None = None  #: float64[n, 2] the final map (ids above)
@@ -156,6 +157,11 @@ class Evaluation:
     @property
     def nees_mean(self) -> float:
         return float(np.nanmean(self.nees)) if np.isfinite(self.nees).any() else math.nan
+
+    @property
+    def nis_mean(self) -> float:
+        """Mean NIS of the updates (2 for a consistent filter: 2 degrees of freedom)."""
+        return float(np.mean(self.nis)) if self.nis is not None and self.nis.size else math.nan
 
     def windows(self, size: int = NEES_WINDOW) -> np.ndarray:
         """Means of consecutive windows of ``size`` scored states (NaN ones left out)."""
@@ -198,6 +204,7 @@ class Evaluation:
                 "nees_mean": round(self.nees_mean, 3),
                 "windows_inside": round(self.window_fraction(), 3),
                 "states_inside": round(self.state_fraction, 3),
+                "nis_mean": round(self.nis_mean, 3),
                 "pose_rmse_m": round(self.pose_rmse, 3),
                 "heading_rmse_deg": round(self.heading_rmse_deg, 2),
                 "landmark_rmse_m": round(self.landmark_rmse, 3),
@@ -223,6 +230,16 @@ class Scorer:
         self._dr: list[np.ndarray] = []
         self._poses: list[np.ndarray] = []
         self._sigmas: list[np.ndarray] = []
+        self._nis: list[float] = []
+
+    def add_innovations(self, innovations: np.ndarray | None,
+                        covariances: np.ndarray | None) -> None:
+        """The NIS of one update's innovations (a state's innovations, S)."""
+        if innovations is None or covariances is None or not len(innovations):
+            return
+        nu = np.asarray(innovations).reshape(-1, 2)
+        S = np.asarray(covariances).reshape(-1, 2, 2)
+        self._nis.extend(float(v) for v in np.einsum("ki,kij,kj->k", nu, np.linalg.inv(S), nu))
 
     def add(self, stamp: float, pose: np.ndarray, pose_covariance: np.ndarray) -> None:
         """One state: its stamp, pose and P_vv. States outside the truth are skipped."""
@@ -244,6 +261,7 @@ class Scorer:
 
     def add_state(self, state: SlamState) -> None:
         self.add(state.stamp, np.asarray(state.pose), np.asarray(state.covariance)[:3, :3])
+        self.add_innovations(state.innovations, state.innovation_covariances)
 
     def finish(self, landmark_ids: np.ndarray, landmarks: np.ndarray,
                counts: dict[str, float] | None = None) -> Evaluation:
@@ -260,7 +278,8 @@ class Scorer:
             errors=np.array(self._errors).reshape(-1, 3), landmark_ids=ids,
             landmark_errors=err, landmark_rmse=rmse, landmark_rmse_rigid=rigid,
             map_rotation_deg=rotation, dead_reckoning=np.array(self._dr).reshape(-1, 3),
-            counts=dict(counts or {}), poses=np.array(self._poses).reshape(-1, 3),
+            counts=dict(counts or {}), nis=np.array(self._nis),
+            poses=np.array(self._poses).reshape(-1, 3),
             sigmas=np.array(self._sigmas).reshape(-1, 3), landmarks=est)
 
 
@@ -297,8 +316,9 @@ def evaluate(run: MrclamRun, settings: EstimatorSettings, *, start: float | None
                 est.predict(v=message.v, w=message.w, dt=message.dt, stamp=message.stamp)
             else:
                 assert isinstance(message, Observations)
-                est.observe(ids=message.ids, ranges=message.ranges, bearings=message.bearings,
-                            stamp=message.stamp)
+                report = est.observe(ids=message.ids, ranges=message.ranges,
+                                     bearings=message.bearings, stamp=message.stamp)
+                scorer.add_innovations(report.innovations, report.innovation_covariances)
         except EstimationError:
             continue  # refused (counted by the estimator): no state for it
         scorer.add(message.stamp, est.pose, est.pose_covariance)
@@ -440,7 +460,7 @@ class NoiseFit:
     bearing_outliers: float  #: fraction beyond 3 fitted σ
 
 
-def fit_noise(runs: Sequence[MrclamRun], *, motion_model: str = "distance",
+def fit_noise(runs: Sequence[MrclamRun], *, motion_model: str = "spec",
               range_terms: bool = True,
               windows_s: Sequence[float] = WINDOWS_S) -> NoiseFit:
     """Step 1 and 2 of the module docstring."""
@@ -520,7 +540,7 @@ def settings_with(base: EstimatorSettings, values: dict[str, float]) -> Estimato
     return replace(base, **changes)
 
 
-def tune(runs: Sequence[MrclamRun], *, motion_model: str = "distance",
+def tune(runs: Sequence[MrclamRun], *, motion_model: str = "spec",
          gate_chi2: float = 13.82, base: EstimatorSettings | None = None,
          max_passes: int = 6, tolerance: float = 0.02,
          progress: Callable[[int, float], Progress | None] | None = None) -> TuneResult:
@@ -555,9 +575,12 @@ def tune(runs: Sequence[MrclamRun], *, motion_model: str = "distance",
 def profile_toml(result: TuneResult, *, header: Sequence[str] = ()) -> str:
     """The profile as an estimator settings TOML (``--config FILE``), with how it was made."""
     lines = [f"# {h}" if h else "#" for h in header]
+    model = ("spec: SPEC §4's sigma_v, sigma_w" if result.motion_model == "spec" else
+             "distance: the opt-in sigma_distance, sigma_turn, sigma_heading_per_distance "
+             "(not SPEC §4)")
     lines += [
-        f"# motion model: {result.motion_model} (sigma_distance, sigma_turn and "
-        "sigma_heading_per_distance are opt-in terms, not SPEC §4)",
+        f"# motion model: {model}; sigma_range_per_m and sigma_range_off_axis are opt-in "
+        "range terms (not SPEC §4)",
         f"# fitted from {result.fit.sensor_samples} measurements and "
         f"{result.fit.odometry_windows} odometry windows; {result.fit.range_outliers:.1%} of "
         "ranges off by > 0.5 m",

@@ -101,9 +101,10 @@ def test_a_fit_of_the_real_excerpt_agrees_with_a_plain_robust_estimate() -> None
     # trimming only ever removes residuals (then corrects the variance by 1/0.973)
     assert mad <= v["sigma_bearing"] <= rms / math.sqrt(0.973) * 1.0001
     assert 0.0 < v["sigma_range"] < 0.15
-    assert v["sigma_v"] == v["sigma_w"] == 0.0 and v["sigma_distance"] > 0
-    spec = tuning.fit_noise([run], motion_model="spec").values
-    assert spec["sigma_v"] > 0 and spec["sigma_w"] > 0 and spec["sigma_distance"] == 0.0
+    assert v["sigma_v"] > 0 and v["sigma_w"] > 0 and v["sigma_distance"] == 0.0  # SPEC §4
+    opt_in = tuning.fit_noise([run], motion_model="distance").values
+    assert opt_in["sigma_v"] == opt_in["sigma_w"] == 0.0
+    assert opt_in["sigma_distance"] > 0 and opt_in["sigma_turn"] > 0
 
 
 def test_tune_cli_writes_a_profile_the_estimator_loads(tmp_path: Path) -> None:
@@ -116,7 +117,8 @@ def test_tune_cli_writes_a_profile_the_estimator_loads(tmp_path: Path) -> None:
     assert "fitted by: slamlens tune" in text and "NEES scale c =" in text
     settings = load_settings(EstimatorSettings, out, {"robot": "robot3"})
     values = tomllib.loads(text)
-    assert settings.sigma_distance == values["sigma_distance"] > 0
+    assert settings.sigma_v == values["sigma_v"] > 0 and settings.sigma_distance == 0.0
+    assert settings.sigma_range_off_axis == values["sigma_range_off_axis"] > 0
     assert settings.innovation_gate_chi2 == 13.82 and settings.robot == "robot3"
 
 
@@ -126,4 +128,4 @@ def test_the_shipped_profile_is_one_for_the_dataset_and_loads() -> None:
     assert "robot" not in values  # not tuned per robot: --robot R picks the robot
     assert "--robot-index 1,3" in path.read_text()
     s = load_settings(EstimatorSettings, path, {"robot": "robot1"})
-    assert s.sigma_distance > 0 and s.innovation_gate_chi2 > 0
+    assert s.sigma_v > 0 and s.sigma_range_off_axis > 0 and s.innovation_gate_chi2 > 0
