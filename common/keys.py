@@ -60,12 +60,14 @@ class Keys:
         return self.robot(robot, "health")
 
     def tracked(self, robot: str) -> str:
-        """Camera-measured robot pose (issue 3, fields as Truth)."""
-        return self.robot(robot, "tracked")
+        """Every camera's measured pose of ``robot`` (issue 3, fields as Truth): the key
+        expression to subscribe to. A camera publishes on :meth:`tracked_by` — under its own
+        name, the only keys a camera identity may publish on (SPEC §7b)."""
+        return f"{self.prefix}/camera/*/tracked/{check_name('robot', robot)}"
 
-    def robot_inputs(self, robot: str) -> str:
-        """One expression covering odometry and observations, for one ordered subscriber."""
-        return self.robot(robot, "*")
+    def tracked_by(self, camera: str, robot: str) -> str:
+        """Camera ``camera``'s measured pose of ``robot``."""
+        return self.camera(camera, f"tracked/{check_name('robot', robot)}")
 
     def estimator_alive(self, robot: str) -> str:
         """Liveliness token of the estimator serving ``robot``."""
@@ -103,8 +105,17 @@ class Keys:
         return key.rsplit("/", 1)[-1]
 
     def robot_of(self, key: str) -> str | None:
+        """The robot segment of a ``robot/{robot}/…`` key under this prefix, else None."""
+        return self._segment_after(key, "robot")
+
+    def camera_of(self, key: str) -> str | None:
+        """The camera segment of a ``camera/{camera}/…`` key under this prefix, else None."""
+        return self._segment_after(key, "camera")
+
+    def _segment_after(self, key: str, kind: str) -> str | None:
+        prefix = self.prefix.split("/")
         parts = key.split("/")
-        n = len(self.prefix.split("/"))
-        if len(parts) > n + 1 and parts[n] == "robot":
+        n = len(prefix)
+        if len(parts) > n + 1 and parts[:n] == prefix and parts[n] == kind:
             return parts[n + 1]
         return None

@@ -556,6 +556,18 @@ class Registration(Message):
     reprojection_error_px: float = _scalar("float", "RMS reprojection error of the marker, px")
     status: str = field(default="registered", metadata={
         "kind": "str", "doc": "registered / tracking / marker not found …"})
+    epoch: int | None = _scalar(
+        "int", "optional: the epoch of the map this registration is for (SPEC §7a: a new "
+        "map has a new frame); absent: whichever map the camera saw the robot start",
+        optional=True, range=_UINT64)
+    reason: str | None = _scalar(
+        "str", "optional: why this registration was made: 'start', 'new map', or "
+        "'requested by …' (who asked, as the request said)", optional=True)
+    moved_m: float | None = _scalar(
+        "float", "optional: how far this registration moved the map origin from the "
+        "previous one, m", optional=True)
+    moved_deg: float | None = _scalar(
+        "float", "optional: how far it turned the map frame, degrees", optional=True)
 
 
 @dataclass(frozen=True, eq=False)
@@ -566,6 +578,21 @@ class CameraPose(Message):
     camera: str = _scalar("str", "camera name")
     stamp: float = _scalar("float", "time, s")
     T_world_from_camera: np.ndarray = _arr(_F8, (4, 4), "camera frame → world frame, m")
+
+
+@dataclass(frozen=True, eq=False)
+class CameraControl(Message):
+    """A request to the registration service of the camera named in its key (docs/protocol.md)."""
+
+    TYPE: ClassVar[str] = "CameraControl"
+    COMMANDS: ClassVar[tuple[str, ...]] = ("reregister",)
+    command: str = _scalar("str", "what to do: reregister (from the next frames)",
+                           choices=COMMANDS)
+    robot: str | None = _scalar("str", "only the service registering this robot obeys; "
+                                "absent: any", optional=True)
+    requester: str | None = _scalar(
+        "str", "optional: who asks (a person or program, as it says; shown with the "
+        "registration it causes)", optional=True)
 
 
 def peek_fields(payload: bytes | bytearray | memoryview,
@@ -593,4 +620,5 @@ def peek_fields(payload: bytes | bytearray | memoryview,
 
 MESSAGE_TYPES: tuple[type[Message], ...] = (
     Odometry, Observations, Truth, SlamState, Health, CameraFrame, Registration, CameraPose,
+    CameraControl,
 )

@@ -20,6 +20,7 @@ import msgpack
 import numpy as np
 
 from common.messages import (
+    CameraControl,
     CameraFrame,
     CameraPose,
     Health,
@@ -60,6 +61,8 @@ def valid(kind: type[Message], *, robot: str = "robot1", camera: str = "cam1",
         return Registration(camera=camera, robot=robot, stamp=1.0, K=np.eye(3),
                             dist=np.zeros(5), width=640, height=480,
                             T_camera_from_map=np.eye(4), reprojection_error_px=0.1)
+    if kind is CameraControl:
+        return CameraControl(command="reregister", robot=robot)
     if kind is CameraPose:
         return CameraPose(camera=camera, stamp=1.0, T_world_from_camera=np.eye(4))
     raise TypeError(kind)

@@ -21,7 +21,13 @@ from services.registration.calibration import (
     synthetic_calibration,
 )
 from services.registration.markers import MarkerDetector
-from services.registration.service import CameraPipeline, RegistrationService, TrackerPoses
+from services.registration.service import (
+    CameraParts,
+    CameraPipeline,
+    CameraSettings,
+    RegistrationService,
+    TrackerPoses,
+)
 from services.registration.settings import RegistrationSettings
 from services.registration.sources import (
     FrameSource,
@@ -163,15 +169,21 @@ def build_service(bus: Bus, keys: Keys, settings: RegistrationSettings) -> Regis
         sources = [real_source(settings, factory)]
     pipelines = []
     for i, (name, source) in enumerate(zip(settings.camera_names(), sources, strict=True)):
-        pipelines.append(CameraPipeline(
-            bus, keys, camera=name, robot=settings.robot, source=source, calib=calib,
+        camera = CameraSettings(
+            camera=name, robot=settings.robot, fps=settings.fps,
+            jpeg_quality=settings.jpeg_quality, moving=moving, publish_tracked=i == 0,
+            registration_period_s=settings.registration_period_s,
+            max_reregister_move_m=settings.max_reregister_move_m,
+            max_reregister_turn_deg=settings.max_reregister_turn_deg,
+            origin_tolerance_m=settings.origin_tolerance_m)
+        parts = CameraParts(
+            source=source, calib=calib,
             detector=detector if i == 0 else MarkerDetector(settings.dictionary),
-            registrar=Registrar(registrar_settings, calib), fps=settings.fps,
-            jpeg_quality=settings.jpeg_quality, moving=moving,
+            registrar=Registrar(registrar_settings, calib),
             board=None if settings.camera_pose_source == "tracker" else board,
             tracker_pose=(None if tracker is None
-                          else (lambda n=name: tracker.pose_of(n))),  # type: ignore[misc]
-            publish_tracked=i == 0, registration_period_s=settings.registration_period_s))
+                          else (lambda n=name: tracker.pose_of(n))))  # type: ignore[misc]
+        pipelines.append(CameraPipeline(bus, keys, settings=camera, parts=parts))
     return RegistrationService(bus, keys, robot=settings.robot, base_camera=settings.camera,
                                pipelines=pipelines, synthetic_sources=synthetic,
                                tracker=tracker)

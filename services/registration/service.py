@@ -4,13 +4,23 @@ Per camera (two for stereo) a :class:`CameraPipeline` runs two threads:
 
 * capture: read the source at its rate, JPEG-encode, publish ``CameraFrame`` latest-wins
   (congestion *drop*: a slow subscriber gets the newest frame and never slows the camera),
-  and leave the raw image in a one-slot mailbox;
+  and leave the raw image in a keep-newest slot (:class:`~common.latest.Latest`);
 * processing: take the newest image (skipping any it had no time for), detect markers,
   feed the :class:`~services.registration.tracking.Registrar`, publish ``Registration``
   (also answered to ``get``), the tracked robot pose and, head-mounted, ``CameraPose``.
 
-Control: a msgpack map ``{"schema": 1, "command": "reregister", "robot": R}`` on
-``keys.camera_control(camera)`` re-registers from the next frames ("robot" optional).
+Control: a :class:`~common.messages.CameraControl` (``{"schema": 1, "command":
+"reregister", "robot": R, "requester": …}``) put on ``keys.camera_control(camera)``, or
+sent as the payload of a Zenoh query on that key (what a viewer may do under ``--secure``:
+it may query, not publish), re-registers from the next frames. A re-registration that would
+move the map frame by more than ``max_reregister_move_m`` / ``max_reregister_turn_deg``
+while the robot is not at its map origin is refused, with the reason, and the old one kept.
+
+Maps (SPEC §7a): the service watches the robot's state header (epoch, origin_stamp,
+pose). The first map it sees keeps the registration made while the robot stood still; a
+new map (a new epoch) is registered from the remembered frame nearest its
+``origin_stamp`` — where the robot stood when that map started. Every Registration says
+its ``epoch``, ``reason`` and how far it moved the frame.
 """
 
 from __future__ import annotations
@@ -18,6 +28,7 @@ from __future__ import annotations
 import collections
 import dataclasses
 import logging
+import math
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -27,10 +38,21 @@ import cv2
 import msgpack
 import numpy as np
 
+from common.arrays import decode_array
 from common.bus import Bus
+from common.drops import DropCounter
 from common.errors import MessageError, SlamlensError
+from common.geometry import invert_T
 from common.keys import Keys
-from common.messages import CameraFrame, CameraPose, Registration, Truth
+from common.latest import Latest
+from common.messages import (
+    CameraControl,
+    CameraFrame,
+    CameraPose,
+    Registration,
+    Truth,
+    peek_fields,
+)
 from services.registration.board import MarkerBoard, camera_pose_from_board
 from services.registration.calibration import CameraCalibration
 from services.registration.markers import MarkerDetector
@@ -39,6 +61,7 @@ from services.registration.tracking import (
     STATUS_WAITING,
     FrameResult,
     Registrar,
+    frame_change,
 )
 
 log = logging.getLogger(__name__)
@@ -46,27 +69,64 @@ log = logging.getLogger(__name__)
 TRACKER_TIMEOUT_S = 1.0  #: an external CameraPose older than this is not used
 
 
-class _Mailbox:
-    """One slot holding the newest item: a put replaces what was not taken yet."""
+@dataclasses.dataclass(frozen=True)
+class CameraSettings:
+    """How one camera is run: its names, rates and what it publishes."""
 
-    def __init__(self) -> None:
-        self._item: Any = None
-        self._cond = threading.Condition()
-        self.replaced = 0
+    camera: str  #: camera name (key segment)
+    robot: str  #: robot whose marker registers the map frame
+    fps: float  #: capture rate of sources that do not pace themselves, Hz
+    jpeg_quality: int = 80  #: of the published frames, 1-100
+    moving: bool = False  #: head-mounted: the camera's pose is found every frame
+    publish_tracked: bool = True  #: publish the tracked robot pose (one camera per robot)
+    registration_period_s: float = 1.0  #: a fixed camera's registration is re-published
+    max_reregister_move_m: float = 0.05  #: a requested re-registration moving more is refused…
+    max_reregister_turn_deg: float = 5.0  #: …or turning more, unless the robot is at its origin
+    origin_tolerance_m: float = 0.05  #: the robot is at its map origin within this
 
-    def put(self, item: Any) -> None:
-        with self._cond:
-            if self._item is not None:
-                self.replaced += 1
-            self._item = item
-            self._cond.notify()
 
-    def take(self, timeout: float) -> Any:
-        with self._cond:
-            if self._item is None:
-                self._cond.wait(timeout)
-            item, self._item = self._item, None
-            return item
+@dataclasses.dataclass(frozen=True)
+class MapHead:
+    """What the registration needs of the robot's newest state."""
+
+    epoch: int
+    origin_stamp: float | None
+    pose: np.ndarray | None  #: the estimated pose (x, y, θ) in that map
+
+
+def map_head(payload: bytes) -> MapHead | None:
+    """The header of a SlamState payload (the map itself is not decoded); None if it is
+    not one."""
+    try:
+        head = peek_fields(payload, ("epoch", "origin_stamp", "pose"))
+        epoch, origin = head.get("epoch", 0), head.get("origin_stamp")
+        pose = head.get("pose")
+        if not isinstance(epoch, int) or (origin is not None
+                                          and not isinstance(origin, (int, float))):
+            return None
+        pose_a = None if pose is None else decode_array(pose, message="SlamState",
+                                                          field="pose", dtype="<f8",
+                                                          shape=(3,))
+        return MapHead(epoch=epoch, origin_stamp=None if origin is None else float(origin),
+                       pose=pose_a)
+    except MessageError:
+        return None
+
+
+@dataclasses.dataclass(frozen=True, eq=False)
+class CameraParts:
+    """What one camera works with: its frames, intrinsics, detector and registrar.
+
+    A moving camera's pose comes from ``tracker_pose`` if given (an external tracker),
+    else from ``board`` (the marker board in view); a fixed camera needs neither.
+    """
+
+    source: FrameSource
+    calib: CameraCalibration
+    detector: MarkerDetector
+    registrar: Registrar
+    board: MarkerBoard | None = None
+    tracker_pose: Callable[[], np.ndarray | None] | None = None
 
 
 @dataclasses.dataclass
@@ -76,12 +136,12 @@ class PipelineStats:
     captured: int = 0
     published: int = 0
     processed: int = 0
-    skipped: int = 0  #: frames the processing thread had no time for
+    skipped: int = 0  #: frames the processing thread had no time for (replaced unseen)
     registrations: int = 0
     tracked: int = 0
     camera_poses: int = 0
-    read_errors: int = 0
     size_mismatches: int = 0  #: frames of another size than the calibration's
+    refused: int = 0  #: re-registration requests refused (they would move the frame too far)
     ended: bool = False
     publish_times: collections.deque = dataclasses.field(
         default_factory=lambda: collections.deque(maxlen=600))
@@ -90,36 +150,30 @@ class PipelineStats:
 class CameraPipeline:
     """Capture, publish and register one camera."""
 
-    def __init__(self, bus: Bus, keys: Keys, *, camera: str, robot: str, source: FrameSource,
-                 calib: CameraCalibration, detector: MarkerDetector, registrar: Registrar,
-                 fps: float, jpeg_quality: int = 80, moving: bool = False,
-                 board: MarkerBoard | None = None,
-                 tracker_pose: Callable[[], np.ndarray | None] | None = None,
-                 publish_tracked: bool = True, registration_period_s: float = 1.0) -> None:
-        self.bus, self.keys = bus, keys
-        self.camera, self.robot = camera, robot
-        self.source = source
-        self.calib = calib
-        self.detector = detector
-        self.registrar = registrar
-        self.fps = fps
-        self.jpeg_quality = jpeg_quality
-        self.moving = moving
-        self.board = board
-        self.tracker_pose = tracker_pose
-        self.publish_tracked = publish_tracked
-        self.registration_period_s = registration_period_s
+    def __init__(self, bus: Bus, keys: Keys, *, settings: CameraSettings,
+                 parts: CameraParts) -> None:
+        self.settings = settings
+        self.parts = parts
+        self.camera, self.robot = settings.camera, settings.robot
         self.stats = PipelineStats()
+        self.read_errors = DropCounter(log, burst=1)  #: failed reads of the source
         self._stop = threading.Event()
-        self._reregister = threading.Event()
-        self._mailbox = _Mailbox()
+        self._requests: Latest[str] = Latest()  #: who asked for a re-registration
+        self._states: Latest[bytes] = Latest()  #: the robot's newest state payload
+        self._map: MapHead | None = None  #: the map the registration is for
+        self._waiting: MapHead | None = None  #: a new map not registered yet
+        self._pending_request: tuple[str, np.ndarray | None] | None = None
+        self._reason = "start"
+        self._change: tuple[float, float] | None = None
+        self._frames: Latest[tuple[int, float, np.ndarray]] = Latest()
         self._latest_registration: Registration | None = None
         self._latest_bytes: bytes | None = None
         self._last_status = ""
         self._last_published = 0.0
+        camera, robot = self.camera, self.robot
         self._frame_pub = bus.publisher(keys.frame(camera), latest_wins=True)
         self._reg_pub = bus.publisher(keys.registration(camera, robot))
-        self._tracked_pub = bus.publisher(keys.tracked(robot), latest_wins=True)
+        self._tracked_pub = bus.publisher(keys.tracked_by(camera, robot), latest_wins=True)
         self._pose_pub = bus.publisher(keys.camera_pose(camera), latest_wins=True)
         bus.serve_latest(keys.registration(camera, robot), lambda: self._latest_bytes)
         bus.declare_alive(keys.camera_alive(camera))
@@ -128,6 +182,14 @@ class CameraPipeline:
                          threading.Thread(target=self._process_loop, name=f"register-{camera}",
                                           daemon=True)]
 
+    @property
+    def source(self) -> FrameSource:
+        return self.parts.source
+
+    @property
+    def registrar(self) -> Registrar:
+        return self.parts.registrar
+
     # -- lifecycle ----------------------------------------------------------------
     def start(self) -> None:
         for t in self._threads:
@@ -135,17 +197,33 @@ class CameraPipeline:
 
     def stop(self, timeout: float = 5.0) -> None:
         self._stop.set()
+        self._frames.close()
         for t in self._threads:
             if t.is_alive():
                 t.join(timeout)
         self.source.close()
 
-    def request_reregister(self) -> None:
-        self._reregister.set()
+    def request_reregister(self, requester: str = "") -> None:
+        """Re-register from the next frames (called from a Zenoh thread: only stores)."""
+        self._requests.put(requester or "an anonymous request")
+
+    def offer_state(self, payload: bytes) -> None:
+        """The robot's newest state (called from a Zenoh thread: only stores)."""
+        self._states.put(payload)
+
+    @property
+    def epoch(self) -> int | None:
+        """The map epoch the current registration is for (None before a state is seen)."""
+        return None if self._map is None else self._map.epoch
 
     @property
     def latest_registration(self) -> Registration | None:
         return self._latest_registration
+
+    @property
+    def status(self) -> str:
+        """The registrar's last status ("" before the first frame)."""
+        return self._last_status
 
     def publish_fps(self, window_s: float = 2.0) -> float:
         """Frames published per second over the last ``window_s`` seconds."""
@@ -155,7 +233,7 @@ class CameraPipeline:
 
     # -- capture thread -------------------------------------------------------------
     def _capture_loop(self) -> None:
-        period = 1.0 / self.fps
+        period = 1.0 / self.settings.fps
         next_t = time.monotonic()
         seq = 0
         while not self._stop.is_set():
@@ -171,10 +249,7 @@ class CameraPipeline:
                             "registration", self.camera, exc)
                 return
             except Exception as exc:  # an unexpected source failure: count, keep going
-                self.stats.read_errors += 1
-                if self.stats.read_errors == 1 or self.stats.read_errors % 100 == 0:
-                    log.error("camera %s: reading a frame failed (%d so far): %s",
-                              self.camera, self.stats.read_errors, exc)
+                self.read_errors.drop(f"frame of camera {self.camera}", f"reading failed: {exc}")
                 self._stop.wait(period)
                 continue
             now = time.monotonic()
@@ -187,10 +262,11 @@ class CameraPipeline:
             self.stats.captured += 1
             seq += 1
             self._publish_frame(seq, stamp, image)
-            self._mailbox.put((seq, stamp, image))
+            self._frames.put((seq, stamp, image))
 
     def _publish_frame(self, seq: int, stamp: float, image: np.ndarray) -> None:
-        ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
+        ok, jpeg = cv2.imencode(".jpg", image,
+                                [cv2.IMWRITE_JPEG_QUALITY, self.settings.jpeg_quality])
         if not ok:
             log.error("camera %s: JPEG encoding of frame %d failed", self.camera, seq)
             return
@@ -203,19 +279,16 @@ class CameraPipeline:
 
     # -- processing thread ------------------------------------------------------------
     def _process_loop(self) -> None:
-        last_seq = 0
         finished = False
         while not self._stop.is_set():
-            item = self._mailbox.take(timeout=0.1)
+            item = self._frames.take(timeout=0.1)
             if item is None:
                 if self.stats.ended and not finished:
                     finished = True  # a short file: register from the frames it had
                     self._finish()
                 continue
             seq, stamp, image = item
-            if last_seq and seq > last_seq + 1:
-                self.stats.skipped += seq - last_seq - 1
-            last_seq = seq
+            self.stats.skipped = self._frames.dropped
             try:
                 self._process(stamp, image)
             except SlamlensError as exc:
@@ -231,18 +304,19 @@ class CameraPipeline:
             log.info("camera %s: robot %s registered from the last frames of the source "
                      "(reprojection error %.3f px)", self.camera, self.robot,
                      self.registrar.reprojection_error_px)
-            h, w = self.calib.height, self.calib.width
-            self._publish_registration(result, w, h)
+            calib = self.parts.calib
+            self._publish_registration(result, calib.width, calib.height)
 
     def _anchor_pose(self, detections: Sequence[Any], stamp: float) -> np.ndarray | None:
         """T_anchor_from_camera of this frame (identity for a fixed camera)."""
-        if not self.moving:
+        parts = self.parts
+        if not self.settings.moving:
             return np.eye(4)
-        if self.tracker_pose is not None:
-            return self.tracker_pose()
-        if self.board is None:
+        if parts.tracker_pose is not None:
+            return parts.tracker_pose()
+        if parts.board is None:
             return None
-        found = camera_pose_from_board(detections, self.board, self.calib)
+        found = camera_pose_from_board(detections, parts.board, parts.calib)
         if found is None:
             return None
         T_world_from_camera, _rms, _n = found
@@ -253,32 +327,130 @@ class CameraPipeline:
 
     def _process(self, stamp: float, image: np.ndarray) -> None:
         h, w = image.shape[:2]
-        if (w, h) != (self.calib.width, self.calib.height):
+        calib = self.parts.calib
+        if (w, h) != (calib.width, calib.height):
             # the intrinsics would be wrong for this frame: publish it, never register on it
             self.stats.size_mismatches += 1
             if self.stats.size_mismatches == 1:
                 log.error("camera %s: frames are %dx%d but the calibration is for %dx%d; "
-                          "not registering", self.camera, w, h, self.calib.width,
-                          self.calib.height)
+                          "not registering", self.camera, w, h, calib.width, calib.height)
             return
-        if self._reregister.is_set():
-            self._reregister.clear()
+        requester = self._requests.take(timeout=0)
+        if requester is not None:
+            self._pending_request = (requester, None if self.registrar.T_anchor_from_map is None
+                                     else self.registrar.T_anchor_from_map.copy())
             self.registrar.reset()
-            log.info("camera %s: re-registering robot %s from the next frames",
-                     self.camera, self.robot)
-        detections = self.detector.detect(image)
+            log.info("camera %s: re-registering robot %s from the next frames (requested by "
+                     "%s)", self.camera, self.robot, requester)
+        detections = self.parts.detector.detect(image)
         T_anchor = self._anchor_pose(detections, stamp)
         result = self.registrar.observe(stamp, detections, T_anchor_from_camera=T_anchor)
-        if result.registered_now:
-            self.stats.registrations += 1
-            log.info("camera %s: robot %s registered (reprojection error %.3f px)",
-                     self.camera, self.robot, self.registrar.reprojection_error_px)
+        if result.registered_now and not self._registered_now():
+            # refused: this frame's result was computed with the registration just undone
+            T = self.registrar.T_anchor_from_map
+            result = dataclasses.replace(
+                result, registered_now=False, tracked_pose=None,
+                T_camera_from_map=None if T is None or T_anchor is None
+                else invert_T(T_anchor) @ T)
+        remapped = self._follow_map()
+        if remapped is not None:  # the frame of the new map, in this frame
+            result = dataclasses.replace(result, registered_now=True,
+                                         T_camera_from_map=remapped)
         self._publish_registration(result, image.shape[1], image.shape[0])
-        if result.tracked_pose is not None and self.publish_tracked:
+        if result.tracked_pose is not None and self.settings.publish_tracked:
             msg = Truth(robot=self.robot, stamp=float(stamp), pose=result.tracked_pose,
                         landmark_ids=np.zeros(0, np.int64), landmarks=np.zeros((0, 2)))
             self._tracked_pub.put(msg.to_bytes())
             self.stats.tracked += 1
+
+    # -- maps and requests ---------------------------------------------------------
+    def _registered_now(self) -> bool:
+        """A registration from still frames just completed (a start, or a request);
+        False if it was a request refused (and undone)."""
+        self.stats.registrations += 1
+        request, self._pending_request = self._pending_request, None
+        if request is None:
+            self._reason, self._change = "start", None
+            log.info("camera %s: robot %s registered (reprojection error %.3f px)",
+                     self.camera, self.robot, self.registrar.reprojection_error_px)
+            return True
+        requester, old = request
+        if old is None:
+            self._reason, self._change = f"requested by {requester}", None
+            return True
+        assert self.registrar.T_anchor_from_map is not None
+        change = frame_change(old, self.registrar.T_anchor_from_map)
+        s = self.settings
+        # (no estimate of the robot known — no estimator — then nothing says it moved)
+        pose = None if self._map is None else self._map.pose
+        away = pose is not None and (float(np.hypot(pose[0], pose[1])) > s.origin_tolerance_m
+                                     or abs(math.degrees(float(pose[2])))
+                                     > s.max_reregister_turn_deg)
+        if (change.moved_m > s.max_reregister_move_m
+                or change.moved_deg > s.max_reregister_turn_deg) and away:
+            assert pose is not None
+            self.registrar.T_anchor_from_map = old  # refused: keep the registration we had
+            self._reason = (f"refused a re-registration requested by {requester}: it would "
+                            f"move the map frame {change.moved_m:.2f} m / "
+                            f"{change.moved_deg:.1f}° while the robot is "
+                            f"{float(np.hypot(pose[0], pose[1])):.2f} m from its map origin")
+            self._change = None
+            self.stats.refused += 1
+            self.stats.registrations -= 1
+            log.warning("camera %s: %s", self.camera, self._reason)
+            return False
+        self._reason = f"requested by {requester}"
+        self._change = (change.moved_m, change.moved_deg)
+        log.info("camera %s: robot %s re-registered (requested by %s): the map frame moved "
+                 "%.3f m / %.2f°", self.camera, self.robot, requester, change.moved_m,
+                 change.moved_deg)
+        return True
+
+    def _follow_map(self) -> np.ndarray | None:
+        """Register a new map at its origin instant; its T_camera_from_map if it did."""
+        payload = self._states.take(timeout=0)
+        head = None if payload is None else map_head(payload)
+        if head is None:
+            head = self._waiting  # a new map still waiting for its origin frames
+        if head is None:
+            return None
+        self._waiting = None
+        if self._map is None or head.epoch == self._map.epoch:
+            if self._map is None:  # the first map: registered while the robot stood still
+                log.info("camera %s: registration is for map epoch %d", self.camera,
+                         head.epoch)
+            self._map = head
+            return None
+        if head.origin_stamp is None:
+            self._waiting = head  # the new map has no origin instant yet: look again
+            return None
+        tolerance = max(2.0 / self.settings.fps, 0.1)
+        span = self.registrar.history_span
+        if span is not None and span[1] < head.origin_stamp - tolerance:
+            self._waiting = head  # the camera lags the robot: wait for those frames
+            return None
+        change = self.registrar.register_at(head.origin_stamp, tolerance_s=tolerance)
+        old_epoch = self._map.epoch
+        self._map = head
+        if change is None and not self.registrar.registered:
+            return None
+        if change is None:
+            # no frame of that instant (the marker was not seen, or camera and robot do not
+            # share a clock): register from the next still frames instead
+            self._pending_request = None
+            self.registrar.reset()
+            self._reason = "new map (registered from the next frames: none of its origin)"
+            log.warning("camera %s: map restarted (epoch %d → %d) but no frame near its "
+                        "origin instant t = %.3f s; re-registering from the next frames",
+                        self.camera, old_epoch, head.epoch, head.origin_stamp)
+            return None
+        self.stats.registrations += 1
+        self._reason, self._change = "new map", (change.moved_m, change.moved_deg)
+        log.info("camera %s: map restarted (epoch %d → %d): registered at its origin instant "
+                 "t = %.3f s; the map frame moved %.3f m / %.1f°", self.camera, old_epoch,
+                 head.epoch, head.origin_stamp, change.moved_m, change.moved_deg)
+        # a fixed camera is its own anchor; a moving one gets it right from the next frame
+        return None if self.settings.moving else self.registrar.T_anchor_from_map
 
     def _publish_registration(self, result: FrameResult, width: int, height: int) -> None:
         status_changed = result.status != self._last_status
@@ -291,20 +463,25 @@ class CameraPipeline:
             return
         now = time.monotonic()
         if result.T_camera_from_map is not None:
-            stamp = result.stamp if self.moving or self.registrar.stamp is None \
+            stamp = result.stamp if self.settings.moving or self.registrar.stamp is None \
                 else self.registrar.stamp
+            calib = self.parts.calib
+            moved = self._change
             reg = Registration(
                 camera=self.camera, robot=self.robot, stamp=float(stamp),
-                K=self.calib.K, dist=self.calib.dist, width=width, height=height,
+                K=calib.K, dist=calib.dist, width=width, height=height,
                 T_camera_from_map=result.T_camera_from_map,
                 reprojection_error_px=self.registrar.reprojection_error_px,
-                status=result.status)
+                status=result.status, epoch=self.epoch, reason=self._reason,
+                moved_m=None if moved is None else moved[0],
+                moved_deg=None if moved is None else moved[1])
         elif self._latest_registration is not None:
-            reg = dataclasses.replace(self._latest_registration, status=result.status)
+            reg = dataclasses.replace(self._latest_registration, status=result.status,
+                                      epoch=self.epoch, reason=self._reason)
         else:
             return
-        due = (result.registered_now or status_changed or self.moving
-               or now - self._last_published >= self.registration_period_s)
+        due = (result.registered_now or status_changed or self.settings.moving
+               or now - self._last_published >= self.settings.registration_period_s)
         payload = reg.to_bytes()
         self._latest_registration, self._latest_bytes = reg, payload
         if due:
@@ -315,9 +492,10 @@ class CameraPipeline:
 class TrackerPoses:
     """Latest CameraPose per camera from an external tracker (head-mounted, "tracker")."""
 
-    def __init__(self, *, timeout_s: float = TRACKER_TIMEOUT_S) -> None:
+    def __init__(self, *, timeout_s: float = TRACKER_TIMEOUT_S,
+                 drops: DropCounter | None = None) -> None:
         self.timeout_s = timeout_s
-        self.bad = 0
+        self.drops = drops or DropCounter(log)  #: malformed CameraPose messages
         self._poses: dict[str, tuple[float, np.ndarray]] = {}
         self._lock = threading.Lock()
 
@@ -325,8 +503,7 @@ class TrackerPoses:
         try:
             pose = CameraPose.from_bytes(payload)
         except MessageError as exc:
-            self.bad += 1
-            log.warning("dropped a bad CameraPose on %s (%d so far): %s", key, self.bad, exc)
+            self.drops.drop(CameraPose.TYPE, f"on {key}: {exc}")
             return
         with self._lock:
             self._poses[pose.camera] = (time.monotonic(), np.array(pose.T_world_from_camera))
@@ -352,13 +529,14 @@ class RegistrationService:
         self.pipelines = list(pipelines)
         self.synthetic_sources = list(synthetic_sources)
         self.tracker = tracker
-        self.bad_truth = 0
-        self.bad_control = 0
+        self.drops = DropCounter(log)  #: malformed Truth and CameraControl messages
         if self.synthetic_sources:
             bus.subscribe(keys.truth(robot), self._on_truth)
+        bus.subscribe(keys.state(robot), self._on_state)
         names = {p.camera for p in self.pipelines} | {base_camera}
         for name in sorted(names):
             bus.subscribe(keys.camera_control(name), self._on_control)
+            bus.answer(keys.camera_control(name), self._on_control_query)
         if tracker is not None:
             for p in self.pipelines:
                 bus.subscribe(keys.camera_pose(p.camera), tracker.on_camera_pose)
@@ -368,44 +546,71 @@ class RegistrationService:
         try:
             truth = Truth.from_bytes(payload)
         except MessageError as exc:
-            self.bad_truth += 1
-            if self.bad_truth == 1 or self.bad_truth % 100 == 0:
-                log.warning("dropped a bad Truth on %s (%d so far): %s", key, self.bad_truth, exc)
+            self.drops.drop(Truth.TYPE, f"on {key}: {exc}")
             return
         for source in self.synthetic_sources:
             source.set_truth(truth)
 
-    def _on_control(self, key: str, payload: bytes) -> None:
-        try:
-            msg = msgpack.unpackb(payload, raw=False)
-            if not isinstance(msg, dict) or msg.get("schema") != 1:
-                raise ValueError("expected a msgpack map with schema 1")
-            if msg.get("command") != "reregister":
-                raise ValueError(f"unknown command {msg.get('command')!r}; known: reregister")
-            robot = msg.get("robot")
-            if robot is not None and not isinstance(robot, str):
-                raise ValueError(f"robot must be a string, got {robot!r}")
-        except Exception as exc:  # msgpack raises several unrelated types
-            self.bad_control += 1
-            log.warning("dropped a bad control message on %s (%d so far): %s",
-                        key, self.bad_control, exc)
-            return
-        if robot is not None and robot != self.robot:
-            log.debug("reregister for robot %s ignored (serving %s)", robot, self.robot)
-            return
-        camera = key.rsplit("/", 2)[-2]
+    def _on_state(self, key: str, payload: bytes) -> None:
         for p in self.pipelines:
+            p.offer_state(payload)
+
+    def _on_control(self, key: str, payload: bytes) -> None:
+        self._control(key, payload)
+
+    def _control(self, key: str, payload: bytes) -> str:
+        """A re-registration request; what became of it, in words."""
+        try:
+            request = CameraControl.from_bytes(payload)
+        except MessageError as exc:
+            self.drops.drop(CameraControl.TYPE, f"on {key}: {exc}")
+            return f"refused: {exc}"
+        if request.robot is not None and request.robot != self.robot:
+            log.debug("reregister for robot %s ignored (serving %s)", request.robot, self.robot)
+            return f"ignored: this camera service registers robot {self.robot}"
+        camera = self.keys.camera_of(key)
+        taken = False
+        for p in self.pipelines:  # a stereo pair also obeys its base name
             if camera in (p.camera, p.camera.rsplit("-", 1)[0]):
-                p.request_reregister()
+                p.request_reregister(request.requester or "")
+                taken = True
+        return "accepted: re-registering from the next frames" if taken else "no such camera"
+
+    def _on_control_query(self, key: str, payload: bytes | None, parameters: str) -> bytes:
+        """The same request as a Zenoh query (a viewer may query but not publish)."""
+        answer = self._control(key, payload or b"")
+        return msgpack.packb({"schema": 1, "answer": answer}, use_bin_type=True)
 
     # -- lifecycle ------------------------------------------------------------------------
     def start(self) -> None:
         for p in self.pipelines:
             p.start()
+        threading.Thread(target=self._late_join, name="registration-late-join",
+                         daemon=True).start()
+
+    def _late_join(self) -> None:
+        """Ask for the robot's current state: which map (epoch) the camera registers for,
+        even if the estimator published nothing since this service started."""
+        try:
+            replies = self.bus.get(self.keys.state(self.robot), timeout=2.0)
+        except Exception as exc:  # the session closing under us at shutdown
+            log.debug("late join of the state failed: %s", exc)
+            return
+        for reply in replies[:1]:
+            self._on_state(reply.key, reply.payload)
 
     def stop(self) -> None:
         for p in self.pipelines:
             p.stop()
+
+    def summary(self) -> dict[str, Any]:
+        """What the service did (its final line)."""
+        return {"cameras": {p.camera: {
+            "frames": p.stats.published, "registrations": p.stats.registrations,
+            "refused": p.stats.refused, "tracked": p.stats.tracked, "epoch": p.epoch,
+            "status": p.status} for p in self.pipelines},
+            "dropped": self.drops.total + sum(p.read_errors.total for p in self.pipelines)
+            + (self.tracker.drops.total if self.tracker is not None else 0)}
 
     def run(self, stop: threading.Event, *, status_period_s: float = 10.0) -> None:
         """Run until ``stop`` is set, logging a status line every ``status_period_s``."""
@@ -416,6 +621,6 @@ class RegistrationService:
                     s = p.stats
                     log.info("camera %s: %.1f fps published, %d processed, %d skipped, "
                              "status %s", p.camera, p.publish_fps(), s.processed, s.skipped,
-                             p._last_status or "starting")
+                             p.status or "starting")
         finally:
             self.stop()

@@ -5,8 +5,8 @@ when no frame is ready right now; it raises :class:`SourceEnded` when a finite s
 (a video file or a folder, without ``loop``) has nothing more, and
 :class:`~common.errors.SourceError` when the source failed (a device unplugged, a folder
 deleted). :class:`ReconnectingSource` turns failures into one log line, a counter and a
-capped exponential back-off of reopen attempts, so a vanished camera never ends the
-service.
+capped exponential back-off of reopen attempts (:class:`~common.backoff.Backoff`), so a
+vanished camera never ends the service.
 
 ``live`` sources (devices, streams) pace themselves: ``read`` blocks until the next frame.
 The others (files, folders, synthetic) are paced by the caller at the configured rate.
@@ -26,6 +26,7 @@ from typing import Protocol
 import cv2
 import numpy as np
 
+from common.backoff import Backoff
 from common.errors import ConfigError, SourceError
 from common.messages import Truth
 from services.registration.synthetic import SyntheticCamera
@@ -198,15 +199,8 @@ class ReconnectingSource:
         self._open = open_source
         self.name = name
         self._source = initial
-        self._backoff0 = backoff_initial_s
-        self._backoff_max = backoff_max_s
-        self._backoff = backoff_initial_s
-        self._clock = clock
-        self._retry_at = 0.0
-        self._outage = False
-        self.failures = 0  #: failed reads and reopen attempts
-        self.outages = 0  #: times the source vanished
-        self.reconnects = 0  #: times it came back
+        self.backoff = Backoff(name, logger=log, initial_s=backoff_initial_s,
+                               max_s=backoff_max_s, clock=clock)
 
     @property
     def live(self) -> bool:
@@ -216,39 +210,38 @@ class ReconnectingSource:
     def source(self) -> FrameSource | None:
         return self._source
 
-    def _fail(self, exc: Exception) -> None:
-        self.failures += 1
-        if not self._outage:
-            self._outage = True
-            self.outages += 1
-            log.warning("%s lost: %s; retrying with back-off up to %.1f s",
-                        self.name, exc, self._backoff_max)
-        else:
-            log.debug("%s still unavailable: %s", self.name, exc)
-        self._retry_at = self._clock() + self._backoff
-        self._backoff = min(self._backoff * 2.0, self._backoff_max)
+    @property
+    def failures(self) -> int:
+        """Failed reads and reopen attempts."""
+        return self.backoff.failures
+
+    @property
+    def outages(self) -> int:
+        """Times the source vanished."""
+        return self.backoff.outages
+
+    @property
+    def reconnects(self) -> int:
+        """Times it came back."""
+        return self.backoff.recoveries
 
     def read(self) -> Frame | None:
         if self._source is None:
-            if self._clock() < self._retry_at:
+            if self.backoff.wait_s() > 0:
                 return None
             try:
                 self._source = self._open()
             except SourceError as exc:
-                self._fail(exc)
+                self.backoff.failed(exc)
                 return None
-            if self._outage:
-                self.reconnects += 1
-                log.info("%s is back after %d failed attempts", self.name, self.failures)
-            self._outage = False
-            self._backoff = self._backoff0
+            self.backoff.succeeded()
         try:
             return self._source.read()
         except SourceEnded:
             raise
         except (SourceError, cv2.error) as exc:
             self._close_inner()
-            self._fail(exc)
+            self.backoff.failed(exc)
             return None
 
     def _close_inner(self) -> None:

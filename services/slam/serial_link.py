@@ -15,7 +15,7 @@ Numbers are decimal (SI units, radians; stamp and dt in seconds); ids are intege
 checksums, NaN, wrong counts, out-of-range values and unknown record types are dropped and
 counted in ``parser.stats``; it never raises. :class:`SerialLink` wraps pyserial's
 ``serial_for_url`` (a device path, ``loop://``, ``socket://host:port``, …) and reopens the
-port with exponential backoff when it vanishes.
+port with exponential backoff (:class:`~common.backoff.Backoff`) when it vanishes.
 """
 
 from __future__ import annotations
@@ -30,6 +30,7 @@ from dataclasses import dataclass, fields
 import numpy as np
 import serial
 
+from common.backoff import Backoff
 from common.errors import MessageError, SlamlensError, SourceError
 from common.messages import Observations, Odometry
 
@@ -302,15 +303,12 @@ class SerialLink:
         self.port_url = port_url
         self.baudrate = baudrate
         self.read_timeout_s = read_timeout_s
-        self.backoff_initial_s = backoff_initial_s
-        self.backoff_max_s = backoff_max_s
         self.parser = SerialParser(robot)
         self.link_stats = LinkStats()
+        self.backoff = Backoff(f"serial {port_url}", logger=log, initial_s=backoff_initial_s,
+                               max_s=backoff_max_s)
         self._opener = opener
         self._port: serial.SerialBase | None = None
-        self._backoff_s = backoff_initial_s
-        self._next_attempt = 0.0  # monotonic time of the next open attempt
-        self._failing = False  # an outage is being retried (its warning is already logged)
 
     @property
     def connected(self) -> bool:
@@ -333,16 +331,10 @@ class SerialLink:
             raise SourceError(f"serial port {self.port_url!r}: {exc}") from None
         except (serial.SerialException, OSError) as exc:
             self.link_stats.open_failures += 1
-            wait = self._schedule_retry()
-            # one warning per outage; the retries after it only at debug level
-            level = logging.DEBUG if self._failing else logging.WARNING
-            self._failing = True
-            log.log(level, "serial %s: cannot open (%s); retrying with backoff (next in "
-                    "%.1f s, at most every %.1f s)", self.port_url, exc, wait,
-                    self.backoff_max_s)
+            self.backoff.failed(f"cannot open ({exc})")
             return False
         self._port = port
-        self._failing = False
+        self.backoff.succeeded()
         self.link_stats.opens += 1
         log.info("serial %s: open at %d baud", self.port_url, self.baudrate)
         return True
@@ -350,7 +342,7 @@ class SerialLink:
     def read(self) -> list[Message]:
         """Read what arrives within about ``read_timeout_s`` and parse it."""
         if self._port is None:
-            wait = self._next_attempt - time.monotonic()
+            wait = self.backoff.wait_s()
             if wait > 0:
                 time.sleep(min(wait, self.read_timeout_s))  # don't spin while backing off
                 return []
@@ -364,8 +356,6 @@ class SerialLink:
         except (serial.SerialException, OSError) as exc:
             self._disconnect(exc)
             return []
-        if data:
-            self._backoff_s = self.backoff_initial_s  # it works again: fast retries next time
         return self.parser.feed(data)
 
     def messages(self, stop: threading.Event) -> Iterator[Message]:
@@ -402,13 +392,4 @@ class SerialLink:
         self.link_stats.disconnects += 1
         self.close()
         self.parser.reset()
-        self._backoff_s = self.backoff_initial_s
-        self._next_attempt = time.monotonic() + self._backoff_s
-        log.warning("serial %s: lost (%s); reopening with backoff", self.port_url, exc)
-
-    def _schedule_retry(self) -> float:
-        wait = self._backoff_s
-        self._next_attempt = time.monotonic() + wait
-        # double each failure up to the cap: a missing device is polled gently
-        self._backoff_s = min(self._backoff_s * 2, self.backoff_max_s)
-        return wait
+        self.backoff.failed(exc)

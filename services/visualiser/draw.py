@@ -34,7 +34,7 @@ def shade(colour: BGR, factor: float, white: float = 0.0) -> BGR:
     return int(c[0]), int(c[1]), int(c[2])
 
 
-def line_type(count: int, limit: int) -> int:
+def line_type_for(count: int, *, limit: int) -> int:
     """Anti-aliased up to ``limit`` items, plain 8-connected beyond (keeps frames on time)."""
     return cv2.LINE_AA if count <= limit else cv2.LINE_8
 
@@ -99,10 +99,11 @@ def project_polyline(camera: CameraModel, points_map: np.ndarray, *,
     return runs
 
 
-def draw_polylines(img: np.ndarray, polylines: list[np.ndarray], colour: BGR,
-                   thickness: int, lt: int) -> None:
+def draw_polylines(img: np.ndarray, polylines: list[np.ndarray], *, colour: BGR,
+                   thickness: int, line_type: int = cv2.LINE_AA) -> None:
+    """Open fixed-point polylines (from :func:`project_segments` / :func:`project_polyline`)."""
     if polylines:
-        cv2.polylines(img, polylines, False, colour, thickness, lt, SHIFT)
+        cv2.polylines(img, polylines, False, colour, thickness, line_type, SHIFT)
 
 
 def floor_circle(centre_xy: np.ndarray, radius_m: float, *, z: float = 0.0,
@@ -218,15 +219,16 @@ class ShadedEllipses:
         self._level = level.tolist()
         self._row = row.tolist()
 
-    def draw(self, img: np.ndarray, k: int, lt: int) -> None:
-        """Draw glyph ``k`` (a position in ``index``); inner layers with line type ``lt``."""
+    def draw(self, img: np.ndarray, k: int, *, line_type: int) -> None:
+        """Draw glyph ``k`` (a position in ``index``); inner layers with ``line_type``."""
         lv, r = self._level[k], self._row[k]
         polys, colours = self._polys[lv], self._colours[lv]
         cv2.fillConvexPoly(img, polys[0][r], colours[0], cv2.LINE_AA, SHIFT)
         for layer in range(1, len(polys)):
-            cv2.fillConvexPoly(img, polys[layer][r], colours[layer], lt, SHIFT)
+            cv2.fillConvexPoly(img, polys[layer][r], colours[layer], line_type, SHIFT)
 
-    def outline(self, img: np.ndarray, k: int, colour: BGR, thickness: int) -> None:
+    def outline(self, img: np.ndarray, k: int, *, colour: BGR, thickness: int) -> None:
+        """The rim of glyph ``k`` in ``colour`` (a violation mark)."""
         polygon = self._polys[self._level[k]][0][self._row[k]]
         cv2.polylines(img, [polygon], True, colour, thickness, cv2.LINE_AA, SHIFT)
 

@@ -7,6 +7,9 @@ Drawing order:
 2. the 3D objects, glyphs and cones, far to near by camera depth (painter's algorithm);
 3. overlays that must never be hidden: health outlines and rings, labels, the legend.
 
+Each step draws on a :class:`Canvas`: the picture, its camera, the state and its scene,
+the settings and the line width unit, shared by every step of one picture.
+
 ``Renderer`` keeps only what needs history: the robot's path (reset when the robot changes
 or ``seq`` goes backwards) and the cluster trackers that keep cluster ids and colours stable
 from frame to frame. Use one ``Renderer`` per robot; it may be shared by threads.
@@ -17,14 +20,15 @@ from __future__ import annotations
 import math
 import threading
 from collections import OrderedDict
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
+from common.clusters import ClusterTracker, cluster_colour, cluster_labels
 from common.messages import Health, SlamState
 from services.visualiser import draw
 from services.visualiser.camera_model import CameraModel
-from services.visualiser.clusters import ClusterTracker, cluster_colour, cluster_labels
 from services.visualiser.glyphs import ImageEllipses, project_ellipsoids
 from services.visualiser.scene import ROLE_NAMES, ROLE_PAIR, Scene, build_scene
 from services.visualiser.settings import ViewSettings
@@ -33,6 +37,35 @@ MAX_PATH_POINTS = 20_000  #: beyond this the older path is thinned (every other 
 _MAX_TRACKERS = 8  # one per distinct clustering setting in use, oldest dropped
 _AA_LINES_LIMIT = 400  # anti-aliased pair lines up to this many, plain beyond (frame time)
 _AA_GLYPH_LIMIT = 400  # same for the inner shading layers of glyphs
+
+
+@dataclass(frozen=True, eq=False)
+class Canvas:
+    """One picture being drawn, and what every drawing step of it shares."""
+
+    img: np.ndarray  #: BGR uint8, drawn in place
+    camera: CameraModel  #: the camera, fitted to ``img``'s size
+    state: SlamState  #: the state drawn
+    scene: Scene  #: what of it is drawn under ``settings`` (pairs, glyphs, lines)
+    settings: ViewSettings
+    px: int  #: line width unit for this resolution (1 up to 720 rows, 2 at 1440, …)
+
+
+@dataclass(frozen=True, eq=False)
+class _Lines:
+    """The pair lines as drawn: image polylines and, for each, its index in the scene."""
+
+    polylines: list[np.ndarray]
+    index: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class _Glyphs:
+    """The glyphs' projections, those on screen, and their shaded drawing (if drawn)."""
+
+    ellipses: ImageEllipses  #: every scene glyph, projected
+    shown: np.ndarray  #: indices of the glyphs on screen
+    shaded: draw.ShadedEllipses | None  #: None when ellipsoids are off or there are none
 
 
 class Renderer:
@@ -124,7 +157,7 @@ class Renderer:
         pose if not given), with the position error written beside it.
         """
         img, camera = (self._floor_image(camera, settings) if image_bgr is None
-                       else _canvas(image_bgr, camera))
+                       else _bgr_copy(image_bgr, camera))
         with self._lock:
             path = self._update_path(state)
         clustered = settings.mode in ("inter", "minmeanmax")
@@ -133,71 +166,25 @@ class Renderer:
             frozenset(), np.zeros(0, np.int64))
         scene = build_scene(state, settings, cluster_ids=cluster_ids,
                             violating_pairs=violating)
-        px = max(1, round(camera.height / 720))  # line width unit for this resolution
+        c = Canvas(img, camera, state, scene, settings, px=max(1, round(camera.height / 720)))
 
         # 1. floor layer
-        if cluster_ids is not None:
-            _draw_cluster_outlines(img, camera, state, cluster_ids, settings, px)
-        if settings.path and len(path) >= 2:
-            draw.draw_polylines(img, draw.project_polyline(
-                camera, np.column_stack([path, np.zeros(len(path))])),
-                settings.colour_path, 2 * px, cv2.LINE_AA)
-        line_polys: list[np.ndarray] = []
-        line_index = np.zeros(0, dtype=np.int64)
-        if settings.lines and len(scene.lines_xy):
-            zeros = np.zeros((len(scene.lines_xy), 1))
-            line_polys, line_index = draw.project_segments(
-                camera, np.hstack([scene.lines_xy[:, 0], zeros]),
-                np.hstack([scene.lines_xy[:, 1], zeros]))
-            lt = draw.line_type(len(line_polys), _AA_LINES_LIMIT)
-            draw.draw_polylines(img, line_polys, settings.colour_lines, px, lt)
-        if settings.robot:
-            _draw_heading(img, camera, state.pose, settings)
-
+        lines = _draw_floor_layer(c, path_xy=path, cluster_ids=cluster_ids)
         # 2. glyphs and cones, far to near
-        ie = project_ellipsoids(scene.glyphs, camera)
-        shown = np.zeros(0, dtype=np.int64)
-        glyphs = None
-        if settings.ellipsoids and len(scene.glyphs):
-            shown = _on_screen(ie, camera)
-            glyphs = draw.ShadedEllipses(ie, shown, colour=settings.colour_ellipsoids,
-                                         max_axis_px=4.0 * (camera.width + camera.height))
-        cone_sets: list[draw.Cones] = []
-        if settings.features and state.n:
-            cone_sets.append(draw.Cones(camera, state.landmarks, height_m=settings.cone_height_m,
-                                        radius_m=settings.cone_radius_m,
-                                        colour=settings.colour_features))
-        if settings.robot:
-            cone_sets.append(draw.Cones(camera, state.pose[None, :2],
-                                        height_m=1.4 * settings.cone_height_m,
-                                        radius_m=1.4 * settings.cone_radius_m,
-                                        colour=settings.colour_robot))
-        depth = np.concatenate([ie.depth[shown]] + [c.depth for c in cone_sets])
-        kind = np.concatenate([np.full(len(shown), -1)]
-                              + [np.full(len(c), s) for s, c in enumerate(cone_sets)])
-        item = np.concatenate([np.arange(len(shown))] + [np.arange(len(c)) for c in cone_sets])
-        lt = draw.line_type(len(shown), _AA_GLYPH_LIMIT)
-        for k in np.argsort(-depth, kind="stable").tolist():
-            s, i = int(kind[k]), int(item[k])
-            if s < 0:
-                glyphs.draw(img, i, lt)  # type: ignore[union-attr]
-            else:
-                cone_sets[s].draw(img, i)
-
+        glyphs = _draw_objects(c)
         # 3. overlays
         if settings.robot and reference_pose is not None:
             estimate = state.pose if reference_estimate is None else reference_estimate
-            _draw_reference(img, camera, np.asarray(estimate, float),
-                            np.asarray(reference_pose, float), px)
+            _draw_reference(c, estimate=np.asarray(estimate, float),
+                            reference=np.asarray(reference_pose, float))
         if settings.health:
-            _draw_health(img, camera, state, scene, glyphs, line_polys, line_index, suspects,
-                         settings, px)
+            _draw_health(c, glyphs=glyphs, lines=lines, suspects=suspects)
         if settings.labels and settings.features:
-            _draw_labels(img, camera, state, settings)
-        if glyphs is not None and scene.mode == "minmeanmax":
-            _draw_roles(img, ie, scene, shown, camera)
+            _draw_labels(c)
+        if glyphs.shaded is not None and scene.mode == "minmeanmax":
+            _draw_roles(c, glyphs)
         if settings.legend:
-            _draw_legend(img, state, scene, settings, health, len(shown), camera)
+            _draw_legend(c, health=health, glyphs_shown=len(glyphs.shown))
         return img
 
 
@@ -229,7 +216,8 @@ def pick_feature(u: float, v: float, *, state: SlamState, camera: CameraModel,
 
 
 # -- helpers ------------------------------------------------------------------------------
-def _canvas(image: np.ndarray, camera: CameraModel) -> tuple[np.ndarray, CameraModel]:
+def _bgr_copy(image: np.ndarray, camera: CameraModel) -> tuple[np.ndarray, CameraModel]:
+    """A BGR uint8 copy of ``image`` to draw on, and the camera fitted to its size."""
     img = np.asarray(image)
     if img.dtype != np.uint8:
         img = np.clip(img, 0, 255).astype(np.uint8)
@@ -281,7 +269,7 @@ def _floor_bounds(camera: CameraModel) -> tuple[float, float, float, float] | No
         float(pts[:, 1].max())
 
 
-def _draw_grid(img: np.ndarray, camera: CameraModel, step_m: float = 0.5) -> None:
+def _draw_grid(img: np.ndarray, camera: CameraModel, *, step_m: float = 0.5) -> None:
     bounds = _floor_bounds(camera)
     if bounds is None:
         return
@@ -299,113 +287,173 @@ def _draw_grid(img: np.ndarray, camera: CameraModel, step_m: float = 0.5) -> Non
     minor_colour = (min(b + 14, 255), min(g + 14, 255), min(r + 14, 255))
     major_colour = (min(b + 45, 255), min(g + 45, 255), min(r + 45, 255))
     draw.draw_polylines(img, draw.project_segments(camera, p0[~major], p1[~major])[0],
-                        minor_colour, 1, cv2.LINE_AA)
+                        colour=minor_colour, thickness=1)
     draw.draw_polylines(img, draw.project_segments(camera, p0[major], p1[major])[0],
-                        major_colour, 1, cv2.LINE_AA)
+                        colour=major_colour, thickness=1)
 
 
-def _draw_cluster_outlines(img: np.ndarray, camera: CameraModel, state: SlamState,
-                           cluster_ids: np.ndarray, settings: ViewSettings, px: int) -> None:
+def _draw_floor_layer(c: Canvas, *, path_xy: np.ndarray,
+                      cluster_ids: np.ndarray | None) -> _Lines:
+    """Cluster outlines, the robot path, the pair lines and the heading arrow, flat on the
+    floor; returns the pair lines as drawn (health outlines the violating ones)."""
+    settings = c.settings
+    if cluster_ids is not None:
+        _draw_cluster_outlines(c, cluster_ids)
+    if settings.path and len(path_xy) >= 2:
+        draw.draw_polylines(c.img, draw.project_polyline(
+            c.camera, np.column_stack([path_xy, np.zeros(len(path_xy))])),
+            colour=settings.colour_path, thickness=2 * c.px)
+    lines = _Lines([], np.zeros(0, dtype=np.int64))
+    lines_xy = c.scene.lines_xy
+    if settings.lines and len(lines_xy):
+        zeros = np.zeros((len(lines_xy), 1))
+        lines = _Lines(*draw.project_segments(c.camera, np.hstack([lines_xy[:, 0], zeros]),
+                                              np.hstack([lines_xy[:, 1], zeros])))
+        draw.draw_polylines(c.img, lines.polylines, colour=settings.colour_lines,
+                            thickness=c.px, line_type=draw.line_type_for(
+                                len(lines.polylines), limit=_AA_LINES_LIMIT))
+    if settings.robot:
+        _draw_heading(c)
+    return lines
+
+
+def _draw_objects(c: Canvas) -> _Glyphs:
+    """Glyphs and cones, far to near by camera depth (painter's algorithm)."""
+    settings, camera, state = c.settings, c.camera, c.state
+    ie = project_ellipsoids(c.scene.glyphs, camera)
+    shown = np.zeros(0, dtype=np.int64)
+    shaded = None
+    if settings.ellipsoids and len(c.scene.glyphs):
+        shown = _on_screen(ie, camera)
+        shaded = draw.ShadedEllipses(ie, shown, colour=settings.colour_ellipsoids,
+                                     max_axis_px=4.0 * (camera.width + camera.height))
+    cone_sets: list[draw.Cones] = []
+    if settings.features and state.n:
+        cone_sets.append(draw.Cones(camera, state.landmarks, height_m=settings.cone_height_m,
+                                    radius_m=settings.cone_radius_m,
+                                    colour=settings.colour_features))
+    if settings.robot:
+        cone_sets.append(draw.Cones(camera, state.pose[None, :2],
+                                    height_m=1.4 * settings.cone_height_m,
+                                    radius_m=1.4 * settings.cone_radius_m,
+                                    colour=settings.colour_robot))
+    depth = np.concatenate([ie.depth[shown]] + [cones.depth for cones in cone_sets])
+    kind = np.concatenate([np.full(len(shown), -1)]
+                          + [np.full(len(cones), s) for s, cones in enumerate(cone_sets)])
+    item = np.concatenate([np.arange(len(shown))]
+                          + [np.arange(len(cones)) for cones in cone_sets])
+    lt = draw.line_type_for(len(shown), limit=_AA_GLYPH_LIMIT)
+    for k in np.argsort(-depth, kind="stable").tolist():
+        s, i = int(kind[k]), int(item[k])
+        if s < 0:
+            shaded.draw(c.img, i, line_type=lt)  # type: ignore[union-attr]
+        else:
+            cone_sets[s].draw(c.img, i)
+    return _Glyphs(ie, shown, shaded)
+
+
+def _draw_cluster_outlines(c: Canvas, cluster_ids: np.ndarray) -> None:
     """A rounded hull around each cluster's features, in the cluster's colour."""
-    pad = 2.5 * settings.cone_radius_m
+    pad = 2.5 * c.settings.cone_radius_m
     ring = draw.floor_circle(np.zeros(2), pad, vertices=16)[:, :2]
     for cid in np.unique(cluster_ids).tolist():
-        members = state.landmarks[cluster_ids == cid]
+        members = c.state.landmarks[cluster_ids == cid]
         pts = (members[:, None, :] + ring[None]).reshape(-1, 2).astype(np.float32)
         hull = cv2.convexHull(pts).reshape(-1, 2).astype(float)
         hull3 = np.column_stack([hull, np.zeros(len(hull))])
-        draw.draw_polylines(img, draw.project_polyline(camera, hull3, closed=True),
-                            cluster_colour(int(cid)), px, cv2.LINE_AA)
+        draw.draw_polylines(c.img, draw.project_polyline(c.camera, hull3, closed=True),
+                            colour=cluster_colour(int(cid)), thickness=c.px)
 
 
-def _draw_heading(img: np.ndarray, camera: CameraModel, pose: np.ndarray,
-                  settings: ViewSettings) -> None:
+def _draw_heading(c: Canvas) -> None:
     """A flat arrow on the floor from the robot's position along its heading."""
-    length = 2.2 * settings.cone_height_m
+    pose = c.state.pose
+    length = 2.2 * c.settings.cone_height_m
     shaft, head, half = 0.018 * length / 0.33, 0.3 * length, 0.16 * length
     outline = np.array([[0, -shaft], [length - head, -shaft], [length - head, -half],
                         [length, 0], [length - head, half], [length - head, shaft],
                         [0, shaft]])
-    c, s = math.cos(float(pose[2])), math.sin(float(pose[2]))
-    xy = outline @ np.array([[c, s], [-s, c]]) + pose[:2]
-    uv, _ = camera.project(np.column_stack([xy, np.full(len(xy), 0.002)]))
+    cos, sin = math.cos(float(pose[2])), math.sin(float(pose[2]))
+    xy = outline @ np.array([[cos, sin], [-sin, cos]]) + pose[:2]
+    uv, _ = c.camera.project(np.column_stack([xy, np.full(len(xy), 0.002)]))
     if np.isfinite(uv).all():
-        cv2.fillPoly(img, [draw.fixed(uv)], settings.colour_heading, cv2.LINE_AA, draw.SHIFT)
+        cv2.fillPoly(c.img, [draw.fixed(uv)], c.settings.colour_heading, cv2.LINE_AA,
+                     draw.SHIFT)
 
 
 REFERENCE_COLOUR = (255, 255, 255)  # BGR: the independent pose is white, the estimate green
 
 
-def _draw_reference(img: np.ndarray, camera: CameraModel, estimate: np.ndarray,
-                    reference: np.ndarray, px: int) -> None:
+def _draw_reference(c: Canvas, *, estimate: np.ndarray, reference: np.ndarray) -> None:
     """The independently measured robot pose: a ring, a line to the estimate, the error."""
-    uv, _ = camera.project(np.array([[reference[0], reference[1], 0.0],
-                                     [estimate[0], estimate[1], 0.0]]))
+    px = c.px
+    uv, _ = c.camera.project(np.array([[reference[0], reference[1], 0.0],
+                                       [estimate[0], estimate[1], 0.0]]))
     if not np.isfinite(uv).all():
         return
-    ref_px = tuple(int(c) for c in draw.fixed(uv[:1])[0])
-    est_px = tuple(int(c) for c in draw.fixed(uv[1:])[0])
-    cv2.line(img, ref_px, est_px, REFERENCE_COLOUR, px, cv2.LINE_AA, draw.SHIFT)
-    cv2.circle(img, ref_px, (9 * px) << draw.SHIFT, REFERENCE_COLOUR, 2 * px, cv2.LINE_AA,
+    ref_px = tuple(int(v) for v in draw.fixed(uv[:1])[0])
+    est_px = tuple(int(v) for v in draw.fixed(uv[1:])[0])
+    cv2.line(c.img, ref_px, est_px, REFERENCE_COLOUR, px, cv2.LINE_AA, draw.SHIFT)
+    cv2.circle(c.img, ref_px, (9 * px) << draw.SHIFT, REFERENCE_COLOUR, 2 * px, cv2.LINE_AA,
                draw.SHIFT)
     error_cm = 100.0 * float(np.hypot(*(reference[:2] - estimate[:2])))
-    u, v = (int(c) for c in uv[0])
-    cv2.putText(img, f"tracked: {error_cm:.1f} cm", (u + 12 * px, v - 12 * px),
+    u, v = (int(x) for x in uv[0])
+    cv2.putText(c.img, f"tracked: {error_cm:.1f} cm", (u + 12 * px, v - 12 * px),
                 cv2.FONT_HERSHEY_SIMPLEX, 0.45 * px, REFERENCE_COLOUR, px, cv2.LINE_AA)
 
 
-def _draw_health(img: np.ndarray, camera: CameraModel, state: SlamState, scene: Scene,
-                 glyphs: draw.ShadedEllipses | None, line_polys: list[np.ndarray],
-                 line_index: np.ndarray, suspects: np.ndarray, settings: ViewSettings,
-                 px: int) -> None:
-    colour = settings.colour_violation
-    if line_polys and scene.line_violation.any():
-        bad = [line_polys[k] for k in np.flatnonzero(scene.line_violation[line_index])]
-        draw.draw_polylines(img, bad, colour, 2 * px, cv2.LINE_AA)
-    if glyphs is not None and scene.glyph_violation.any():
-        for k in np.flatnonzero(scene.glyph_violation[glyphs.index]).tolist():
-            glyphs.outline(img, k, colour, 2 * px)
+def _draw_health(c: Canvas, *, glyphs: _Glyphs, lines: _Lines, suspects: np.ndarray) -> None:
+    """Violating pair lines and glyphs outlined, suspect features ringed and labelled."""
+    colour, scene, camera, state = c.settings.colour_violation, c.scene, c.camera, c.state
+    if lines.polylines and scene.line_violation.any():
+        bad = [lines.polylines[k] for k in np.flatnonzero(scene.line_violation[lines.index])]
+        draw.draw_polylines(c.img, bad, colour=colour, thickness=2 * c.px)
+    shaded = glyphs.shaded
+    if shaded is not None and scene.glyph_violation.any():
+        for k in np.flatnonzero(scene.glyph_violation[shaded.index]).tolist():
+            shaded.outline(c.img, k, colour=colour, thickness=2 * c.px)
     if len(suspects):
         scale = 0.45 * camera.height / 720
         for fid in suspects.tolist():
             xy = state.landmarks[int(np.flatnonzero(state.landmark_ids == fid)[0])]
-            ring = draw.floor_circle(xy, 2.2 * settings.cone_radius_m,
-                                     z=0.5 * settings.cone_height_m)
+            ring = draw.floor_circle(xy, 2.2 * c.settings.cone_radius_m,
+                                     z=0.5 * c.settings.cone_height_m)
             polys = draw.project_polyline(camera, ring, closed=True)
-            draw.draw_polylines(img, polys, colour, 2 * px, cv2.LINE_AA)
+            draw.draw_polylines(c.img, polys, colour=colour, thickness=2 * c.px)
             uv, _ = camera.project(ring[:1])
             if np.isfinite(uv).all():
-                draw.text(img, str(fid), (int(uv[0, 0]) + 4, int(uv[0, 1])), scale=scale,
+                draw.text(c.img, str(fid), (int(uv[0, 0]) + 4, int(uv[0, 1])), scale=scale,
                           colour=colour)
 
 
-def _draw_labels(img: np.ndarray, camera: CameraModel, state: SlamState,
-                 settings: ViewSettings) -> None:
-    ids, uv = feature_pixels(state, camera)
-    scale = 0.42 * camera.height / 720
-    offset = 8 * camera.height / 720
+def _draw_labels(c: Canvas) -> None:
+    """Each feature's id beside its cone tip."""
+    ids, uv = feature_pixels(c.state, c.camera)
+    scale = 0.42 * c.camera.height / 720
+    offset = 8 * c.camera.height / 720
     for fid, (u, v) in zip(ids.tolist(), uv.tolist(), strict=True):
         if math.isfinite(u) and math.isfinite(v):
-            draw.text(img, str(fid), (int(u + offset), int(v - offset)), scale=scale,
-                      colour=settings.colour_features)
+            draw.text(c.img, str(fid), (int(u + offset), int(v - offset)), scale=scale,
+                      colour=c.settings.colour_features)
 
 
-def _draw_roles(img: np.ndarray, ie: ImageEllipses, scene: Scene, shown: np.ndarray,
-                camera: CameraModel) -> None:
+def _draw_roles(c: Canvas, glyphs: _Glyphs) -> None:
     """'min' / 'mean' / 'max' beside the minmeanmax glyphs."""
-    scale = 0.42 * camera.height / 720
-    for g in shown.tolist():
+    ie, scene = glyphs.ellipses, c.scene
+    scale = 0.42 * c.camera.height / 720
+    for g in glyphs.shown.tolist():
         role = int(scene.glyph_role[g])
         if role == ROLE_PAIR:
             continue
         a, b, t = ie.axes[g, 0], ie.axes[g, 1], ie.angle[g]
         half_w = math.sqrt((a * math.cos(t)) ** 2 + (b * math.sin(t)) ** 2)
         u, v = ie.centre[g]
-        draw.text(img, ROLE_NAMES[role], (int(u + half_w + 4), int(v + 5)), scale=scale)
+        draw.text(c.img, ROLE_NAMES[role], (int(u + half_w + 4), int(v + 5)), scale=scale)
 
 
-def _draw_legend(img: np.ndarray, state: SlamState, scene: Scene, settings: ViewSettings,
-                 health: Health | None, glyphs_shown: int, camera: CameraModel) -> None:
+def _draw_legend(c: Canvas, *, health: Health | None, glyphs_shown: int) -> None:
+    """The legend box: robot and seq, mode, glyph meaning, colours, clusters, health."""
+    state, scene, settings = c.state, c.scene, c.settings
     mode_text = {"all": "all pairs", "inter": "inter-cluster pairs",
                  "minmeanmax": "min/mean/max per cluster pair (size = sqrt of largest eigenvalue)"}
     if settings.glyph == "sigma":
@@ -442,4 +490,4 @@ def _draw_legend(img: np.ndarray, state: SlamState, scene: Scene, settings: View
             suspects = ", ".join(str(s) for s in health.suspects.tolist()) or "none"
             rows.append([(f"health: {len(health.violations)} violations, suspects {suspects}",
                           settings.colour_violation)])
-    draw.text_box(img, rows, scale=max(0.35, 0.45 * camera.height / 720))
+    draw.text_box(c.img, rows, scale=max(0.35, 0.45 * c.camera.height / 720))

@@ -1,15 +1,22 @@
-"""Small pure pieces of the viewer service: rendered pictures, eyes, map bounds, placeholders."""
+"""What a view is seen through: eyes (one camera, or two for stereo), map bounds, placeholders.
+
+:class:`EyeChooser` is the viewer's view choice: the registered camera(s) over their
+frames, or a virtual top-down camera over the map, alone or as a stereo pair. The rest
+are small pure pieces: rendered pictures, growing map bounds, notes, feature pixels.
+"""
 
 from __future__ import annotations
 
 import math
+import threading
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import cv2
 import numpy as np
 
-from common.messages import SlamState
+from common.messages import Registration, SlamState
 from services.visualiser.camera_model import CameraModel
 from services.visualiser.settings import ViewSettings
 
@@ -70,6 +77,77 @@ def grow_bounds(bounds: tuple[float, float, float, float] | None,
         return snapped
     return (min(bounds[0], snapped[0]), min(bounds[1], snapped[1]),
             max(bounds[2], snapped[2]), max(bounds[3], snapped[3]))
+
+
+class EyeChooser:
+    """The eyes of every picture, from the configured view and the newest inputs.
+
+    ``view`` is ``camera``, ``map`` or ``stereo`` (resolved from ``auto``). With every
+    named camera registered, those cameras over their frames; a camera view still waiting
+    for its registration shows the frame with a note; otherwise the map view, whose bounds
+    grow with the map (:func:`grow_bounds`) until :meth:`restart`.
+    """
+
+    def __init__(self, view: str, *, robot: str, map_width: int, map_height: int,
+                 stereo_baseline_m: float) -> None:
+        self.view = view
+        self.robot = robot
+        self.map_size = (map_width, map_height)
+        self.stereo_baseline_m = stereo_baseline_m
+        self._lock = threading.Lock()
+        self._bounds: tuple[float, float, float, float] | None = None
+        self._eyes: tuple[Eye, ...] = ()
+
+    @property
+    def bounds(self) -> tuple[float, float, float, float] | None:
+        """The map view's bounds so far (None before the first state)."""
+        with self._lock:
+            return self._bounds
+
+    @property
+    def current(self) -> tuple[Eye, ...]:
+        """The eyes of the last :meth:`choose`."""
+        with self._lock:
+            return self._eyes
+
+    def restart(self) -> None:
+        """A new run: the map view starts over."""
+        with self._lock:
+            self._bounds = None
+
+    def choose(self, state: SlamState | None,
+               cams: Sequence[tuple[str, Registration | None, np.ndarray | None]]
+               ) -> tuple[Eye, ...]:
+        """The camera model and background picture of each eye (one, or two for stereo)."""
+        eyes: list[Eye] = []
+        if cams and all(reg is not None for _, reg, _ in cams):
+            for name, reg, image in cams:
+                assert reg is not None
+                model = CameraModel.from_registration(reg)
+                if image is not None and image.shape[:2] != (reg.height, reg.width):
+                    # frames of another size than calibrated: scale the intrinsics to them
+                    model = model.resized(image.shape[1], image.shape[0])
+                eyes.append(Eye(name, model, image, ""))
+        elif self.view == "camera":
+            name, _, image = cams[0]
+            eyes.append(Eye(name, None, image,
+                            f"waiting for the registration of camera {name} "
+                            f"for robot {self.robot}"))
+        else:
+            with self._lock:
+                if state is not None:
+                    self._bounds = grow_bounds(self._bounds, state)
+                bounds = self._bounds or DEFAULT_BOUNDS
+            width, height = self.map_size
+            model = CameraModel.top_down(bounds_xy=bounds, width=width, height=height)
+            if self.view == "stereo":
+                left, right = model.stereo_pair(self.stereo_baseline_m)
+                eyes += [Eye("map-left", left, None, ""), Eye("map-right", right, None, "")]
+            else:
+                eyes.append(Eye("map", model, None, ""))
+        with self._lock:
+            self._eyes = tuple(eyes)
+        return self._eyes
 
 
 def placeholder(eye: Eye, text: str, settings: ViewSettings) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""The web viewer: an aiohttp app around a :class:`ViewerService`, on its own thread.
+"""The web viewer: an aiohttp app around a viewer's :class:`ViewerApi`, on its own thread.
 
 Endpoints (every ``client`` is a browser tab's random id; without one, the default settings):
 
@@ -30,6 +30,7 @@ from typing import Any
 from aiohttp import WSMsgType, web
 
 from common.errors import ConfigError, SlamlensError
+from services.visualiser.api import ViewerApi
 from services.visualiser.recording import NAME_PATTERN, encode_png
 from services.visualiser.service import ViewerService
 from services.visualiser.settings import ViewSettings
@@ -45,7 +46,7 @@ NO_STORE = {"Cache-Control": "no-store"}
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 
 
-class BadRequest(Exception):
+class BadRequest(SlamlensError):
     """User input the viewer cannot use (answered with HTTP 400 and the reason)."""
 
 
@@ -81,22 +82,21 @@ def _json(data: Any, status: int = 200) -> web.Response:
 async def _errors(request: web.Request, handler: Handler) -> web.StreamResponse:
     try:
         return await handler(request)
-    except (BadRequest, ConfigError) as exc:
+    except SlamlensError as exc:  # BadRequest, ConfigError (a bad setting) and the rest
         return _json({"error": str(exc)}, status=400)
     except web.HTTPException as exc:
         if exc.status >= 400:
             return _json({"error": exc.reason}, status=exc.status)
         raise
-    except SlamlensError as exc:
-        return _json({"error": str(exc)}, status=400)
 
 
 class WebServer:
-    """Serves a :class:`ViewerService` over HTTP on a background thread."""
+    """Serves a :class:`ViewerService` (through its :class:`ViewerApi`) over HTTP on a
+    background thread."""
 
     def __init__(self, service: ViewerService, *, host: str = "127.0.0.1",
                  port: int = 8080) -> None:
-        self.service = service
+        self.api: ViewerApi = service.api
         self.host = host
         self.port = port
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -140,7 +140,7 @@ class WebServer:
         if errors:
             exc = errors[0]
             raise ConfigError(f"cannot serve the viewer on {self.host}:{self.port}: {exc}")
-        self.service.add_listener(self._on_frames_threadsafe)
+        self.api.add_listener(self._on_frames_threadsafe)
         return self.url
 
     async def _serve(self) -> None:
@@ -222,7 +222,7 @@ class WebServer:
         return client
 
     def _settings(self, request: web.Request) -> ViewSettings:
-        return self.service.settings_for(self._client(request))
+        return self.api.settings_for(self._client(request))
 
     # -- pages and pictures -----------------------------------------------------------
     async def index(self, request: web.Request) -> web.StreamResponse:
@@ -237,9 +237,9 @@ class WebServer:
         last = None
         try:
             while not self._closing:
-                settings = self.service.settings_for(client)
-                self.service.touch(settings)
-                rendered = self.service.latest(settings)
+                settings = self.api.settings_for(client)
+                self.api.touch(settings)
+                rendered = self.api.latest(settings)
                 if rendered is None or rendered is last:
                     await self._next_frames(1.0)
                     continue
@@ -272,9 +272,9 @@ class WebServer:
         last = None
         try:
             while not self._closing and not ws.closed and not reader.done():
-                settings = self.service.settings_for(client)
-                self.service.touch(settings)
-                rendered = self.service.latest(settings)
+                settings = self.api.settings_for(client)
+                self.api.touch(settings)
+                rendered = self.api.latest(settings)
                 if not wanted.is_set():  # the page has not drawn the previous frame yet
                     try:
                         await asyncio.wait_for(wanted.wait(), 1.0)
@@ -300,17 +300,17 @@ class WebServer:
 
     async def snapshot(self, request: web.Request) -> web.StreamResponse:
         settings = self._settings(request)
-        self.service.touch(settings)
+        self.api.touch(settings)
         loop = asyncio.get_running_loop()
         deadline = loop.time() + SNAPSHOT_WAIT_S
-        while not self.service.fresh(settings) and loop.time() < deadline:
+        while not self.api.fresh(settings) and loop.time() < deadline:
             await self._next_frames(max(0.0, min(0.5, deadline - loop.time())))
-            self.service.touch(settings)
-        rendered = self.service.latest(settings)
+            self.api.touch(settings)
+        rendered = self.api.latest(settings)
         if rendered is None:
             return _json({"error": "no picture yet: the viewer is still starting"}, status=503)
         png = await loop.run_in_executor(None, encode_png, rendered.image)
-        name = f"slamlens-{self.service.config.robot}-{rendered.seq or 0}.png"
+        name = f"slamlens-{self.api.robot}-{rendered.seq or 0}.png"
         disposition = "attachment" if request.query.get("download") else "inline"
         return web.Response(body=png, content_type="image/png", headers={
             **NO_STORE, "X-State-Seq": "" if rendered.seq is None else str(rendered.seq),
@@ -319,8 +319,8 @@ class WebServer:
     # -- JSON API -------------------------------------------------------------------
     async def get_settings(self, request: web.Request) -> web.StreamResponse:
         client = self._client(request)
-        return _json({"client": client, "settings": self.service.settings_for(client).to_dict(),
-                      "defaults": self.service.default_settings.to_dict()})
+        return _json({"client": client, "settings": self.api.settings_for(client).to_dict(),
+                      "defaults": self.api.default_settings.to_dict()})
 
     async def post_settings(self, request: web.Request) -> web.StreamResponse:
         client = self._client(request, required=True)
@@ -335,43 +335,43 @@ class WebServer:
         if not isinstance(changes, dict):
             raise BadRequest("the body must be a JSON object of settings")
         if changes.get("reset"):
-            changes = {k: v for k, v in self.service.default_settings.to_dict().items()}
+            changes = {k: v for k, v in self.api.default_settings.to_dict().items()}
         for key, value in changes.items():
             if isinstance(value, list):  # colours
                 changes[key] = ",".join(str(v) for v in value)
             elif value is not None and not isinstance(value, (str, int, float, bool)):
                 raise BadRequest(f"setting {key!r}: expected a string, number or boolean")
-        settings = self.service.update_settings(client, changes)
+        settings = self.api.update_settings(client, changes)
         return _json({"client": client, "settings": settings.to_dict()})
 
     async def status(self, request: web.Request) -> web.StreamResponse:
-        return _json(self.service.status())
+        return _json(self.api.status())
 
     async def features(self, request: web.Request) -> web.StreamResponse:
-        return _json(self.service.features(self._settings(request)))
+        return _json(self.api.features(self._settings(request)))
 
     async def health(self, request: web.Request) -> web.StreamResponse:
-        return _json(self.service.health_json())
+        return _json(self.api.health())
 
     async def series(self, request: web.Request) -> web.StreamResponse:
         pairs = parse_pairs(request.query.get("pairs", ""))
         settings = self._settings(request)
         loop = asyncio.get_running_loop()
-        data = await loop.run_in_executor(None, self.service.series_json, settings, pairs)
+        data = await loop.run_in_executor(None, self.api.series, settings, pairs)
         return _json(data)
 
     async def record_start(self, request: web.Request) -> web.StreamResponse:
         client = self._client(request, required=True)
         assert client is not None
         info = await asyncio.get_running_loop().run_in_executor(
-            None, self.service.record_start, client)
+            None, self.api.record_start, client)
         return _json({**info, "url": f"/recordings/{info['file']}"})
 
     async def record_stop(self, request: web.Request) -> web.StreamResponse:
         client = self._client(request, required=True)
         assert client is not None
         info = await asyncio.get_running_loop().run_in_executor(
-            None, self.service.record_stop, client)
+            None, self.api.record_stop, client)
         if info is None:
             return _json({"error": f"client {client} is not recording"}, status=404)
         return _json({**info, "url": f"/recordings/{info['file']}"})
@@ -380,7 +380,7 @@ class WebServer:
         name = request.match_info["name"]
         if not NAME_PATTERN.match(name):
             raise BadRequest("recording: not a recording file name")
-        path = Path(self.service.config.recordings_dir) / name
+        path = self.api.recording_path(name)
         if not path.is_file():
             return _json({"error": f"no recording named {name}"}, status=404)
         return web.FileResponse(path, headers={

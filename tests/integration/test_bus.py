@@ -21,8 +21,8 @@ def _wait(predicate, timeout: float = 5.0) -> bool:
 def test_fifo_channel_keeps_publication_order_across_keys(make_client) -> None:
     a, b = make_client(), make_client()
     ch = b.channel("t/robot/r/*")
-    assert a.wait_for_subscriber("t/robot/r/odometry")
     odo, obs = a.publisher("t/robot/r/odometry"), a.publisher("t/robot/r/observations")
+    assert odo.wait_matched() and obs.wait_matched()  # type: ignore[attr-defined]
     for i in range(500):
         (odo if i % 3 else obs).put(str(i).encode())
     got = []
@@ -36,9 +36,9 @@ def test_fifo_channel_keeps_publication_order_across_keys(make_client) -> None:
 
 def test_samples_carry_the_publishing_sessions_clock(make_client) -> None:
     a, b = make_client(), make_client()
-    ch = b.channel("t/robot/r/*")
-    assert a.wait_for_subscriber("t/robot/r/odometry")
+    ch = b.channel("t/robot/r/*", recover=True)
     odo, obs = a.publisher("t/robot/r/odometry"), a.publisher("t/robot/r/observations", cache=10)
+    assert odo.wait_matched()  # type: ignore[attr-defined]
     for i in range(50):
         (odo if i % 2 else obs).put(b"x")
     samples = [ch.recv(timeout=5.0) for _ in range(50)]
@@ -61,7 +61,7 @@ def test_a_callback_that_blocks_never_stops_the_channel_or_the_publisher(make_cl
         release.wait(1.0)
 
     b.subscribe("t/flood", stall)
-    ch = c.channel("t/flood")
+    ch = c.channel("t/flood", recover=True)  # (a first put may precede the match)
     assert a.wait_for_subscriber("t/flood")
     pub = a.publisher("t/flood", cache=100)
     started = time.monotonic()
@@ -114,10 +114,10 @@ def test_recovering_channel_gets_what_the_publisher_cached_before_it(make_client
 def test_latest_wins_channel_drops_backlog(make_client) -> None:
     a, b = make_client(), make_client()
     ch = b.channel("t/frame", latest_wins=True)
-    assert a.wait_for_subscriber("t/frame")
     # a reliable publisher, so that the newest sample surely arrives: what is tested here
     # is the subscriber side keeping only it (a latest-wins publisher may drop any sample)
     pub = a.publisher("t/frame")
+    assert pub.wait_matched()  # type: ignore[attr-defined]
     for i in range(200):
         pub.put(str(i).encode())
     assert _wait(lambda: ch.received == 200)  # type: ignore[attr-defined]
@@ -180,8 +180,9 @@ def test_a_client_waits_for_a_router_that_starts_later() -> None:
         other = open_bus(BusSettings(connect=(endpoint,)))
         got = []
         client.subscribe("t/late", lambda k, p: got.append(p))
-        assert other.wait_for_subscriber("t/late")
-        other.publisher("t/late").put(b"hello")
+        pub = other.publisher("t/late")
+        assert pub.wait_matched()  # type: ignore[attr-defined]
+        pub.put(b"hello")
         assert _wait(lambda: got == [b"hello"])
         other.close()
     finally:

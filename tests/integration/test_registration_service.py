@@ -178,7 +178,7 @@ def test_reregister_on_request_and_bad_control_messages(make_client, run_service
     control.put(b"\xc1 not msgpack")
     control.put(msgpack.packb({"schema": 1, "command": "explode"}))
     control.put(msgpack.packb({"schema": 1, "command": "reregister", "robot": "other"}))
-    wait_for(lambda: service.bad_control == 2)
+    wait_for(lambda: service.drops.counts["CameraControl"] == 2)
 
     # SLAM restarts with the robot somewhere else: that pose is the new map origin
     new_start = np.array([0.8, 0.6, 1.1])

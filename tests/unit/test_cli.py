@@ -19,6 +19,7 @@ from common.config import settings_from_args
 from common.errors import ConfigError
 from services.cli import COMMANDS, Command, command_parser, main
 from services.cli_reference import DOC, reference
+from services.recorder.settings import PlaySettings, RecordSettings
 from services.registration.settings import CalibrateSettings, RegistrationSettings
 from services.settings import CertsSettings, DemoSettings, FigureSettings
 from services.slam.settings import (
@@ -70,6 +71,12 @@ LEGACY_FLAGS = {
     "certs": ["--host", "--name", "--quiet", "--verbose"],  # SPEC §7b, §9
     "tune": ["--config", "--gate-chi2", "--motion-model", "--output", "--quiet",
              "--robot-index", "--truth", "--verbose", "-o"],  # SPEC §9 (issue 11)
+    "record": ["--robot", "--camera", "--keys", "--mode", "--cluster-threshold", "--connect",
+               "--config", "--quiet", "--verbose"],  # SPEC §9, issue 12
+    "play": ["--rate", "--start", "--end", "--loop", "--inputs-only", "--connect", "--config",
+             "--quiet", "--verbose"],
+    "foxglove": ["--robot", "--camera", "--mode", "--cluster-threshold", "--connect",
+                 "--config", "--quiet", "--verbose"],
 }
 
 
@@ -167,13 +174,15 @@ def test_no_flags_give_the_documented_defaults(command: str) -> None:
     cls = COMMANDS[command].settings_class()
     required = {"replay": ["p"], "calibrate": ["a.jpg", "-o", "c.yml"],
                 "serial": ["--port", "loop://"], "certs": ["pki", "--name", "robot-r1"],
-                "tune": ["p"]}.get(command, [])
+                "tune": ["p"], "record": ["a.mcap"], "play": ["a.mcap"]}.get(command, [])
     given = settings_from_args(cls, _parse(command, *required))
     expected = {"replay": ReplaySettings(path="p"),
                 "calibrate": CalibrateSettings(images=("a.jpg",), output="c.yml"),
                 "serial": SerialSettings(port="loop://"),
                 "certs": CertsSettings(directory="pki", names=("robot-r1",)),
-                "tune": TuneSettings(path="p")}.get(command) or cls()
+                "tune": TuneSettings(path="p"),
+                "record": RecordSettings(path="a.mcap"),
+                "play": PlaySettings(path="a.mcap")}.get(command) or cls()
     assert given == expected
 
 

@@ -77,6 +77,17 @@ def test_keys_follow_spec() -> None:
     assert k.leaf_of(k.state("r1")) == "state" and k.robot_of(k.state("r1")) == "r1"
 
 
+def test_keys_parse_back_the_names_they_were_built_from() -> None:
+    lab = Keys("lab/a")
+    assert lab.camera_of(lab.camera_control("top-left")) == "top-left"
+    assert lab.camera_of(lab.registration("top", "r1")) == "top"
+    assert lab.robot_of(lab.state("r2")) == "r2"
+    assert lab.camera_of(lab.state("r2")) is None  # a robot key names no camera
+    assert lab.robot_of(lab.frame("top")) is None
+    assert lab.camera_of(Keys().camera_control("top")) is None  # another prefix
+    assert lab.camera_of("lab/a/camera") is None  # too short to hold a name
+
+
 @pytest.mark.parametrize("name", ["", "a/b", "r*", "x y", "$z"])
 def test_bad_names_rejected(name: str) -> None:
     with pytest.raises(ConfigError):

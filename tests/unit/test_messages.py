@@ -11,6 +11,7 @@ import pytest
 from common.errors import MessageError
 from common.messages import (
     MESSAGE_TYPES,
+    CameraControl,
     CameraFrame,
     CameraPose,
     Health,
@@ -49,6 +50,7 @@ SAMPLES = [
     Registration(camera="c", robot="r1", stamp=0.6, K=np.eye(3), dist=np.zeros(5), width=640,
                  height=480, T_camera_from_map=np.eye(4), reprojection_error_px=0.2),
     CameraPose(camera="c", stamp=0.7, T_world_from_camera=np.eye(4)),
+    CameraControl(command="reregister", robot="r1"),
 ]
 
 
@@ -150,6 +152,18 @@ def test_observations_consistency() -> None:
     with pytest.raises(MessageError, match="ids: expected integers"):
         Observations.from_dict({"schema": 1, "robot": "r", "stamp": 0.0, "ids": [1.5],
                                 "ranges": [1.0], "bearings": [0.0]})
+
+
+def test_camera_control_is_the_documented_map() -> None:
+    """docs/protocol.md: {"schema": 1, "command": "reregister", "robot": R}, robot optional."""
+    assert CameraControl.from_bytes(msgpack.packb({"schema": 1, "command": "reregister"})) \
+        == CameraControl(command="reregister", robot=None)
+    assert msgpack.unpackb(CameraControl(command="reregister").to_bytes()) == {
+        "schema": 1, "command": "reregister"}
+    with pytest.raises(MessageError, match="command: expected one of \\['reregister'\\]"):
+        CameraControl.from_dict({"schema": 1, "command": "reboot"})
+    with pytest.raises(MessageError, match="robot: expected a string, got int"):
+        CameraControl.from_dict({"schema": 1, "command": "reregister", "robot": 7})
 
 
 def test_odometry_negative_dt_rejected() -> None:

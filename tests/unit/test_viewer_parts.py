@@ -1,4 +1,5 @@
-"""Pure parts of the viewer service: intake slots, map bounds, plots' series, parsing, video."""
+"""Pure parts of the viewer service: intake, clients and views, eyes, the tracked-pose match,
+map bounds, plots' series, parsing, video."""
 
 from __future__ import annotations
 
@@ -9,13 +10,23 @@ import cv2
 import numpy as np
 import pytest
 
-from common.errors import ConfigError
-from common.messages import Health, SlamState
+from common.errors import ConfigError, SlamlensError
+from common.messages import Health, SlamState, Truth
 from services.visualiser.camera_model import CameraModel
-from services.visualiser.intake import Queue, RateMeter, Slot
+from services.visualiser.clients import ClientRegistry
+from services.visualiser.intake import Queue, RateMeter
 from services.visualiser.recording import Recorder, encode_png, recording_name
 from services.visualiser.series import SeriesStore, pair_index
-from services.visualiser.views import Eye, grow_bounds, project_features
+from services.visualiser.settings import ViewSettings
+from services.visualiser.tracked import TrackedMatch
+from services.visualiser.views import (
+    DEFAULT_BOUNDS,
+    Eye,
+    EyeChooser,
+    Rendered,
+    grow_bounds,
+    project_features,
+)
 from services.visualiser.web import BadRequest, parse_http, parse_pairs
 
 
@@ -30,22 +41,6 @@ def random_state(n: int, *, seq: int = 1, seed: int = 0, landmarks=None) -> Slam
 
 
 # -- intake -------------------------------------------------------------------------------
-def test_slot_keeps_the_latest_and_gives_each_payload_once() -> None:
-    wakes: list[int] = []
-    slot = Slot("state", lambda: wakes.append(1))
-    assert slot.take() is None
-    slot.offer(b"a")
-    slot.offer(b"b")
-    raw = slot.take()
-    assert raw is not None and raw.payload == b"b" and raw.version == 2
-    assert slot.take() is None  # taken already
-    assert not slot.offer_if_empty(b"late")  # a live sample came first
-    assert len(wakes) == 2
-    empty = Slot("registration", lambda: None)
-    assert empty.offer_if_empty(b"late")
-    assert empty.take().payload == b"late"  # type: ignore[union-attr]
-
-
 def test_queue_keeps_order_and_drops_the_oldest_when_full() -> None:
     q = Queue("health", lambda: None, maxlen=3)
     for k in range(5):
@@ -61,6 +56,96 @@ def test_rate_meter_counts_intervals_in_its_window() -> None:
         meter.tick(100.0 + k * 0.05)  # 20 Hz for one second
     assert meter.rate(101.0) == pytest.approx(20.0)
     assert meter.rate(104.0) == 0.0  # nothing in the last two seconds
+
+
+# -- clients and views --------------------------------------------------------------------
+def no_recorder(*args: object) -> Recorder:
+    raise AssertionError("no recording in this test")
+
+
+def test_clients_share_a_view_per_distinct_settings_and_keep_the_newest_256() -> None:
+    new_views: list[int] = []
+    clients = ClientRegistry(ViewSettings(), ttl_s=60.0, on_new_view=lambda: new_views.append(1),
+                             new_recorder=no_recorder)
+    assert clients.settings_for(None) == ViewSettings() and clients.client_count == 0
+    inter = clients.update_settings("a", {"mode": "inter", "labels": True})
+    assert (inter.mode, inter.labels) == ("inter", True)
+    assert clients.settings_for("a") is inter
+    assert clients.update_settings("b", {"mode": "inter", "labels": "on"}) == inter
+    assert len(clients.looked_at()) == 1 and len(new_views) == 1  # one view for both tabs
+    with pytest.raises(ConfigError, match="mode"):
+        clients.update_settings("a", {"mode": "some"})
+    assert clients.settings_for("a") is inter  # a rejected change leaves the settings
+    for k in range(ClientRegistry.MAX_CLIENTS):
+        clients.settings_for(f"tab{k}")
+    assert clients.client_count == ClientRegistry.MAX_CLIENTS
+    assert clients.settings_for("a") == ViewSettings()  # the oldest tab was forgotten
+
+
+def test_a_view_is_active_for_its_ttl_and_current_only_for_its_inputs() -> None:
+    clients = ClientRegistry(ViewSettings(), ttl_s=0.2, on_new_view=lambda: None,
+                             new_recorder=no_recorder)
+    settings = ViewSettings(mode="minmeanmax")
+    assert clients.active() == [] and clients.latest(settings) is None
+    clients.touch(settings)
+    (view,) = clients.active()
+    assert view.settings == settings and not clients.is_current(settings, (1,))
+    picture = Rendered(version=1, seq=4, stamp=0.4, image=np.zeros((2, 2, 3), np.uint8),
+                       jpeg=b"jpeg", rendered_at=0.0)
+    clients.publish(view, picture, inputs=(1,))
+    assert clients.latest(settings) is picture
+    assert clients.is_current(settings, (1,)) and not clients.is_current(settings, (2,))
+    assert clients.looked_at(now=view.touched + 0.1) == [view]
+    assert clients.looked_at(now=view.touched + 0.3) == []  # nobody looked for a ttl
+
+
+# -- eyes ---------------------------------------------------------------------------------
+def test_eyes_follow_the_view_choice_and_the_map_bounds_restart() -> None:
+    map_eyes = EyeChooser("map", robot="r", map_width=640, map_height=360,
+                          stereo_baseline_m=0.1)
+    (eye,) = map_eyes.choose(None, [])
+    assert eye.name == "map" and map_eyes.bounds is None  # before any state: default floor
+    assert eye.camera is not None and (eye.camera.width, eye.camera.height) == (640, 360)
+    default = CameraModel.top_down(bounds_xy=DEFAULT_BOUNDS, width=640, height=360)
+    np.testing.assert_array_equal(eye.camera.T_camera_from_map, default.T_camera_from_map)
+    wide = random_state(2, landmarks=[[0.1, 0.2], [5.2, 0.4]])
+    narrow = random_state(2, landmarks=[[0.1, 0.2], [2.2, 0.4]])
+    map_eyes.choose(wide, [])
+    assert map_eyes.bounds == grow_bounds(None, wide)
+    map_eyes.choose(narrow, [])
+    assert map_eyes.bounds == grow_bounds(None, wide)  # grows only …
+    map_eyes.restart()
+    map_eyes.choose(narrow, [])
+    assert map_eyes.bounds == grow_bounds(None, narrow) != grow_bounds(None, wide)  # … a new run
+    stereo = EyeChooser("stereo", robot="r", map_width=640, map_height=360,
+                        stereo_baseline_m=0.1)
+    assert [e.name for e in stereo.choose(None, [])] == ["map-left", "map-right"]
+    frame = np.zeros((360, 640, 3), np.uint8)
+    camera = EyeChooser("camera", robot="r7", map_width=640, map_height=360,
+                        stereo_baseline_m=0.1)
+    (waiting,) = camera.choose(None, [("top", None, frame)])
+    assert waiting.camera is None and waiting.image is frame
+    assert waiting.note == "waiting for the registration of camera top for robot r7"
+    assert camera.current == (waiting,)
+
+
+# -- the tracked pose ---------------------------------------------------------------------
+def test_the_tracked_pose_is_matched_with_the_estimate_nearest_its_stamp() -> None:
+    match = TrackedMatch(match_s=0.06)
+    tracked = Truth(robot="r", stamp=1.03, pose=np.array([1.0, 2.0, 0.1]),
+                    landmark_ids=np.zeros(0, np.int64), landmarks=np.zeros((0, 2)))
+    assert match.reference() == (None, None)
+    match.set_tracked(tracked)
+    assert match.reference() == (None, None)  # no estimate yet
+    for k in range(20):
+        match.add_estimate(0.1 * k, np.array([0.1 * k, 0.0, 0.0]))
+    pose, estimate = match.reference()
+    assert pose is not None and estimate is not None
+    np.testing.assert_array_equal(pose, tracked.pose)
+    np.testing.assert_allclose(estimate, [1.0, 0.0, 0.0])  # stamp 1.0 is nearest 1.03
+    match.set_tracked(Truth(robot="r", stamp=5.0, pose=np.zeros(3),
+                            landmark_ids=np.zeros(0, np.int64), landmarks=np.zeros((0, 2))))
+    assert match.reference() == (None, None)  # 3.1 s from the newest estimate: no match
 
 
 # -- map bounds ---------------------------------------------------------------------------
@@ -171,6 +256,8 @@ def test_parse_pairs_and_http_address() -> None:
     for bad in ("1-", "a-b", "1:2", "-1-2"):
         with pytest.raises(BadRequest):
             parse_pairs(bad)
+    with pytest.raises(SlamlensError, match="at most 32 pairs"):  # the CLI's one-line errors
+        parse_pairs(",".join(f"{k}-{k + 1}" for k in range(33)))
     assert parse_http("127.0.0.1:8080") == ("127.0.0.1", 8080)
     assert parse_http("[::1]:0") == ("::1", 0)
     for bad in ("8080", "host:", ":80", "host:99999", "host:http"):
