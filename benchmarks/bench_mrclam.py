@@ -173,7 +173,7 @@ def main() -> int:
         verdicts = ", ".join(f"{k} {v}" for k, v in sorted(r.verdicts.items()))
         print(f"{'':>17}monitor: {verdicts} (states by Health verdict); estimator fault seen: "
               f"{r.monitor['estimator_fault_seen']}; {r.states} states received of "
-              f"{r.estimator['seq'] + 1}; {run.duration_s / r.wall_s:.1f}× real time", flush=True)
+              f"{r.estimator['seq']}; {run.duration_s / r.wall_s:.1f}× real time", flush=True)
         summaries.append({"robot": robot, "run": "processes", **r.evaluation.summary(),
                           "wall_s": r.wall_s, "verdicts": r.verdicts})
     ok = all(math.isfinite(s["nees_mean"]) for s in summaries)

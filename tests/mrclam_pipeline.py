@@ -29,7 +29,7 @@ PROFILE = REPO / "deploy" / "mrclam.toml"
 @dataclass
 class PipelineResult:
     evaluation: Evaluation
-    states: int  #: states received (the init state included)
+    states: int  #: states of inputs received (the init state, published at start-up, not counted)
     last_seq: int
     verdicts: dict[str, int]  #: Health verdicts received, by verdict
     fault_healths: list[dict] = field(default_factory=list)  #: a few "fault" ones, if any
@@ -55,6 +55,7 @@ class _Collector:
         self.last: SlamState | None = None
         self.verdicts: dict[str, int] = {}
         self.faults: list[dict] = []
+        self.healths_of_inputs = 0
         self.errors: list[str] = []
         self._stop = threading.Event()
         self._threads = [threading.Thread(target=self._read_states, daemon=True),
@@ -72,9 +73,9 @@ class _Collector:
             except Exception as exc:  # noqa: BLE001 - a test must see it, not die silently
                 self.errors.append(repr(exc))
                 continue
-            self.count += 1
             self.last = state
             if state.step != "init":
+                self.count += 1
                 self.scorer.add_state(state)
 
     def _read_healths(self) -> None:
@@ -84,6 +85,7 @@ class _Collector:
                 continue
             health = Health.from_bytes(sample.payload)
             self.verdicts[health.verdict] = self.verdicts.get(health.verdict, 0) + 1
+            self.healths_of_inputs += health.seq > 0
             if health.verdict == "fault" and len(self.faults) < 5:
                 self.faults.append({"seq": health.seq, "standing": [
                     v.to_dict() for v in health.standing[:5]]})
@@ -143,8 +145,7 @@ def run_pipeline(robot_index: int, *, profile: Path = PROFILE, data: Path = DATA
             f"estimator published {estimator['seq']}")
         # the monitor has checked everything when it has seen the last state
         deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and sum(collector.verdicts.values()) < \
-                collector.count:
+        while time.monotonic() < deadline and collector.healths_of_inputs < collector.count:
             time.sleep(0.1)
         wall = time.monotonic() - started
         mon_out, mon_err = stop(mon)

@@ -113,17 +113,13 @@ class EstimatorService:
         self._inputs = bus.channel(
             keys.odometry(self.robot), also=(keys.observations(self.robot),), recover=True,
             history_s=settings.input_history_s if self.resumed else 0.0)
-        #: a new map's init state is published with the first input, stamped at the map
-        #: origin in the data's own time (until then a ``get`` answers it at stamp 0.0)
-        self._init_pending = init is None
         if init is None:
             init = self.estimator.to_state(seq=0, stamp=0.0, step="init", epoch=self.epoch,
                                            input_stamp=0.0)
         self._latest = init.to_bytes()
         self._header = self._header_of(init)
         bus.answer(keys.state(self.robot), self._on_query)
-        if not self._init_pending:
-            self._publisher.put(self._latest)  # a resumed map: its state has its time
+        self._publisher.put(self._latest)
         bus.declare_alive(keys.estimator_alive(self.robot))
 
     # -- checkpoints ------------------------------------------------------------------
@@ -214,19 +210,15 @@ class EstimatorService:
             if isinstance(message, Odometry):
                 self.estimator.predict(v=message.v, w=message.w, dt=message.dt,
                                        stamp=message.stamp)
-                first = self._origin_stamp is None
-                if first:  # the map origin: where this step began
+                if self._origin_stamp is None:  # the map origin: where this step began
                     self._origin_stamp = message.stamp - message.dt
                 self.stats.odometry += 1
-                self._restamp_init(first)
                 return self._publish(stamp=message.stamp, step="predict", report=None)
             report = self.estimator.observe(ids=message.ids, ranges=message.ranges,
                                             bearings=message.bearings, stamp=message.stamp)
-            first = self._origin_stamp is None
-            if first:
+            if self._origin_stamp is None:
                 self._origin_stamp = message.stamp
             self.stats.observation_batches += 1
-            self._restamp_init(first)
             return self._publish(stamp=message.stamp, step="update", report=report)
         except (ImplausibleInputError, RefusedStepError) as exc:
             self.stats.refused += 1
@@ -245,24 +237,6 @@ class EstimatorService:
         what = f" (the input: {last.input} at stamp {last.stamp!r})" if last else ""
         log.warning("refused %s (%s): %s%s; further %s refusals are counted, not logged",
                     leaf, reason, detail, what, reason)
-
-    def _restamp_init(self, first: bool) -> None:
-        """The first input of a new map: publish the init state (seq 0, the map before any
-        input) stamped at the map origin in the data's own time, just before the state of
-        that input. At start-up nothing says what time it is, so a new map's init state is
-        not published then (a ``get`` answers it at stamp 0.0). input_stamp stays 0.0:
-        nothing is folded in it. A map resumed from a checkpoint published its state at
-        start-up and is not touched."""
-        if not (first and self._init_pending) or self._origin_stamp is None:
-            return
-        self._init_pending = False
-        # the init state is the map before this input: the prior, which the input (just
-        # applied) has not changed for the landmarks it cannot have (an empty map) — but
-        # the pose has moved, so it is rebuilt from the settings' prior, not the estimator
-        init = Estimator(self.settings).to_state(seq=0, stamp=self._origin_stamp, step="init",
-                                                 epoch=self.epoch, input_stamp=0.0,
-                                                 origin_stamp=self._origin_stamp)
-        self._publisher.put(init.to_bytes())
 
     def _publish(self, *, stamp: float, step: str, report: object) -> SlamState:
         self._seq += 1

@@ -27,7 +27,7 @@ def test_mrclam_through_the_real_processes_is_consistent(robot_index: int) -> No
     e = r.evaluation
     figures = e.summary()
     assert "all applied by the estimator" in r.replay_line
-    assert r.states == r.last_seq + 1 == r.estimator["seq"] + 1  # init + one per input
+    assert r.states == r.last_seq == r.estimator["seq"]  # one state per input, all received
     assert r.estimator["refused"] == 0 and r.estimator["lost"] == 0
     assert e.stamps.size > 45_000, figures  # the states with ground truth
     assert e.nees_mean <= 6.0, figures
@@ -37,7 +37,7 @@ def test_mrclam_through_the_real_processes_is_consistent(robot_index: int) -> No
     dr_pos, _ = e.dead_reckoning_rmse()
     assert e.pose_rmse < dr_pos / 2, figures
     assert r.verdicts.get("fault", 0) == 0, r.fault_healths
-    assert sum(r.verdicts.values()) == r.states  # the monitor checked every state
+    assert r.monitor["checked"] >= r.states  # the monitor checked every state
     assert r.monitor["estimator_fault_seen"] is False
     assert "ESTIMATOR FAULT" not in r.monitor_log
     assert "no estimator fault seen" in r.monitor_out
