@@ -49,6 +49,11 @@ _LOST_LOG_EVERY = 1000
 #: period of an advanced publisher's heartbeat (s): how soon a subscriber notices that the
 #: newest samples went missing (after a link cut) and asks the cache for them
 HEARTBEAT_S = 0.5
+#: payloads at least this large go through Zenoh shared memory when a subscriber shares the
+#: host (a state of ≈ 180 landmarks and more); smaller ones are not worth the allocation
+SHM_MIN_BYTES = 1 << 20
+#: the shared-memory pool of one session (it must also hold what the caches keep)
+SHM_POOL_BYTES = 1 << 30
 
 
 def _at_shutdown(fn: Callable[[], object]) -> None:
@@ -93,6 +98,15 @@ class Channel(Protocol):
     @property
     def backlog(self) -> int:
         """Samples received and not yet taken."""
+        ...
+
+    @property
+    def backlog_bytes(self) -> int:
+        """Payload bytes received and not yet taken."""
+        ...
+
+    def take_all(self) -> list[Sample]:
+        """Everything queued now, oldest first, without waiting."""
         ...
 
     @property
@@ -185,6 +199,18 @@ class QueueChannel:
         return len(self._items)
 
     @property
+    def backlog_bytes(self) -> int:
+        """Payload bytes received and not yet taken."""
+        return self._bytes
+
+    def take_all(self) -> list[Sample]:
+        """Everything queued now, oldest first, without waiting."""
+        with self._cond:
+            items, self._items = list(self._items), deque()
+            self._bytes = 0
+        return items
+
+    @property
     def dropped(self) -> int:
         return self._dropped
 
@@ -273,12 +299,58 @@ def _sample_of(zsample: Any, key: str | None = None) -> Sample:
                   source=str(ts.get_id()), time=int(str(ts.get_time_as_ntp64())))  # raw u64
 
 
+class ShmPool:
+    """Large payloads copied once into Zenoh shared memory (zenoh.shm), else plain bytes.
+
+    Zenoh hands a shared-memory payload to subscribers on the same host by reference and
+    sends its bytes to the others, so the publisher need not know who is where. The pool is
+    made on first use; if the host cannot give it (a small /dev/shm) or it is full (caches
+    hold their samples), the payload goes as plain bytes — counted, never waited for.
+    """
+
+    def __init__(self, *, pool_bytes: int = SHM_POOL_BYTES,
+                 min_bytes: int = SHM_MIN_BYTES) -> None:
+        self.pool_bytes = pool_bytes
+        self.min_bytes = min_bytes
+        self._provider: Any = None
+        self._unavailable = False
+        self._lock = threading.Lock()
+        self.shared = 0  #: payloads sent through shared memory
+        self.plain = 0  #: large payloads sent as bytes (pool full or unavailable)
+
+    def wrap(self, payload: bytes) -> Any:
+        """``payload`` as a shared-memory ZBytes if it is large and there is room."""
+        if len(payload) < self.min_bytes or self._unavailable:
+            return payload
+        import zenoh
+        from zenoh import shm
+
+        with self._lock:
+            if self._provider is None:
+                try:
+                    self._provider = shm.ShmProvider.default_backend(self.pool_bytes)
+                except zenoh.ZError as exc:
+                    self._unavailable = True
+                    log.warning("no shared memory for large payloads (%s): they go as bytes",
+                                exc)
+                    return payload
+            try:  # never block: garbage-collect what subscribers released, else give up
+                buf = self._provider.alloc(len(payload), shm.GarbageCollect())
+            except zenoh.ZError:
+                self.plain += 1
+                return payload
+        buf[0:len(payload)] = payload
+        self.shared += 1
+        return zenoh.ZBytes(buf)
+
+
 class _ZenohPublisher:
-    def __init__(self, publisher: Any) -> None:
+    def __init__(self, publisher: Any, pool: ShmPool | None = None) -> None:
         self._pub = publisher
+        self._pool = pool
 
     def put(self, payload: bytes) -> None:
-        self._pub.put(payload)
+        self._pub.put(payload if self._pool is None else self._pool.wrap(payload))
 
     def wait_matched(self, timeout: float = 10.0) -> bool:
         """Wait until this publisher itself knows a matching subscriber (its own matching
@@ -302,8 +374,9 @@ class _CachingPublisher:
     MIN_SAMPLES = 4
 
     def __init__(self, declare: Callable[[int], Any], *, samples: int,
-                 cache_bytes: int | None) -> None:
+                 cache_bytes: int | None, pool: ShmPool | None = None) -> None:
         self._declare = declare
+        self._pool = pool
         self._samples = max(1, int(samples))
         self._budget = cache_bytes
         self._pub = declare(self._samples)
@@ -322,7 +395,7 @@ class _CachingPublisher:
                     old.undeclare()
                 except Exception:
                     pass
-        self._pub.put(payload)
+        self._pub.put(payload if self._pool is None else self._pool.wrap(payload))
 
     def undeclare(self) -> None:
         self._pub.undeclare()
@@ -336,6 +409,7 @@ class ZenohBus:
 
         self._zenoh = zenoh
         self.session = session
+        self.shm = ShmPool()  #: large payloads through shared memory (same host)
         self._entities: list[Any] = []
         self._lock = threading.Lock()
         self._closed = False
@@ -377,11 +451,12 @@ class ZenohBus:
                         heartbeat=HEARTBEAT_S, sporadic_heartbeat=None),
                     publisher_detection=True)
 
-            out = _CachingPublisher(declare, samples=cache, cache_bytes=cache_bytes)
+            out = _CachingPublisher(declare, samples=cache, cache_bytes=cache_bytes,
+                                    pool=self.shm)
         else:
             out = _ZenohPublisher(self.session.declare_publisher(
                 key, congestion_control=z.CongestionControl.DROP,
-                reliability=z.Reliability.RELIABLE))
+                reliability=z.Reliability.RELIABLE), self.shm)
         self._keep(out)
         return out
 

@@ -121,6 +121,9 @@ def build_config(settings: BusSettings):  # -> zenoh.Config
         # the advanced publishers of SPEC §7a need timestamps (off by default in client
         # mode); they also give the estimator its publication order (HLC per session)
         conf.insert_json5("timestamping/enabled", "true")
+        # on one host, large payloads (states of big maps) travel through shared memory;
+        # to another host Zenoh sends their bytes as usual (issue 13; docs/delivery.md)
+        conf.insert_json5("transport/shared_memory/enabled", "true")
         for key, value in settings.extra.items():
             conf.insert_json5(key, value)
     except Exception as exc:

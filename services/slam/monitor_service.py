@@ -54,6 +54,9 @@ class MonitorService:
         self.violations = 0
         self.duplicates = 0
         self.restarts = 0
+        self.sampled_out = 0  #: states skipped to keep up with a large map (never small ones)
+        self._said_sampled = 0.0
+        self._sample_above = int(settings.sample_above_mb * 2 ** 20)
         self._position: tuple[int, int] | None = None  #: (epoch, seq) of the last state
         self.verdict = ""  #: the latest Health's verdict ("" before the first state)
         self.verdict_states = {v: 0 for v in WORDS}  #: states checked under each verdict
@@ -134,7 +137,8 @@ class MonitorService:
             self._said_behind = time.monotonic()
             log.warning("monitor %d states behind the estimator", behind)
         return {"behind": float(behind), "lost": float(self._inputs.lost),
-                "restarts": float(self.restarts), "dropped": float(self.drops.total)}
+                "restarts": float(self.restarts), "dropped": float(self.drops.total),
+                "sampled_out": float(self.sampled_out)}
 
     def status_line(self) -> str:
         verdict = WORDS[self.verdict] if self.verdict else "no verdict yet"
@@ -151,9 +155,28 @@ class MonitorService:
             sample = self._inputs.recv(timeout=0.2)
             if sample is not None:
                 self.handle(sample.key, sample.payload)
+                if self._inputs.backlog_bytes > self._sample_above:
+                    self._sample()
             if time.monotonic() - last >= status_every_s:
                 last = time.monotonic()
                 log.info("%s", self.status_line())
+
+    def _sample(self) -> None:
+        """Too far behind on a large map: take everything waiting, keep the truths, check
+        only the newest state (the comparison with the last one checked stays valid)."""
+        waiting = self._inputs.take_all()
+        states = [s for s in waiting if s.key.endswith("/state")]
+        skipped = max(0, len(states) - 1)
+        self.sampled_out += skipped
+        if skipped and (self.sampled_out == skipped or time.monotonic() - self._said_sampled
+                        >= 10.0):
+            self._said_sampled = time.monotonic()
+            log.warning("monitor behind on a large map: checked the newest state, skipped "
+                        "%d (%d so far); the checks compare across the gap", skipped,
+                        self.sampled_out)
+        for s in waiting:
+            if not s.key.endswith("/state") or s is states[-1]:
+                self.handle(s.key, s.payload)
 
     def summary(self) -> dict[str, object]:
         s = self.monitor.summary
@@ -163,5 +186,6 @@ class MonitorService:
                 "estimator_fault_seen": self.fault_seen, "checked": self.checked,
                 "violations": self.violations,
                 "suspects": [int(i) for i in s.suspects], "lost": self._inputs.lost,
+                "sampled_out": self.sampled_out,
                 "duplicates": self.duplicates, "restarts": self.restarts,
                 "dropped": self.drops.total}

@@ -336,6 +336,12 @@ class MonitorSettings:
                   "not enough) …", min=0.0, group=_BLAME)
     suspect_ratio: float = setting(0.1, doc="… and at least this fraction of the strongest "
                                             "suspect's evidence", min=0.0, group=_BLAME)
+    sample_above_mb: float = setting(
+        512.0, doc="when the states waiting to be checked hold more than this, the monitor "
+                   "checks the newest and skips those before it (counted as 'sampled_out'; "
+                   "the Loewner order is transitive, so the checks stay valid across the "
+                   "gap): a large map at the estimator's full rate; small maps never reach "
+                   "it (docs/monitor.md)", unit="MB", min=1.0, group=_BLAME)
     clear_after: int = setting(
         200, doc="a violation stands (and keeps the verdict) until this many further states "
                  "were checked without it; a fault also stands while any suspect is named "

@@ -18,20 +18,25 @@ def _wait(predicate, timeout: float = 5.0) -> bool:
     return predicate()
 
 
-def test_fifo_channel_keeps_publication_order_across_keys(make_client) -> None:
+def test_one_channel_for_two_keys_gets_everything_each_key_in_order(make_client) -> None:
+    """A burst on two keys: nothing lost (what congestion drops is recovered from the
+    publishers' caches) and each key in its own order. The order *across* keys is not the
+    channel's promise — Zenoh does not keep it — but the estimator's (input_order.py)."""
     a, b = make_client(), make_client()
-    ch = b.channel("t/robot/r/*")
-    odo, obs = a.publisher("t/robot/r/odometry"), a.publisher("t/robot/r/observations")
-    assert odo.wait_matched() and obs.wait_matched()  # type: ignore[attr-defined]
+    ch = b.channel("t/robot/r/odometry", also=("t/robot/r/observations",), recover=True)
+    assert a.wait_for_subscriber("t/robot/r/odometry")
+    assert a.wait_for_subscriber("t/robot/r/observations")
+    odo = a.publisher("t/robot/r/odometry", cache=1000)
+    obs = a.publisher("t/robot/r/observations", cache=1000)
     for i in range(500):
         (odo if i % 3 else obs).put(str(i).encode())
-    got = []
-    while len(got) < 500:
-        s = ch.recv(timeout=5.0)
-        assert s is not None, f"only {len(got)} of 500 arrived"
-        got.append(int(s.payload))
-        assert s.key.endswith("odometry" if got[-1] % 3 else "observations")
-    assert got == list(range(500))
+    got: dict[str, list[int]] = {"odometry": [], "observations": []}
+    while sum(map(len, got.values())) < 500:
+        s = ch.recv(timeout=10.0)
+        assert s is not None, f"only {got} arrived"
+        got[s.key.rsplit("/", 1)[1]].append(int(s.payload))
+    assert got["odometry"] == [i for i in range(500) if i % 3]
+    assert got["observations"] == [i for i in range(500) if not i % 3]
 
 
 def test_samples_carry_the_publishing_sessions_clock(make_client) -> None:
@@ -182,11 +187,48 @@ def test_a_client_waits_for_a_router_that_starts_later() -> None:
         client.subscribe("t/late", lambda k, p: got.append(p))
         pub = other.publisher("t/late")
         assert pub.wait_matched()  # type: ignore[attr-defined]
-        pub.put(b"hello")
-        assert _wait(lambda: got == [b"hello"])
+        # (a plain publisher's first puts on a brand-new route may still be dropped: the
+        # test is that the client works once its router came, so say it until heard)
+        deadline = time.monotonic() + 10
+        while not got and time.monotonic() < deadline:
+            pub.put(b"hello")
+            _wait(lambda: bool(got), timeout=0.1)
+        assert got and set(got) == {b"hello"}
         other.close()
     finally:
         starter.join()
         client.close()
         for r in routers:
             r.close()
+
+
+def test_large_payloads_go_through_shared_memory_on_one_host(router_endpoint) -> None:
+    """Issue 13: a state-sized payload reaches a subscriber on the same host through
+    shared memory and one that cannot map it (as across a network) as bytes."""
+    from common.session import BusSettings, open_bus
+
+    pub_bus = open_bus(BusSettings(connect=(router_endpoint,)))
+    local = open_bus(BusSettings(connect=(router_endpoint,)))
+    remote = open_bus(BusSettings(connect=(router_endpoint,),
+                                  extra={"transport/shared_memory/enabled": "false"}))
+    try:
+        got_local = local.channel("t/big", recover=True)
+        got_remote = remote.channel("t/big", recover=True)
+        kinds: dict[str, list[bool]] = {"local": [], "remote": []}
+        for name, bus in (("local", local), ("remote", remote)):
+            bus.session.declare_subscriber(  # how each received it, straight from Zenoh
+                "t/big", lambda s, n=name: kinds[n].append(s.payload.as_shm() is not None))
+        assert pub_bus.wait_for_subscriber("t/big")
+        pub = pub_bus.publisher("t/big", cache=4)
+        payloads = [bytes([k]) * (4 << 20) for k in range(3)]  # 4 MB each
+        for p in payloads:
+            pub.put(p)
+        for ch in (got_local, got_remote):
+            received = [ch.recv(timeout=20.0) for _ in payloads]
+            assert [s.payload if s else None for s in received] == payloads
+        assert pub_bus.shm.shared == 3 and pub_bus.shm.plain == 0
+        assert _wait(lambda: len(kinds["local"]) == 3 and len(kinds["remote"]) == 3)
+        assert kinds == {"local": [True] * 3, "remote": [False] * 3}
+    finally:
+        for b in (pub_bus, local, remote):
+            b.close()

@@ -1,0 +1,51 @@
+"""A monitor far behind on a large map checks the newest state and says what it skipped."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from common.bus import InProcessBus
+from common.keys import Keys
+from common.messages import Health, SlamState
+from services.slam.monitor_service import MonitorService
+from services.slam.settings import MonitorSettings
+
+KEYS = Keys("t")
+
+
+def _state(seq: int, n: int, shrink: float) -> SlamState:
+    N = 3 + 2 * n
+    P = np.eye(N) * (0.5 + 0.5 * shrink)  # every variance shrinks: a correct filter
+    return SlamState(robot="r1", seq=seq, stamp=0.1 * seq, step="update", pose=np.zeros(3),
+                     landmark_ids=np.arange(n), landmarks=np.zeros((n, 2)), covariance=P,
+                     epoch=1)
+
+
+def test_states_beyond_the_budget_are_skipped_counted_and_the_newest_checked() -> None:
+    bus = InProcessBus()
+    healths: list[Health] = []
+    bus.subscribe(KEYS.health("r1"), lambda k, p: healths.append(Health.from_bytes(p)))
+    service = MonitorService(bus, keys=KEYS, robot="r1",
+                             settings=MonitorSettings(robot="r1", sample_above_mb=2.0))
+    n = 200  # a state of ≈ 1.3 MB
+    pub = bus.publisher(KEYS.state("r1"))
+    for seq in range(1, 11):
+        pub.put(_state(seq, n, shrink=1.0 / seq).to_bytes())  # queued: nobody checks yet
+    first = service._inputs.recv(timeout=0)
+    assert first is not None
+    service.handle(first.key, first.payload)
+    assert service._inputs.backlog_bytes > 2 << 20
+    service._sample()
+    assert [h.seq for h in healths] == [1, 10]  # the first, then straight to the newest
+    assert healths[-1].statistics["sampled_out"] == 8.0
+    assert service.sampled_out == 8 and all(h.ok for h in healths)
+    assert service.summary()["sampled_out"] == 8
+
+
+def test_small_maps_never_reach_the_budget() -> None:
+    bus = InProcessBus()
+    service = MonitorService(bus, keys=KEYS, robot="r1", settings=MonitorSettings(robot="r1"))
+    pub = bus.publisher(KEYS.state("r1"))
+    for seq in range(1, 2001):  # 2000 states of a 15-landmark map waiting
+        pub.put(_state(seq, 15, shrink=1.0 / seq).to_bytes())
+    assert service._inputs.backlog_bytes < 512 << 20
