@@ -80,6 +80,20 @@ def measure(n: int, rng: np.random.Generator, *, reps: int, dense_reps: int) -> 
         ekf.update(x, L, n, j, z_range=float(z[0]) + 1e-3, z_bearing=float(z[1]),
                    var_range=VAR_R, var_bearing=VAR_B, ws=ws)
 
+    guard = ekf.Guard()  # the poisoning guard the Estimator runs with (docs/estimator.md)
+
+    def predict_guarded() -> None:
+        ekf.predict(x, L, n, v=0.2, w=0.1, dt=0.01, var_v=VAR_V, var_w=VAR_W, guard=guard,
+                    ws=ws)
+
+    def update_guarded() -> None:
+        j = int(js[state["k"] % js.size])
+        state["k"] += 1
+        a = 3 + 2 * j
+        z = ekf.observe(x[:3], x[a:a + 2])
+        ekf.update(x, L, n, j, z_range=float(z[0]) + 1e-3, z_bearing=float(z[1]),
+                   var_range=VAR_R, var_bearing=VAR_B, ws=ws, guard=guard)
+
     def both() -> None:
         predict()
         update()
@@ -92,8 +106,18 @@ def measure(n: int, rng: np.random.Generator, *, reps: int, dense_reps: int) -> 
         z = ekf.observe(x[:3], m)
         est.observe(ids=ids, ranges=[float(z[0])], bearings=[float(z[1])], stamp=1.0)
 
-    out["predict_us"] = median_us(predict, reps)
-    out["update_us"] = median_us(update, reps)
+    # plain and guarded interleaved in rounds, so that load from other work hits both alike
+    plain_p, plain_u, guard_p, guard_u = [], [], [], []
+    rounds = 5
+    for _ in range(rounds):
+        plain_p.append(median_us(predict, max(3, reps // rounds)))
+        guard_p.append(median_us(predict_guarded, max(3, reps // rounds)))
+        plain_u.append(median_us(update, max(3, reps // rounds)))
+        guard_u.append(median_us(update_guarded, max(3, reps // rounds)))
+    out["predict_us"] = statistics.median(plain_p)
+    out["update_us"] = statistics.median(plain_u)
+    out["predict_guard_us"] = statistics.median(guard_p)
+    out["update_guard_us"] = statistics.median(guard_u)
     out["both_us"] = median_us(both, reps)
     out["both_estimator_us"] = median_us(both_estimator, reps)
 
@@ -132,13 +156,15 @@ def measure(n: int, rng: np.random.Generator, *, reps: int, dense_reps: int) -> 
     return out
 
 
-HEADER = (f"{'n':>5} {'N':>5} {'predict':>9} {'update':>9} {'pred+upd':>9} "
+HEADER = (f"{'n':>5} {'N':>5} {'predict':>9} {'guarded':>9} {'update':>9} {'guarded':>9} "
+          f"{'pred+upd':>9} "
           f"{'Estimator':>9} {'floor':>9} {'viewfloor':>9} {'upd/floor':>9} "
           f"{'dense':>11} {'dense/ours':>10} {'symmetric':>9}")
 
 
 def row_text(r: dict[str, float]) -> str:
-    return (f"{r['n']:>5.0f} {r['N']:>5.0f} {r['predict_us']:>9.1f} {r['update_us']:>9.1f} "
+    return (f"{r['n']:>5.0f} {r['N']:>5.0f} {r['predict_us']:>9.1f} "
+            f"{r['predict_guard_us']:>9.1f} {r['update_us']:>9.1f} {r['update_guard_us']:>9.1f} "
             f"{r['both_us']:>9.1f} {r['both_estimator_us']:>9.1f} {r['floor_us']:>9.1f} "
             f"{r['floor_view_us']:>9.1f} {r['update_us'] / r['floor_us']:>9.2f} "
             f"{r['dense_both_us']:>11.0f} {r['dense_both_us'] / r['both_us']:>10.0f} "
@@ -182,8 +208,10 @@ def main(argv: list[str] | None = None) -> int:
               f"{scipy.__version__}, {os.cpu_count()} CPUs, BLAS env {env or 'unset'}, "
               f"dsyrk fast path {'on' if ekf._dsyrk() is not None else 'OFF (numpy fallback)'}, "
               f"load average {os.getloadavg()[0]:.2f}")
-        print("medians in µs; pred+upd = the kernels, Estimator = the class methods with "
-              "input checks; floor = np.add(A, 0, out=A) on a contiguous N×N array; "
+        print("medians in µs; predict/update = the kernels unguarded, guarded = with the "
+              "poisoning guard (O(N) checks); pred+upd = the kernels, Estimator = the class "
+              "methods with input checks, gates and guard; floor = np.add(A, 0, out=A) on a "
+              "contiguous N×N array; "
               "viewfloor = the same on the estimator's strided view; dense = textbook "
               "predict+update with full F, G, H")
         print(HEADER)
@@ -216,6 +244,10 @@ def main(argv: list[str] | None = None) -> int:
                 (f"update at n=1000 ≤ 1.3× floor [{label}]",
                  big["update_us"] / big["floor_us"] <= 1.3,
                  f"{big['update_us'] / big['floor_us']:.2f}×"),
+                (f"guarded update at n=1000 ≤ 1.3× floor [{label}]",
+                 big["update_guard_us"] / big["floor_us"] <= 1.3,
+                 f"{big['update_guard_us'] / big['floor_us']:.2f}× (guard/plain "
+                 f"{big['update_guard_us'] / big['update_us']:.3f})"),
                 (f"dense ≥ 500× slower at n=1000 [{label}]",
                  big["dense_both_us"] / big["both_us"] >= 500,
                  f"{big['dense_both_us'] / big['both_us']:.0f}×"),

@@ -367,6 +367,18 @@ class SlamState(Message):
     origin_stamp: float | None = _scalar(
         "float", "optional: when the robot stood at this epoch's map origin (the start of "
         "the first input folded in), s; None until an input is applied", optional=True)
+    gated_ids: np.ndarray | None = _arr(
+        _I8, (None,), "optional: landmarks of the observations of this update refused by the "
+        "innovation gate (NIS above it)", optional=True)
+    gated_observations: np.ndarray | None = _arr(
+        _F8, (None, 2), "optional: those observations as measured [g,2] (range m, bearing rad)",
+        optional=True)
+    gated_nis: np.ndarray | None = _arr(_F8, (None,), "optional: their NIS νᵀS⁻¹ν",
+                                        optional=True)
+    diagnostics: dict[str, float] | None = field(
+        default=None, metadata={"kind": "stats", "optional": True,
+                                "doc": "optional: the estimator's running counts (gated, "
+                                       "refused_updates, refused.<reason>); docs/protocol.md"})
 
     def __post_init__(self) -> None:
         for name in ("observed_ids", "new_ids"):
@@ -395,6 +407,17 @@ class SlamState(Message):
             _count_check(self.TYPE, "innovations", self.innovations, k, "one per innovation id")
             _count_check(self.TYPE, "innovation_covariances", self.innovation_covariances, k,
                          "one per innovation id")
+        if self.gated_observations is not None or self.gated_nis is not None:
+            g = 0 if self.gated_ids is None else self.gated_ids.shape[0]
+            _count_check(self.TYPE, "gated_observations", self.gated_observations, g,
+                         "one per gated id")
+            _count_check(self.TYPE, "gated_nis", self.gated_nis, g, "one per gated id")
+        if self.diagnostics is not None:
+            if not isinstance(self.diagnostics, Mapping):
+                raise MessageError(self.TYPE, "diagnostics", "a map",
+                                   type(self.diagnostics).__name__)
+            for key, value in self.diagnostics.items():
+                check_finite(self.TYPE, f"diagnostics.{key}", value)
 
     def _wire_overrides(self, out: dict[str, Any]) -> dict[str, Any]:
         out["covariance"] = encode_array(self.covariance.reshape(-1), "<f8")

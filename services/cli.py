@@ -51,6 +51,8 @@ COMMANDS: dict[str, Command] = {
                       "services.slam.settings:SerialSettings"),
     "monitor": Command("services.slam.cli", "the covariance behaviour monitor",
                        "services.slam.settings:MonitorSettings"),
+    "tune": Command("services.slam.cli", "noise settings fitted to runs with ground truth",
+                    "services.slam.settings:TuneSettings", bus=False),
     "registration": Command("services.registration.cli",
                             "camera capture and fiducial registration",
                             "services.registration.settings:RegistrationSettings"),

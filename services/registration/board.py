@@ -28,7 +28,7 @@ from common.config import read_toml
 from common.errors import ConfigError
 from common.geometry import invert_T, make_T, transform_points
 from services.registration.calibration import CameraCalibration
-from services.registration.markers import DEFAULT_DICTIONARY, DICTIONARIES, Detection
+from services.registration.markers import DEFAULT_DICTIONARY, DICTIONARIES, Detection, is_custom
 from services.registration.pose import (
     PoseError,
     T_from_rvec_tvec,
@@ -86,9 +86,9 @@ class MarkerBoard:
     markers: tuple[BoardMarker, ...]
 
     def __post_init__(self) -> None:
-        if self.dictionary not in DICTIONARIES:
+        if self.dictionary not in DICTIONARIES and not is_custom(self.dictionary):
             raise ConfigError(f"board dictionary {self.dictionary!r}; choices: "
-                              f"{', '.join(sorted(DICTIONARIES))}")
+                              f"{', '.join(sorted(DICTIONARIES))}, or a custom FILE.yml")
         if not self.marker_size_m > 0.0:
             raise ConfigError(f"board marker_size_m must be positive, got {self.marker_size_m}")
         ids = [m.marker_id for m in self.markers]

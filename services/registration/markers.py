@@ -15,6 +15,7 @@ import logging
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
+from functools import lru_cache
 from pathlib import Path
 
 import cv2
@@ -49,13 +50,35 @@ _CV_REFINEMENT = {
 }
 
 
+CUSTOM_SUFFIXES = (".yml", ".yaml")
+
+
+def is_custom(name: str) -> bool:
+    """Whether a dictionary "name" is the path of a custom dictionary YAML (``FILE.yml``)."""
+    return name.lower().endswith(CUSTOM_SUFFIXES)
+
+
+def check_dictionary(name: str) -> None:
+    """ConfigError unless ``name`` is a built-in dictionary or a readable custom one."""
+    get_dictionary(name)
+
+
 def get_dictionary(name: str) -> cv2.aruco.Dictionary:
-    """The OpenCV dictionary called ``name`` (see :data:`DICTIONARIES`)."""
+    """The OpenCV dictionary called ``name`` (see :data:`DICTIONARIES`), or the custom one
+    in the OpenCV YAML file ``name`` (``*.yml`` / ``*.yaml``, :func:`load_custom_dictionary`)."""
+    if is_custom(name):
+        return _custom(str(Path(name).resolve()))
     try:
         return cv2.aruco.getPredefinedDictionary(DICTIONARIES[name])
     except KeyError:
         raise ConfigError(f"unknown marker dictionary {name!r}; choices: "
-                          f"{', '.join(sorted(DICTIONARIES))}") from None
+                          f"{', '.join(sorted(DICTIONARIES))}, or a custom dictionary "
+                          "FILE.yml") from None
+
+
+@lru_cache(maxsize=8)
+def _custom(path: str) -> cv2.aruco.Dictionary:
+    return load_custom_dictionary(path)
 
 
 def load_custom_dictionary(path: str | Path) -> cv2.aruco.Dictionary:
@@ -291,9 +314,10 @@ class MarkerDetector:
         if self.tuning.corner_refinement not in CORNER_REFINEMENTS:
             raise ConfigError(f"corner_refinement {self.tuning.corner_refinement!r}; "
                               f"choices: {', '.join(CORNER_REFINEMENTS)}")
-        if custom_dictionary_path is not None:
-            self.dictionary_name = f"custom:{custom_dictionary_path}"
-            self.dictionary = load_custom_dictionary(custom_dictionary_path)
+        if custom_dictionary_path is not None or is_custom(dictionary):
+            path = custom_dictionary_path if custom_dictionary_path is not None else dictionary
+            self.dictionary_name = f"custom:{path}"
+            self.dictionary = load_custom_dictionary(path)
         else:
             self.dictionary_name = dictionary
             self.dictionary = get_dictionary(dictionary)

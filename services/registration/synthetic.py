@@ -31,7 +31,6 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from common.errors import ConfigError
 from common.geometry import T_from_pose2, invert_T, make_T, rot_z, transform_points
 
 #: BGR colours of the scene
@@ -189,11 +188,9 @@ def _project(K: np.ndarray, T_camera_from_world: np.ndarray, points_world: np.nd
 @lru_cache(maxsize=16)
 def _marker_bgra(dictionary: str, marker_id: int, module_px: int = 16) -> np.ndarray:
     """The marker image with its white quiet zone, BGRA, opaque; read-only."""
-    from services.registration.markers import DICTIONARIES
+    from services.registration.markers import get_dictionary
 
-    if dictionary not in DICTIONARIES:
-        raise ConfigError(f"unknown marker dictionary {dictionary!r}")
-    d = cv2.aruco.getPredefinedDictionary(DICTIONARIES[dictionary])
+    d = get_dictionary(dictionary)  # a built-in name or a custom FILE.yml
     bits = d.markerSize + 2  # data bits plus the black border
     side = bits * module_px
     marker = cv2.aruco.generateImageMarker(d, marker_id, side, borderBits=1)
@@ -206,9 +203,9 @@ def _marker_bgra(dictionary: str, marker_id: int, module_px: int = 16) -> np.nda
 
 def quiet_zone_scale(dictionary: str) -> float:
     """Outer size of marker + white border relative to the black square."""
-    from services.registration.markers import DICTIONARIES
+    from services.registration.markers import get_dictionary
 
-    bits = cv2.aruco.getPredefinedDictionary(DICTIONARIES[dictionary]).markerSize + 2
+    bits = get_dictionary(dictionary).markerSize + 2
     return 1.0 + 2.0 * QUIET_ZONE_MODULES / bits
 
 

@@ -16,11 +16,13 @@ import logging
 import os
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 from common.cli import bus_settings, keys_from, setup_logging, stop_event
 from common.config import settings_from_args
 from common.errors import ConfigError
+from common.progress import count_bar, enabled, time_bar
 from common.session import open_bus
 from common.status import Report, announce, counts_of
 from services.slam.settings import (
@@ -29,6 +31,7 @@ from services.slam.settings import (
     ReplaySettings,
     SerialSettings,
     SimSettings,
+    TuneSettings,
 )
 
 log = logging.getLogger("slamlens")
@@ -37,7 +40,7 @@ log = logging.getLogger("slamlens")
 def run(command: str, args: argparse.Namespace) -> int:
     setup_logging(args, command)
     return {"sim": _run_sim, "estimator": _run_estimator, "replay": _run_replay,
-            "serial": _run_serial, "monitor": _run_monitor}[command](args)
+            "serial": _run_serial, "monitor": _run_monitor, "tune": _run_tune}[command](args)
 
 
 def _estimator_ready(out: Any, stop: threading.Event, s: SimSettings | ReplaySettings) -> bool:
@@ -103,13 +106,23 @@ def _run_sim(args: argparse.Namespace) -> int:
         events = heapq.merge(*(itertools.chain([first], rest)
                                for first, rest in zip(firsts, streams, strict=True)),
                              key=lambda m: m.stamp)  # type: ignore[attr-defined]
-        wall = play(events, out, stop, rate=s.rate,
-                    progress_every_s=10.0 if s.rate and s.rate <= 5 else 0.0)
+        bar = time_bar(sims[0].duration_s, desc=f"sim {s.robot}", mode=s.progress)
+        try:
+            wall = play(events, out, stop, rate=s.rate,
+                        progress_every_s=_log_every(10.0 if s.rate and s.rate <= 5 else 0.0,
+                                                    s.progress), bar=bar)
+        finally:
+            bar.close()
         state["now"] = "done"
         _finish("sim", out, stop, wall)
     finally:
         bus.close()
     return 0
+
+
+def _log_every(every_s: float, mode: str) -> float:
+    """Data seconds between progress log lines: none while a bar shows the progress."""
+    return 0.0 if enabled(mode) else every_s
 
 
 def _finish(name: str, out: Any, stop: threading.Event, wall: float) -> None:
@@ -145,10 +158,15 @@ def _run_estimator(args: argparse.Namespace) -> int:
 
         def status() -> Report:
             summary = service.summary()
-            return Report(state="resumed" if service.resumed else "running",
+            refused_by = summary["refused_by"]
+            assert isinstance(refused_by, dict)
+            state = "resumed" if service.resumed else "running"
+            if refused_by:  # issue 14: refusals by reason, visible in `slamlens status`
+                state += "; refused " + ", ".join(f"{k} {v}" for k, v in refused_by.items())
+            return Report(state=state,
                           counts=counts_of(summary, "states", "odometry",
                                            "observation_batches", "landmarks",
-                                           "duplicates"),
+                                           "refused", "gated", "duplicates"),
                           dropped=int(summary["dropped"]),  # type: ignore[call-overload]
                           lost=int(summary["lost"]),  # type: ignore[call-overload]
                           epoch=service.epoch)
@@ -203,7 +221,14 @@ def _run_replay(args: argparse.Namespace) -> int:
         if s.rate == 0 and s.wait_for_estimator:
             out.pace_on_estimator()
         state["now"] = "replaying"
-        wall = play(events, out, stop, rate=s.rate, progress_every_s=30.0)
+        duration = max(run_.duration_s for run_ in runs)
+        total = (min(end, duration) if end is not None else duration) - s.start_s
+        bar = time_bar(total, desc=f"replay {s.robot}", mode=s.progress)
+        try:
+            wall = play(events, out, stop, rate=s.rate, bar=bar,
+                        progress_every_s=_log_every(30.0, s.progress))
+        finally:
+            bar.close()
         state["now"] = "done"
         _finish("replay", out, stop, wall)
     finally:
@@ -258,7 +283,62 @@ def _run_monitor(args: argparse.Namespace) -> int:
         announce(bus, args, "monitor", status, robot=robot)
         print("monitor ready", flush=True)
         service.run(stop)
+        print(f"monitor verdict: {_verdict_sentence(service.summary())}", flush=True)
         print(f"monitor stopped: {json.dumps(service.summary())}", flush=True)
     finally:
         bus.close()
     return 0
+
+
+def _run_tune(args: argparse.Namespace) -> int:
+    from services.slam import tuning
+    from services.slam.mrclam import load_mrclam
+
+    s = settings_from_args(TuneSettings, args)
+    runs = [load_mrclam(s.path, robot=k, robot_name=f"robot{k}", truth_folder=s.truth or None)
+            for k in s.robot_index]
+    events = sum(tuning.event_count(run) for run in runs)
+    log.info("fitting noise to %s, robots %s (%d events per estimator pass)", s.path,
+             list(s.robot_index), events)
+    bars: list[Any] = []
+
+    def progress(number: int, scale: float) -> Any:
+        for bar in bars:
+            bar.close()
+        bar = count_bar(events, desc=f"tune pass {number} (σ × {scale:.3f})", mode=s.progress)
+        bars.append(bar)
+        return bar.update
+
+    try:
+        result = tuning.tune(runs, motion_model=s.motion_model, gate_chi2=s.gate_chi2,
+                             progress=progress)
+    finally:
+        for bar in bars:
+            bar.close()
+    robots = ",".join(str(k) for k in s.robot_index)
+    header = [f"slamlens estimator settings fitted by: slamlens tune {s.path} --robot-index "
+              f"{robots} --motion-model {s.motion_model} --gate-chi2 {s.gate_chi2:g}",
+              "use: slamlens estimator --config THIS_FILE --robot R (docs/estimator.md)"]
+    text = tuning.profile_toml(result, header=header)
+    if s.output:
+        Path(s.output).write_text(text)
+        log.info("wrote %s", s.output)
+    else:
+        print(text, end="", flush=True)
+    verdict = "in its band" if result.passes() else "NOT in its band"
+    print(f"tune done: {json.dumps([e.summary() for e in result.after])}; scale "
+          f"{result.scale:.3f} after {result.passes_run} passes; NEES {verdict}", flush=True)
+    return 0 if result.passes() else 1
+
+
+def _verdict_sentence(summary: dict[str, Any]) -> str:
+    """The monitor's verdict in words, for its last lines (docs/monitor.md)."""
+    by = summary.get("states_by_verdict", {})
+    checked = int(summary.get("checked", 0))
+    parts = [f"{summary.get('verdict_words')} at the end"]
+    if checked:
+        parts.append(f"{by.get('fault', 0)} of {checked} states under an estimator fault, "
+                     f"{by.get('tuning', 0)} under inconsistent tuning or model mismatch")
+    if not summary.get("estimator_fault_seen"):
+        parts.append("no estimator fault seen")
+    return "; ".join(parts)

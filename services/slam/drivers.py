@@ -22,6 +22,7 @@ import logging
 import threading
 import time
 from collections.abc import Iterable
+from typing import Any
 
 from common.bus import Bus
 from common.keys import Keys
@@ -142,11 +143,15 @@ def _stamp(message: Message) -> float:
 
 
 def play(events: Iterable[Message], publisher: RobotPublisher | Fleet, stop: threading.Event, *,
-         rate: float, progress_every_s: float = 0.0) -> float:
+         rate: float, progress_every_s: float = 0.0, bar: Any = None) -> float:
     """Publish ``events`` paced at ``rate`` × their own time (0 = as fast as possible:
-    paced on the estimator if ``publisher`` has a pacer). Returns the wall seconds."""
+    paced on the estimator if ``publisher`` has a pacer). Returns the wall seconds.
+
+    ``bar`` (:func:`common.progress.time_bar`) is advanced by the data time published.
+    """
     start = time.monotonic()
     t0: float | None = None
+    shown = 0.0
     next_report = progress_every_s
     for message in events:
         if stop.is_set():
@@ -160,6 +165,9 @@ def play(events: Iterable[Message], publisher: RobotPublisher | Fleet, stop: thr
             if delay > 0:
                 stop.wait(delay)
         publisher.publish(message, stop)
+        if bar is not None and stamp - t0 > shown:
+            bar.update(stamp - t0 - shown)
+            shown = stamp - t0
         if progress_every_s and stamp - t0 >= next_report:
             next_report += progress_every_s
             log.info("t = %.1f s published (%s)", stamp - t0, publisher.counts)

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections import Counter
 from dataclasses import dataclass
 from typing import Any
 
@@ -19,6 +20,7 @@ import numpy as np
 from common.errors import EstimationError
 from common.messages import SlamState
 from services.slam import association, ekf, faults
+from services.slam.plausibility import Bounds, ImplausibleInputError, InputGates
 from services.slam.settings import EstimatorSettings
 
 log = logging.getLogger("slamlens.estimator")
@@ -36,8 +38,27 @@ class ObserveReport:
     innovations: np.ndarray  #: float64[k, 2], ν = z − h (m, rad) before each update
     innovation_covariances: np.ndarray  #: float64[k, 2, 2], S of each update
     assigned_ids: np.ndarray  #: int64[m], per observation: the id it was applied to, or −1
-    rejected: int  #: observations not applied (ambiguous, or S not positive definite)
+    rejected: int  #: observations not applied (ambiguous, gated, S not PD, refused, map full)
     ambiguous: int  #: of those, id −1 observations between the two association thresholds
+    gated_ids: np.ndarray | None = None  #: int64[g], landmarks of the gated observations
+    gated_observations: np.ndarray | None = None  #: float64[g, 2], their (range m, bearing)
+    gated_nis: np.ndarray | None = None  #: float64[g], their NIS νᵀS⁻¹ν
+    refused: int = 0  #: of the rejected, observations the guard refused (would poison P)
+
+    @property
+    def gated(self) -> int:
+        """Observations of known landmarks not applied because their NIS was above the gate."""
+        return 0 if self.gated_ids is None else int(self.gated_ids.shape[0])
+
+
+@dataclass(frozen=True)
+class Refusal:
+    """The last input (or step) the estimator refused, and why (for logs and status)."""
+
+    reason: str  #: a plausibility reason (services.slam.plausibility) or non-finite / not-psd
+    detail: str  #: one sentence
+    stamp: float  #: the input's stamp
+    input: str  #: the input, abridged
 
 
 def _frozen(values: Any, dtype: Any, shape: tuple[int, ...] | None = None) -> np.ndarray:
@@ -58,10 +79,28 @@ class Estimator:
         self._var_w = settings.sigma_w ** 2
         self._var_r = settings.sigma_range ** 2
         self._var_b = settings.sigma_bearing ** 2
+        # opt-in range noise terms: variance (k·r)² and (k·r·φ²)² on top of σr²
+        self._q_range = settings.sigma_range_per_m ** 2
+        self._q_off_axis = settings.sigma_range_off_axis ** 2
         self._gates = association.Gates(settings.gate_chi2, settings.new_landmark_chi2)
         self._fault = faults.make_fault(settings.fault, settings.faulty_features,
                                         magnitude=settings.fault_magnitude,
                                         onset=settings.fault_onset)
+        # the opt-in motion noise terms (0 = SPEC §4 exactly), as variances per m / rad
+        self._q_dist = settings.sigma_distance ** 2
+        self._q_turn = settings.sigma_turn ** 2
+        self._q_head_dist = settings.sigma_heading_per_distance ** 2
+        self._motion_extra = bool(self._q_dist or self._q_turn or self._q_head_dist)
+        self._gate = float(settings.innovation_gate_chi2)
+        # a planted fault breaks PSD on purpose: then the guard checks finiteness only
+        self._guard = ekf.Guard(psd_rtol=None if self._fault is not None
+                                else settings.guard_rtol)
+        self.gates = InputGates(Bounds(
+            max_dt_s=settings.max_dt_s, max_speed=settings.max_speed,
+            max_turn_rate=settings.max_turn_rate, max_range=settings.max_range,
+            max_abs_bearing=settings.max_abs_bearing,
+            max_stamp_jump_s=settings.max_stamp_jump_s, stamp_resync=settings.stamp_resync,
+            max_batch=settings.max_batch, max_landmarks=settings.max_landmarks))
         self._capacity = max(1, int(capacity))
         size = 3 + 2 * self._capacity
         self._x = np.zeros(size)
@@ -75,6 +114,11 @@ class Estimator:
         self._index: dict[int, int] = {}
         self._next_anonymous = settings.anonymous_id_base
         self.refused_updates = 0  #: observations refused because S was not positive definite
+        self.gated = 0  #: observations of known landmarks refused by the innovation gate
+        #: inputs refused whole (plausibility reasons) and steps refused by the guard
+        #: ("non-finite", "not-psd"), by reason
+        self.refusals: Counter[str] = Counter()
+        self.last_refusal: Refusal | None = None
 
     # -- read-only views ---------------------------------------------------------------
     @property
@@ -118,40 +162,74 @@ class Estimator:
 
     # -- events ------------------------------------------------------------------------
     def predict(self, *, v: float, w: float, dt: float, stamp: float) -> None:
-        """Apply one odometry step (v m/s, w rad/s held for dt s). Refuses NaN and dt < 0
-        with EstimationError, leaving the state unchanged."""
+        """Apply one odometry step (v m/s, w rad/s held for dt s).
+
+        Refuses with EstimationError, leaving the state unchanged: NaN and dt < 0; an input
+        outside a plausibility bound (:class:`ImplausibleInputError`, counted in
+        ``refusals`` by reason); a step the guard refuses (:class:`ekf.RefusedStepError`).
+        """
         ekf.check_finite_inputs(v=v, w=w, dt=dt, stamp=stamp)
         if dt < 0:
             raise EstimationError(f"dt must be ≥ 0, got {dt!r}")
-        fault = self._fault
-        if fault is not None and fault.kind == faults.CROSS_COVARIANCE and fault.active(stamp):
-            faults.predict_without_cross_covariance(
-                self._x, self._L, self._n, indices=self._faulty_indices(), fraction=fault.magnitude,
-                v=v, w=w, dt=dt, var_v=self._var_v, var_w=self._var_w)
-            return
-        ekf.predict(self._x, self._L, self._n, v=v, w=w, dt=dt, var_v=self._var_v,
-                    var_w=self._var_w)
+        try:
+            self.gates.check_odometry(v=v, w=w, dt=dt, stamp=stamp)
+            extra_qv = extra_qw = 0.0
+            if self._motion_extra:
+                dist, turn = abs(v * dt), abs(w * dt)
+                extra_qv = self._q_dist * dist
+                extra_qw = self._q_turn * turn + self._q_head_dist * dist
+            fault = self._fault
+            if fault is not None and fault.kind == faults.CROSS_COVARIANCE and \
+                    fault.active(stamp):
+                faults.predict_without_cross_covariance(
+                    self._x, self._L, self._n, indices=self._faulty_indices(),
+                    fraction=fault.magnitude, v=v, w=w, dt=dt, var_v=self._var_v,
+                    var_w=self._var_w, extra_qv=extra_qv, extra_qw=extra_qw,
+                    guard=self._guard, ws=self._ws)
+            else:
+                ekf.predict(self._x, self._L, self._n, v=v, w=w, dt=dt, var_v=self._var_v,
+                            var_w=self._var_w, extra_qv=extra_qv, extra_qw=extra_qw,
+                            guard=self._guard, ws=self._ws)
+        except (ImplausibleInputError, ekf.RefusedStepError) as exc:
+            self._refuse(exc.reason, str(exc), stamp,
+                         f"odometry dt={dt!r} v={v!r} w={w!r}")
+            raise
+        self.gates.applied(stamp)
 
     def observe(self, *, ids: Any, ranges: Any, bearings: Any, stamp: float) -> ObserveReport:
         """Apply one observation batch, one observation at a time in message order.
 
         A known id updates, an unknown id is initialised (and not also used to update), id
         −1 is associated (:mod:`services.slam.association`). Malformed input (NaN, negative
-        range, ids < −1, mismatched lengths) raises EstimationError before anything changes.
+        range, ids < −1, mismatched lengths) raises EstimationError before anything changes,
+        and so does a batch outside a plausibility bound (:class:`ImplausibleInputError`).
+        A known id whose NIS is above ``innovation_gate_chi2`` is not applied (``gated``);
+        a step the guard refuses is skipped (``refused``), and if the guard refused every
+        observation of the batch, :class:`ekf.RefusedStepError` is raised (nothing changed).
         """
         id_list, range_list, bearing_list = self._check_batch(ids, ranges, bearings, stamp)
+        try:
+            self.gates.check_batch(
+                ranges=range_list, bearings=bearing_list, landmarks=self._n, stamp=stamp,
+                new_ids=len({i for i in id_list if i >= 0 and i not in self._index}))
+        except ImplausibleInputError as exc:
+            self._refuse(exc.reason, str(exc), stamp, self._describe_batch(
+                id_list, range_list, bearing_list))
+            raise
         observed: list[int] = []
         new: list[int] = []
         innovation_ids: list[int] = []
         innovations: list[tuple[float, float]] = []
         covariances: list[tuple[float, float, float, float]] = []
         assigned: list[int] = []
-        rejected = ambiguous = 0
+        gated: list[tuple[int, float, float, float]] = []
+        rejected = ambiguous = refused = 0
         for lid, z_r, z_b in zip(id_list, range_list, bearing_list, strict=True):
+            var_r = self._range_variance(z_r, z_b)
             if lid == -1:
                 decision = association.decide(association.mahalanobis_all(
                     self._x, self._L, self._n, z_range=z_r, z_bearing=z_b,
-                    var_range=self._var_r, var_bearing=self._var_b), self._gates)
+                    var_range=var_r, var_bearing=self._var_b), self._gates)
                 if decision.kind == association.AMBIGUOUS:
                     log.debug("anonymous observation (%.3f m, %.3f rad) ambiguous: d² = %.2f",
                               z_r, z_b, decision.d2)
@@ -159,17 +237,45 @@ class Estimator:
                     ambiguous += 1
                     assigned.append(-1)
                     continue
+                if decision.kind != association.MATCH and self.gates.map_full(self._n):
+                    self._refuse("map_size", f"the map holds {self._n} landmarks, the bound: "
+                                             "an anonymous observation was not mapped",
+                                 stamp, f"observation range={z_r!r} bearing={z_b!r}")
+                    rejected += 1
+                    assigned.append(-1)
+                    continue
                 lid = (self._ids[decision.index] if decision.kind == association.MATCH
                        else self._fresh_anonymous_id())
             j = self._index.get(lid)
             if j is None:
-                self._initialise(lid, z_r, z_b)
+                try:
+                    self._initialise(lid, z_r, z_b, var_r)
+                except ekf.RefusedStepError as exc:
+                    self._refuse(exc.reason, str(exc), stamp,
+                                 f"observation id={lid} range={z_r!r} bearing={z_b!r}")
+                    rejected += 1
+                    refused += 1
+                    assigned.append(-1)
+                    continue
                 new.append(lid)
             else:
                 try:
                     out = ekf.update(self._x, self._L, self._n, j, z_range=z_r, z_bearing=z_b,
-                                     var_range=self._var_r, var_bearing=self._var_b,
-                                     ws=self._ws)
+                                     var_range=var_r, var_bearing=self._var_b,
+                                     ws=self._ws, gate=self._gate, guard=self._guard)
+                except ekf.GatedObservationError as exc:
+                    self.gated += 1
+                    gated.append((lid, z_r, z_b, exc.nis))
+                    rejected += 1
+                    assigned.append(-1)
+                    continue
+                except ekf.RefusedStepError as exc:
+                    self._refuse(exc.reason, str(exc), stamp,
+                                 f"observation id={lid} range={z_r!r} bearing={z_b!r}")
+                    rejected += 1
+                    refused += 1
+                    assigned.append(-1)
+                    continue
                 except ekf.SingularInnovationError as exc:
                     self._log_refused(lid, exc)
                     rejected += 1
@@ -182,17 +288,28 @@ class Estimator:
             assigned.append(lid)
             if lid not in observed:
                 observed.append(lid)
+        if refused and refused == len(id_list):
+            raise ekf.RefusedStepError(
+                self.last_refusal.reason if self.last_refusal else "non-finite",
+                f"every observation of the batch ({refused}) was refused by the guard")
         fault = self._fault
         if (fault is not None and fault.kind == faults.MAP_UPDATE and innovation_ids
                 and fault.active(stamp)):
             faults.inflate_map_covariance(self._L, self._faulty_indices(), fault.magnitude)
+        self.gates.applied(stamp)
         k = len(innovation_ids)
+        g = len(gated)
         return ObserveReport(
             observed_ids=_frozen(observed, np.int64), new_ids=_frozen(new, np.int64),
             innovation_ids=_frozen(innovation_ids, np.int64),
             innovations=_frozen(innovations, np.float64, (k, 2)),
             innovation_covariances=_frozen(covariances, np.float64, (k, 2, 2)),
-            assigned_ids=_frozen(assigned, np.int64), rejected=rejected, ambiguous=ambiguous)
+            assigned_ids=_frozen(assigned, np.int64), rejected=rejected, ambiguous=ambiguous,
+            gated_ids=_frozen([e[0] for e in gated], np.int64) if g else None,
+            gated_observations=_frozen([e[1:3] for e in gated], np.float64, (g, 2))
+            if g else None,
+            gated_nis=_frozen([e[3] for e in gated], np.float64) if g else None,
+            refused=refused)
 
     def to_state(self, *, seq: int, stamp: float, step: str,
                  report: ObserveReport | None = None, epoch: int = 0,
@@ -210,10 +327,23 @@ class Estimator:
                 extra["innovation_ids"] = report.innovation_ids
                 extra["innovations"] = report.innovations
                 extra["innovation_covariances"] = report.innovation_covariances
+            if report.gated:
+                extra["gated_ids"] = report.gated_ids
+                extra["gated_observations"] = report.gated_observations
+                extra["gated_nis"] = report.gated_nis
         return SlamState(robot=self.settings.robot, seq=seq, stamp=stamp, step=step,
                          pose=self.pose, landmark_ids=self.landmark_ids,
                          landmarks=self.landmarks, covariance=cov, epoch=epoch,
-                         input_stamp=input_stamp, origin_stamp=origin_stamp, **extra)
+                         input_stamp=input_stamp, origin_stamp=origin_stamp,
+                         diagnostics=self.diagnostics(), **extra)
+
+    def diagnostics(self) -> dict[str, float]:
+        """Running counts published in every state (docs/protocol.md ``diagnostics``):
+        ``gated``, ``refused_updates`` (S not PD) and ``refused.<reason>`` per reason."""
+        out = {"gated": float(self.gated), "refused_updates": float(self.refused_updates)}
+        for reason, count in sorted(self.refusals.items()):
+            out[f"refused.{reason}"] = float(count)
+        return out
 
     # -- checkpoints -------------------------------------------------------------------
     @property
@@ -244,6 +374,14 @@ class Estimator:
         self._index = {lid: k for k, lid in enumerate(self._ids)}
         self._next_anonymous = (self.settings.anonymous_id_base if next_anonymous_id is None
                                 else int(next_anonymous_id))
+        self.gates.restore(None if state.step == "init" else
+                           float(state.input_stamp if state.input_stamp is not None
+                                 else state.stamp))
+        counts = state.diagnostics or {}
+        self.gated = int(counts.get("gated", 0))
+        self.refused_updates = int(counts.get("refused_updates", 0))
+        self.refusals = Counter({k.partition(".")[2]: int(v) for k, v in counts.items()
+                                 if k.startswith("refused.")})
 
     # -- internals ---------------------------------------------------------------------
     @staticmethod
@@ -273,6 +411,27 @@ class Estimator:
                 raise EstimationError(f"ids must be ≥ −1, got {min(id_list)}")
         return id_list, range_list, bearing_list
 
+    def _range_variance(self, z_range: float, z_bearing: float) -> float:
+        """σr² (SPEC §4), plus the opt-in terms (k·r)² and (k·r·φ²)² when configured."""
+        var = self._var_r
+        if self._q_range:
+            var += self._q_range * z_range * z_range
+        if self._q_off_axis:
+            off = z_range * z_bearing * z_bearing
+            var += self._q_off_axis * off * off
+        return var
+
+    def _refuse(self, reason: str, detail: str, stamp: float, what: str) -> None:
+        self.refusals[reason] += 1
+        self.last_refusal = Refusal(reason=reason, detail=detail, stamp=stamp, input=what)
+
+    @staticmethod
+    def _describe_batch(ids: list[int], ranges: list[float], bearings: list[float]) -> str:
+        head = ", ".join(f"{i}:({r:.6g} m, {b:.6g} rad)"
+                         for i, r, b in zip(ids[:3], ranges[:3], bearings[:3], strict=True))
+        more = f" … ({len(ids)} in all)" if len(ids) > 3 else ""
+        return f"observations [{head}{more}]"
+
     def _log_refused(self, lid: int, exc: Exception) -> None:
         self.refused_updates += 1
         count = self.refused_updates
@@ -286,10 +445,11 @@ class Estimator:
         self._next_anonymous += 1
         return lid
 
-    def _initialise(self, lid: int, z_range: float, z_bearing: float) -> None:
+    def _initialise(self, lid: int, z_range: float, z_bearing: float, var_range: float) -> None:
         self._ensure_capacity(self._n + 1)
         ekf.initialise(self._x, self._L, self._n, z_range=z_range, z_bearing=z_bearing,
-                       var_range=self._var_r, var_bearing=self._var_b, ws=self._ws)
+                       var_range=var_range, var_bearing=self._var_b, ws=self._ws,
+                       guard=self._guard)
         self._index[lid] = self._n
         self._ids.append(lid)
         self._n += 1

@@ -31,8 +31,10 @@ from common.errors import EstimationError, MessageError
 from common.keys import Keys
 from common.messages import Observations, Odometry, SlamState
 from services.slam import checkpoint as ckpt
+from services.slam.ekf import RefusedStepError
 from services.slam.estimator import Estimator
 from services.slam.input_order import Input, InputOrder
+from services.slam.plausibility import ImplausibleInputError
 from services.slam.settings import EstimatorSettings
 
 log = logging.getLogger("slamlens.estimator")
@@ -48,7 +50,7 @@ class EstimatorStats:
     observation_batches: int = 0
     states: int = 0
     foreign_robot: int = 0
-    refused: int = 0  #: inputs the estimator refused (NaN, dt < 0 …)
+    refused: int = 0  #: inputs the estimator refused, whatever the reason (no state for them)
 
 
 def _warm_up(settings: EstimatorSettings) -> None:
@@ -90,6 +92,7 @@ class EstimatorService:
                                 reorder_s=settings.input_reorder_s)
         self._seq = 0
         self._input_stamp = 0.0
+        self._said: set[str] = set()  #: refusal reasons already logged (once each)
         self._origin_stamp: float | None = None  #: when the robot stood at the map origin
         self._lock = threading.Lock()
         self._writer: ckpt.CheckpointWriter | None = None
@@ -217,10 +220,23 @@ class EstimatorService:
                 self._origin_stamp = message.stamp
             self.stats.observation_batches += 1
             return self._publish(stamp=message.stamp, step="update", report=report)
+        except (ImplausibleInputError, RefusedStepError) as exc:
+            self.stats.refused += 1
+            self._say_refused(item.leaf, exc.reason, str(exc))
         except EstimationError as exc:  # the estimator refused the input (NaN, bad control…)
             self.stats.refused += 1
             self.drops.drop(item.leaf, f"refused: {exc}")
         return None
+
+    def _say_refused(self, leaf: str, reason: str, detail: str) -> None:
+        """One log line per reason (the rest are counted: ``status()``, the final line)."""
+        if reason in self._said:
+            return
+        self._said.add(reason)
+        last = self.estimator.last_refusal
+        what = f" (the input: {last.input} at stamp {last.stamp!r})" if last else ""
+        log.warning("refused %s (%s): %s%s; further %s refusals are counted, not logged",
+                    leaf, reason, detail, what, reason)
 
     def _publish(self, *, stamp: float, step: str, report: object) -> SlamState:
         self._seq += 1
@@ -261,10 +277,13 @@ class EstimatorService:
 
     def status_line(self) -> str:
         o = self.order.stats
+        refused = ", ".join(f"{k} {v}" for k, v in sorted(self.estimator.refusals.items()))
         return (f"epoch {self.epoch} seq {self._seq}, {self.estimator.n} landmarks, "
                 f"{self.stats.odometry} odometry + {self.stats.observation_batches} "
                 f"observation batches applied, backlog {self._inputs.backlog}, "
-                f"{o.duplicates} duplicates, {o.lost} lost, {self.drops.total} dropped")
+                f"{o.duplicates} duplicates, {o.lost} lost, {self.drops.total} dropped, "
+                f"{self.stats.refused} refused{f' ({refused})' if refused else ''}, "
+                f"{self.estimator.gated} gated")
 
     def run(self, stop: threading.Event, *, status_every_s: float = 10.0) -> None:
         """Apply events until ``stop`` is set, then write a last checkpoint."""
@@ -281,7 +300,22 @@ class EstimatorService:
 
     def summary(self) -> dict[str, object]:
         """What the service did (the final line at exit)."""
-        return {"epoch": self.epoch, "seq": self._seq, "landmarks": self.estimator.n,
+        est = self.estimator
+        return {"epoch": self.epoch, "seq": self._seq, "landmarks": est.n,
                 "resumed": self.resumed, **dataclasses.asdict(self.stats),
+                "refused_by": dict(sorted(est.refusals.items())), "gated": est.gated,
                 "duplicates": self.order.stats.duplicates, "lost": self.order.stats.lost,
                 "dropped": self.drops.total}
+
+    def status(self) -> dict[str, object]:
+        """What ``slamlens status`` (or anyone) can read about this estimator: the
+        :meth:`summary` plus the inputs refused by reason, the last refusal and the
+        plausibility bounds in force. Thread-safe to call from another thread (a snapshot
+        of counters; plain reads)."""
+        est = self.estimator
+        last = est.last_refusal
+        bounds = dataclasses.asdict(est.gates.bounds)
+        return {**self.summary(), "input_stamp": self._input_stamp,
+                "refused_updates": est.refused_updates, "stamp_resyncs": est.gates.resyncs,
+                "last_refused": None if last is None else dataclasses.asdict(last),
+                "bounds": bounds}

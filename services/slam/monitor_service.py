@@ -59,6 +59,8 @@ class MonitorService:
         self._sample_above = int(settings.sample_above_mb * 2 ** 20)
         self._position: tuple[int, int] | None = None  #: (epoch, seq) of the last state
         self.verdict = ""  #: the latest Health's verdict ("" before the first state)
+        self.verdict_states = {v: 0 for v in WORDS}  #: states checked under each verdict
+        self.fault_seen = False  #: the verdict was "fault" at some point
         self._latest: bytes | None = None
         self._lock = threading.Lock()
         self._said_behind = 0.0
@@ -111,12 +113,16 @@ class MonitorService:
         self._position = (state.epoch, state.seq)
         health = self.monitor.check(state, extra_statistics=self._service_statistics())
         self.checked += 1
+        self.verdict_states[health.verdict] += 1
         if health.verdict != self.verdict:
+            standing = sorted({v.kind for v in health.standing})
             log.log(logging.INFO if health.verdict == "ok" else logging.WARNING,
-                    "verdict %s at seq %d%s", WORDS[health.verdict].upper(), health.seq,
-                        f", suspects {[int(i) for i in health.suspects]}"
-                        if health.suspects.size else "")
+                    "verdict %s at seq %d%s%s", WORDS[health.verdict].upper(), health.seq,
+                    f" ({', '.join(standing)} standing)" if standing else "",
+                    f", suspects {[int(i) for i in health.suspects]}"
+                    if health.suspects.size else "")
             self.verdict = health.verdict
+            self.fault_seen |= health.verdict == "fault"
         if not health.ok:
             self.violations += len(health.violations)
             if self.violations == len(health.violations):
@@ -179,7 +185,10 @@ class MonitorService:
 
     def summary(self) -> dict[str, object]:
         s = self.monitor.summary
-        return {"verdict": self.verdict or "none", "checked": self.checked,
+        return {"verdict": self.verdict or "none",
+                "verdict_words": WORDS[self.verdict] if self.verdict else "no state checked",
+                "states_by_verdict": dict(self.verdict_states),
+                "estimator_fault_seen": self.fault_seen, "checked": self.checked,
                 "violations": self.violations,
                 "suspects": [int(i) for i in s.suspects], "lost": self._inputs.lost,
                 "sampled_out": self.sampled_out,

@@ -148,6 +148,27 @@ class MrclamRun:
         return np.array([a[1] + f * (b[1] - a[1]), a[2] + f * (b[2] - a[2]),
                          float(wrap_angle(a[3] + f * dtheta))])
 
+    def origin_time(self, start: float | None = None) -> float:
+        """The map origin's time for ``events(start, …)``: the first odometry sample whose
+        step lies in the window (s, dataset time)."""
+        odo = self.odometry
+        t_lo = self.t0 + (0.0 if start is None else start)
+        first = np.nonzero(odo[:-1, 0] >= t_lo)[0]
+        return float(odo[first[0], 0]) if first.size else t_lo
+
+    def truth_in_map_frame(self, start: float | None = None) -> tuple[np.ndarray, np.ndarray,
+                                                                      np.ndarray]:
+        """Ground truth in the map frame of ``events(start, …)``: (stamps [G], poses [G, 3],
+        landmarks [L, 2] in ``landmark_ids`` order); empty if there is none at the origin."""
+        origin_t = self.origin_time(start)
+        origin = self.pose_at(origin_t)
+        if origin is None:
+            return np.zeros(0), np.zeros((0, 3)), np.zeros((0, 2))
+        gt = self.groundtruth[self.groundtruth[:, 0] > origin_t]
+        poses, landmarks = to_map_frame(origin, np.vstack([origin, gt[:, 1:]]),
+                                        self.landmarks_world)
+        return np.r_[origin_t, gt[:, 0]], np.array(poses), np.array(landmarks)
+
     def events(self, start: float | None = None, end: float | None = None, *,
                truth: bool = True) -> Iterator[Odometry | Observations | Truth]:
         """Time-ordered messages for the window [t0 + start, t0 + end] (seconds after t0).
@@ -178,7 +199,7 @@ class MrclamRun:
         if origin is not None:
             # a Truth at the origin itself first (pose 0, 0, 0), then every sample after it
             gt_w = gt[(gt[:, 0] > origin_t) & (gt[:, 0] <= t_hi)]
-            poses_map, landmarks_map = _to_map_frame(
+            poses_map, landmarks_map = to_map_frame(
                 origin, np.vstack([origin, gt_w[:, 1:]]), self.landmarks_world)
             gt_stamps = np.r_[origin_t, gt_w[:, 0]]
         else:
@@ -217,7 +238,7 @@ class MrclamRun:
                                    bearings=bearings_all[a:b])
 
 
-def _to_map_frame(origin: np.ndarray, poses_world: np.ndarray,
+def to_map_frame(origin: np.ndarray, poses_world: np.ndarray,
                   landmarks_world: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Poses [G,3] and landmarks [L,2] in the frame of the world pose ``origin``."""
     x0, y0, th0 = origin
@@ -241,31 +262,38 @@ def available_robots(folder: str | Path) -> list[int]:
 
 
 def load_mrclam(folder: str | Path, robot: int = 1, *,
-                robot_name: str | None = None) -> MrclamRun:
+                robot_name: str | None = None,
+                truth_folder: str | Path | None = None) -> MrclamRun:
     """Parse robot ``robot``'s files of an MRCLAM folder (see the module docstring).
 
-    ``robot_name`` is the name put in the messages (default ``robot{robot}``).
+    ``robot_name`` is the name put in the messages (default ``robot{robot}``);
+    ``truth_folder`` holds ``Robot{k}_Groundtruth.dat`` and ``Landmark_Groundtruth.dat``
+    if they are not in ``folder`` (default: ``folder``).
     """
     folder = Path(folder)
     if not folder.is_dir():
         raise SourceError(f"MRCLAM folder {folder} does not exist")
+    truth_dir = folder if truth_folder is None else Path(truth_folder)
+    if not truth_dir.is_dir():
+        raise SourceError(f"MRCLAM ground-truth folder {truth_dir} does not exist")
     prefix = folder / f"Robot{robot}"
     if not Path(f"{prefix}_Odometry.dat").is_file():
         raise SourceError(f"MRCLAM folder {folder}: no Robot{robot}_Odometry.dat; robots "
                           f"present: {available_robots(folder) or 'none'}")
     bad: dict[str, _BadLines] = {}
 
-    def read(filename: str, columns: int, check: RowCheck | None = None) -> np.ndarray:
+    def read(filename: str, columns: int, check: RowCheck | None = None, *,
+             where: Path = folder) -> np.ndarray:
         bad[filename] = _BadLines()
-        return _read_table(folder / filename, columns, bad[filename], check=check)
+        return _read_table(where / filename, columns, bad[filename], check=check)
 
     def is_int(v: float) -> bool:
         return v == int(v)
 
     barcodes = read("Barcodes.dat", 2, lambda r: is_int(r[0]) and is_int(r[1]))
-    landmarks = read("Landmark_Groundtruth.dat", 5, lambda r: is_int(r[0]))
+    landmarks = read("Landmark_Groundtruth.dat", 5, lambda r: is_int(r[0]), where=truth_dir)
     odometry = _sorted_by_time(read(f"Robot{robot}_Odometry.dat", 3))
-    groundtruth = _sorted_by_time(read(f"Robot{robot}_Groundtruth.dat", 4))
+    groundtruth = _sorted_by_time(read(f"Robot{robot}_Groundtruth.dat", 4, where=truth_dir))
     raw_meas = _sorted_by_time(read(f"Robot{robot}_Measurement.dat", 4,
                                     lambda r: is_int(r[1]) and r[2] >= 0))
     if odometry.shape[0] < 2:

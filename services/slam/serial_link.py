@@ -40,6 +40,21 @@ Message = Odometry | Observations
 
 MAX_LINE_BYTES = 4096  #: longer lines are dropped (≈ 130 observations per batch at most)
 
+#: Every parsed field must lie in its range (inclusive), else the record is dropped
+#: (``out_of_range``). These are representation bounds, far beyond any real robot: a value
+#: outside is a corrupted line whose checksum happened to match, or a firmware bug. What is
+#: plausible for the robot is the estimator's plausibility gates' business (finer, and
+#: configurable: docs/estimator.md).
+FIELD_RANGES: dict[str, tuple[float, float]] = {
+    "stamp": (0.0, 1e11),  # s: robot clock, ≈ 3000 years
+    "dt": (0.0, 1e5),  # s
+    "v": (-1e3, 1e3),  # m/s
+    "w": (-1e3, 1e3),  # rad/s
+    "id": (-1, 2 ** 63 - 1),  # int64; −1 = unknown
+    "range": (0.0, 1e6),  # m
+    "bearing": (-1e3, 1e3),  # rad
+}
+
 
 def checksum(body: bytes) -> str:
     """XOR of ``body``'s bytes as two upper-case hex digits."""
@@ -86,6 +101,7 @@ class SerialStats:
     non_finite: int = 0  #: NaN or infinity in a field
     bad_count: int = 0  #: ``$Z`` whose k does not match its fields
     invalid: int = 0  #: negative dt or range, id below −1
+    out_of_range: int = 0  #: a field outside FIELD_RANGES (an id beyond int64, 1e308 …)
     unknown_type: int = 0  #: record types other than O and Z
     overflow: int = 0  #: lines longer than the maximum, dropped
     partial: int = 0  #: unfinished lines thrown away by ``reset`` (reconnects)
@@ -94,7 +110,8 @@ class SerialStats:
     def dropped(self) -> int:
         """Records (or lines) rejected, whatever the reason."""
         return (self.bad_checksum + self.malformed + self.non_finite + self.bad_count
-                + self.invalid + self.unknown_type + self.overflow + self.partial)
+                + self.invalid + self.out_of_range + self.unknown_type + self.overflow
+                + self.partial)
 
     def as_dict(self) -> dict[str, int]:
         return {f.name: getattr(self, f.name) for f in fields(self)}
@@ -108,21 +125,36 @@ class _Reject(SlamlensError):
         self.reason = reason
 
 
-def _float(text: str) -> float:
+def _float(text: str, name: str = "") -> float:
     try:
         value = float(text)
     except ValueError:
         raise _Reject("malformed", f"not a number: {text[:20]!r}") from None
     if not math.isfinite(value):
         raise _Reject("non_finite", f"non-finite value {text!r}")
+    if name:
+        _check_range(name, value)
     return value
 
 
-def _int(text: str) -> int:
+def _int(text: str, name: str = "") -> int:
+    if len(text) > 24:  # int() of a huge digit string is slow and no field needs one
+        raise _Reject("out_of_range" if text.lstrip("+-").isdigit() else "malformed",
+                      f"integer of {len(text)} characters")
     try:
-        return int(text)
+        value = int(text)
     except ValueError:
         raise _Reject("malformed", f"not an integer: {text[:20]!r}") from None
+    if name:
+        _check_range(name, value)
+    return value
+
+
+def _check_range(name: str, value: float) -> None:
+    lo, hi = FIELD_RANGES[name]
+    if not lo <= value <= hi:
+        raise _Reject("out_of_range" if name != "id" or value > hi else "invalid",
+                      f"{name} {value!r} outside [{lo:g}, {hi:g}]")
 
 
 class SerialParser:
@@ -198,6 +230,8 @@ class SerialParser:
             self._drop(exc.reason, str(exc))
         except MessageError as exc:  # anything the message's own validation still refuses
             self._drop("invalid", str(exc))
+        except (ValueError, OverflowError, TypeError) as exc:  # never raise (docs/drivers.md)
+            self._drop("malformed", f"{type(exc).__name__}: {exc}")
         return None
 
     def _record(self, parts: list[str]) -> Message:
@@ -205,23 +239,30 @@ class SerialParser:
         if kind == "O":
             if len(parts) != 5:
                 raise _Reject("malformed", f"$O has {len(parts) - 1} fields, expected 4")
-            stamp, dt, v, w = (_float(p) for p in parts[1:])
-            if dt < 0:
-                raise _Reject("invalid", f"negative dt {dt}")
+            if _float(parts[2]) < 0:
+                raise _Reject("invalid", f"negative dt {parts[2]}")
+            stamp, dt, v, w = (_float(p, name) for p, name in
+                               zip(parts[1:], ("stamp", "dt", "v", "w"), strict=True))
             self.stats.odometry += 1
             return Odometry(robot=self.robot, stamp=stamp, dt=dt, v=v, w=w)
         if kind == "Z":
             if len(parts) < 3:
                 raise _Reject("malformed", "$Z without stamp and count")
-            stamp, k = _float(parts[1]), _int(parts[2])
+            stamp, k = _float(parts[1], "stamp"), _int(parts[2])
             if k < 0 or len(parts) != 3 + 3 * k:
                 raise _Reject("bad_count", f"k = {k} but {len(parts) - 3} fields follow")
             triples = parts[3:]
-            ids = np.array([_int(p) for p in triples[0::3]], dtype=np.int64)
-            ranges = np.array([_float(p) for p in triples[1::3]])
-            bearings = np.array([_float(p) for p in triples[2::3]])
-            if np.any(ids < -1) or np.any(ranges < 0):
+            id_list = [_int(p) for p in triples[0::3]]
+            range_list = [_float(p) for p in triples[1::3]]
+            if any(i < -1 for i in id_list) or any(r < 0 for r in range_list):
                 raise _Reject("invalid", "id below −1 or negative range")
+            for i in id_list:
+                _check_range("id", i)
+            for r in range_list:
+                _check_range("range", r)
+            ids = np.array(id_list, dtype=np.int64)
+            ranges = np.array(range_list)
+            bearings = np.array([_float(p, "bearing") for p in triples[2::3]])
             self.stats.observations += 1
             return Observations(robot=self.robot, stamp=stamp, ids=ids, ranges=ranges,
                                 bearings=bearings)

@@ -22,6 +22,11 @@ def _robot() -> str:
     return setting("robot1", doc="robot name, a key segment")
 
 
+def _progress() -> str:
+    return setting("auto", doc="progress bar on stderr (data time, × real time, time left): "
+                               "auto = only on a terminal", choices=("auto", "on", "off"))
+
+
 # ------------------------------------------------------------------------------ drivers
 
 
@@ -50,6 +55,7 @@ class SimSettings:
         0.0, doc="stand at the start pose (truth repeated at 10 Hz) before moving, so that a "
                  "camera can register the map frame there (paper §3.1)", unit="s", min=0.0,
         flag="--hold", metavar="SECONDS")
+    progress: str = _progress()
 
     def __post_init__(self) -> None:
         robots = self.robots()
@@ -94,6 +100,7 @@ class ReplaySettings:
         flag="--no-wait")
     wait_timeout_s: float = setting(60.0, doc="give up waiting for the estimator after this",
                                     unit="s", min=0.0)
+    progress: str = _progress()
 
     def __post_init__(self) -> None:
         if self.robots and self.robots != "all":
@@ -107,6 +114,32 @@ class ReplaySettings:
 
 
 @dataclass(frozen=True)
+class TuneSettings:
+    """``slamlens tune``: noise settings fitted to runs with ground truth, as an estimator
+    settings TOML (docs/estimator.md, "Tuning on real data")."""
+
+    path: str = setting("", doc="dataset folder (e.g. ../shared/data/mrclam6)",
+                        positional=True, required=True, metavar="RUN")
+    truth: str = setting("", doc="folder with the ground truth (MRCLAM Robot{k}_Groundtruth.dat"
+                                 " and Landmark_Groundtruth.dat); empty = the run's folder",
+                         metavar="DIR")
+    format: str = setting("mrclam", doc="dataset format", choices=("mrclam",))
+    robot_index: tuple[int, ...] = setting(
+        (1,), doc="robots of the dataset to fit together (one profile for all of them)",
+        metavar="K,K")
+    motion_model: str = setting(
+        "spec", doc="odometry noise to fit: spec = SPEC §4's σv, σω; distance = the opt-in "
+                    "terms growing with distance and turn instead (not SPEC §4)",
+        choices=("spec", "distance"))
+    gate_chi2: float = setting(13.82, doc="innovation gate written into the profile (χ²₂ "
+                                          "99.9 %); 0 = none", min=0.0)
+    output: str = setting("", doc="settings TOML to write; empty = print it", short="-o",
+                          metavar="FILE.toml")
+    progress: str = _progress()
+
+
+
+@dataclass(frozen=True)
 class SerialSettings:
     """``slamlens serial``: a real robot on a serial line (wire protocol: docs/drivers.md)."""
 
@@ -117,6 +150,10 @@ class SerialSettings:
 
 
 # ---------------------------------------------------------------------------- estimator
+
+_MOTION = "estimator: opt-in noise terms (not SPEC §4; 0 = off)"
+_GATES = "estimator: innovation gate and guard"
+_PLAUSIBLE = "estimator: plausibility gates (0 = no bound)"
 
 
 @dataclass(frozen=True)
@@ -158,6 +195,61 @@ class EstimatorSettings:
                                           "start)", unit="s")
     publish_innovations: bool = setting(
         True, doc="put each update's innovations and S into the state (the monitor's NIS)")
+    # -- opt-in motion noise (not SPEC §4; all 0 = the SPEC §4 model exactly) ------------
+    sigma_distance: float = setting(
+        0.0, doc="opt-in, not SPEC §4: along-track noise growing with the distance driven, "
+                 "σ after 1 m (variance σ²·|v·dt| per step, whatever the odometry rate)",
+        unit="m/√m", min=0.0, group=_MOTION)
+    sigma_turn: float = setting(
+        0.0, doc="opt-in: heading noise growing with the angle turned, σ after 1 rad "
+                 "(variance σ²·|ω·dt| per step)", unit="rad/√rad", min=0.0, group=_MOTION)
+    sigma_heading_per_distance: float = setting(
+        0.0, doc="opt-in: heading noise growing with the distance driven, σ after 1 m "
+                 "(variance σ²·|v·dt| per step)", unit="rad/√m", min=0.0, group=_MOTION)
+    sigma_range_per_m: float = setting(
+        0.0, doc="opt-in, not SPEC §4: range noise growing with the range measured: "
+                 "variance σr² + (k·r)²", unit="m/m", min=0.0, group=_MOTION)
+    sigma_range_off_axis: float = setting(
+        0.0, doc="opt-in: range noise growing with the range and the bearing off the sensor's "
+                 "axis: variance + (k·r·φ²)² (a camera that ranges by a marker's apparent size; "
+                 "docs/estimator.md)", unit="1/rad²", min=0.0, group=_MOTION)
+    # -- innovation gate and the filter's guard ------------------------------------------
+    innovation_gate_chi2: float = setting(
+        0.0, doc="known ids: an observation whose NIS νᵀS⁻¹ν is above this is not applied "
+                 "(counted, published in the state's gated_* fields), e.g. 13.82 = χ²₂ 99.9 %; "
+                 "0 = no gate (the default: on a mistuned filter a gate refuses the very "
+                 "observations that would correct it, docs/estimator.md)", min=0.0,
+        group=_GATES)
+    guard_rtol: float = setting(
+        1e-9, doc="the filter's guard: a step that would make the state non-finite or take a "
+                  "variance below −guard_rtol × its value is refused (off for planted "
+                  "faults, which break PSD on purpose)", min=0.0, group=_GATES)
+    # -- plausibility gates (issue 14): an input outside is refused whole; 0 = no bound --
+    max_dt_s: float = setting(10.0, doc="odometry dt above this is refused", unit="s",
+                              min=0.0, group=_PLAUSIBLE)
+    max_speed: float = setting(10.0, doc="odometry |v| above this is refused", unit="m/s",
+                               min=0.0, group=_PLAUSIBLE)
+    max_turn_rate: float = setting(10.0, doc="odometry |ω| above this is refused",
+                                   unit="rad/s", min=0.0, group=_PLAUSIBLE)
+    max_range: float = setting(100.0, doc="a batch with a range above this is refused",
+                               unit="m", min=0.0, group=_PLAUSIBLE)
+    max_abs_bearing: float = setting(
+        2 * math.pi, doc="a batch with a |bearing| above this is refused (one turn: an "
+                         "unwrapped angle is still an angle, 1e6 rad is not)", unit="rad",
+        min=0.0, group=_PLAUSIBLE)
+    max_stamp_jump_s: float = setting(
+        60.0, doc="an input stamped further than this (either way) from the newest input "
+                  "applied is refused …", unit="s", min=0.0, group=_PLAUSIBLE)
+    stamp_resync: int = setting(
+        20, doc="… until this many in a row, each within max_stamp_jump_s of the one "
+                "before, say the clock really jumped: then it is followed; 0 = never",
+        min=0, group=_PLAUSIBLE)
+    max_batch: int = setting(500, doc="a batch with more observations than this is refused",
+                             min=0, group=_PLAUSIBLE)
+    max_landmarks: int = setting(
+        2000, doc="a batch whose new ids would grow the map beyond this is refused (an "
+                  "anonymous observation that would start one is not applied)", min=0,
+        group=_PLAUSIBLE)
     # -- delivery (SPEC §7a; the service, not the filter) --------------------------------
     checkpoint: str = setting(
         "", doc="crash recovery: save the map in DIR (atomically, at least once a second and "

@@ -34,6 +34,7 @@ from services.slam.settings import (
     ReplaySettings,
     SerialSettings,
     SimSettings,
+    TuneSettings,
 )
 from services.visualiser.settings import ViewerConfig, ViewSettings
 from tests.procs import REPO
@@ -74,6 +75,8 @@ LEGACY_FLAGS = {
              "--log-dir", "--loops", "--no-camera", "--prefix", "--quiet", "--rate", "--robot",
              "--seed", "--verbose", "--zenoh-config"],
     "certs": ["--host", "--name", "--quiet", "--verbose"],  # SPEC §7b, §9
+    "tune": ["--config", "--gate-chi2", "--motion-model", "--output", "--quiet",
+             "--robot-index", "--truth", "--verbose", "-o"],  # SPEC §9 (issue 11)
     "record": ["--robot", "--camera", "--keys", "--mode", "--cluster-threshold", "--connect",
                "--config", "--quiet", "--verbose"],  # SPEC §9, issue 12
     "play": ["--rate", "--start", "--end", "--loop", "--inputs-only", "--connect", "--config",
@@ -183,13 +186,14 @@ def test_no_flags_give_the_documented_defaults(command: str) -> None:
     cls = COMMANDS[command].settings_class()
     required = {"replay": ["p"], "calibrate": ["a.jpg", "-o", "c.yml"],
                 "serial": ["--port", "loop://"], "certs": ["pki", "--name", "robot-r1"],
-                "record": ["a.mcap"], "play": ["a.mcap"],
+                "tune": ["p"], "record": ["a.mcap"], "play": ["a.mcap"],
                 "launch": ["robot.toml"], "register": ["--camera", "c"]}.get(command, [])
     given = settings_from_args(cls, _parse(command, *required))
     expected = {"replay": ReplaySettings(path="p"),
                 "calibrate": CalibrateSettings(images=("a.jpg",), output="c.yml"),
                 "serial": SerialSettings(port="loop://"),
                 "certs": CertsSettings(directory="pki", names=("robot-r1",)),
+                "tune": TuneSettings(path="p"),
                 "record": RecordSettings(path="a.mcap"),
                 "play": PlaySettings(path="a.mcap"),
                 "launch": LaunchSettings(file="robot.toml"),

@@ -1,0 +1,167 @@
+"""UTIAS MRCLAM through the real processes (issue 11's acceptance), for tests and benchmarks.
+
+``run_pipeline`` starts a router, ``slamlens estimator --config deploy/mrclam.toml``,
+``slamlens monitor`` and ``slamlens replay --rate 0`` as separate processes on a free
+loopback port, receives every state (a recovering subscriber) and every Health, scores the
+states against the dataset's ground truth (:class:`services.slam.tuning.Scorer`, truth
+interpolated at each state's stamp) and returns the figures with the services' final lines.
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from common.keys import Keys
+from common.messages import Health, SlamState
+from common.session import BusSettings, free_tcp_endpoint, open_bus
+from services.slam.mrclam import load_mrclam
+from services.slam.tuning import Evaluation, Scorer, TruthTrack, dead_reckoning_track
+from tests.procs import REPO, spawn, stop
+
+DATA = REPO.parent / "shared" / "data" / "mrclam6"
+PROFILE = REPO / "deploy" / "mrclam.toml"
+
+
+@dataclass
+class PipelineResult:
+    evaluation: Evaluation
+    states: int  #: states of inputs received (the init state, published at start-up, not counted)
+    last_seq: int
+    verdicts: dict[str, int]  #: Health verdicts received, by verdict
+    fault_healths: list[dict] = field(default_factory=list)  #: a few "fault" ones, if any
+    estimator: dict = field(default_factory=dict)  #: its final line
+    monitor: dict = field(default_factory=dict)  #: its final line
+    replay_line: str = ""
+    monitor_log: str = ""  #: its stderr
+    monitor_out: str = ""  #: its stdout (the verdict in words, the final line)
+    wall_s: float = 0.0
+
+
+class _Collector:
+    """Receives every state and Health of one robot; scores states as they come."""
+
+    def __init__(self, endpoint: str, robot: str, truth: TruthTrack,
+                 dead: TruthTrack) -> None:
+        self.bus = open_bus(BusSettings(connect=(endpoint,)))
+        keys = Keys()
+        self.scorer = Scorer(truth, robot=robot, dead_reckoning=dead)
+        self.states = self.bus.channel(keys.state(robot), recover=True)
+        self.healths = self.bus.channel(keys.health(robot), recover=True)
+        self.count = 0
+        self.last: SlamState | None = None
+        self.verdicts: dict[str, int] = {}
+        self.faults: list[dict] = []
+        self.healths_of_inputs = 0
+        self.errors: list[str] = []
+        self._stop = threading.Event()
+        self._threads = [threading.Thread(target=self._read_states, daemon=True),
+                         threading.Thread(target=self._read_healths, daemon=True)]
+        for t in self._threads:
+            t.start()
+
+    def _read_states(self) -> None:
+        while not self._stop.is_set():
+            sample = self.states.recv(timeout=0.2)
+            if sample is None:
+                continue
+            try:
+                state = SlamState.from_bytes(sample.payload)
+            except Exception as exc:  # noqa: BLE001 - a test must see it, not die silently
+                self.errors.append(repr(exc))
+                continue
+            self.last = state
+            if state.step != "init":
+                self.count += 1
+                self.scorer.add_state(state)
+
+    def _read_healths(self) -> None:
+        while not self._stop.is_set():
+            sample = self.healths.recv(timeout=0.2)
+            if sample is None:
+                continue
+            health = Health.from_bytes(sample.payload)
+            self.verdicts[health.verdict] = self.verdicts.get(health.verdict, 0) + 1
+            self.healths_of_inputs += health.seq > 0
+            if health.verdict == "fault" and len(self.faults) < 5:
+                self.faults.append({"seq": health.seq, "standing": [
+                    v.to_dict() for v in health.standing[:5]]})
+
+    def settle(self, seq: int, timeout_s: float = 120.0) -> bool:
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            if self.last is not None and self.last.seq >= seq and self.states.backlog == 0:
+                return True
+            time.sleep(0.05)
+        return False
+
+    def close(self) -> None:
+        self._stop.set()
+        for t in self._threads:
+            t.join(5)
+        self.bus.close()
+
+
+def _final(out: str, name: str) -> dict:
+    for line in reversed(out.splitlines()):
+        if line.startswith(f"{name} stopped: "):
+            return json.loads(line.split(": ", 1)[1])
+    raise AssertionError(f"no final line from {name}:\n{out[-2000:]}")
+
+
+def run_pipeline(robot_index: int, *, profile: Path = PROFILE, data: Path = DATA,
+                 timeout_s: float = 900.0) -> PipelineResult:
+    robot = f"robot{robot_index}"
+    run = load_mrclam(data, robot_index, robot_name=robot)
+    truth = TruthTrack.from_mrclam(run)
+    endpoint = free_tcp_endpoint()
+    env = {"OPENBLAS_NUM_THREADS": "1"}
+    router = spawn("router", "--listen", endpoint)
+    procs = [router]
+    collector = None
+    try:
+        router.wait_for_line("router ready", timeout=30)
+        est = spawn("estimator", "--config", str(profile), "--robot", robot, "--connect",
+                    endpoint, env=env)
+        procs.append(est)
+        mon = spawn("monitor", "--robot", robot, "--connect", endpoint, env=env)
+        procs.append(mon)
+        est.wait_for_line("estimator ready", timeout=60)
+        mon.wait_for_line("monitor ready", timeout=60)
+        collector = _Collector(endpoint, robot, truth, dead_reckoning_track(run))
+        started = time.monotonic()
+        replay = spawn("replay", str(data), "--robot", robot, "--robot-index",
+                       str(robot_index), "--rate", "0", "--connect", endpoint)
+        procs.append(replay)
+        replay_line = replay.wait_for_line("replay done", timeout=timeout_s)
+        replay.wait(30)
+        est_out, _ = stop(est)
+        estimator = _final(est_out, "estimator")
+        assert collector.settle(int(estimator["seq"])), (
+            f"received up to seq {collector.last.seq if collector.last else None}, the "
+            f"estimator published {estimator['seq']}")
+        # the monitor has checked everything when it has seen the last state
+        deadline = time.monotonic() + 120
+        while time.monotonic() < deadline and collector.healths_of_inputs < collector.count:
+            time.sleep(0.1)
+        wall = time.monotonic() - started
+        mon_out, mon_err = stop(mon)
+        monitor = _final(mon_out, "monitor")
+        last = collector.last
+        assert last is not None
+        evaluation = collector.scorer.finish(last.landmark_ids, last.landmarks,
+                                             dict(last.diagnostics or {}))
+        return PipelineResult(
+            evaluation=evaluation, states=collector.count, last_seq=last.seq,
+            verdicts=dict(collector.verdicts), fault_healths=collector.faults,
+            estimator=estimator, monitor=monitor, replay_line=replay_line.strip(),
+            monitor_log=mon_err, monitor_out=mon_out, wall_s=wall)
+    finally:
+        if collector is not None:
+            collector.close()
+        for p in reversed(procs):
+            if p.poll() is None:
+                stop(p)

@@ -1,0 +1,131 @@
+"""``slamlens tune`` and its figures: the robust fit recovers known noise, the truth and NEES
+helpers against hand computations, and a tune of the real MRCLAM excerpt writes a profile
+the estimator loads (tests/fixtures/mrclam_small, 60 s of dataset 6, robot 1)."""
+
+from __future__ import annotations
+
+import math
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from common.config import load_settings
+from services.slam import tuning
+from services.slam.mrclam import load_mrclam
+from services.slam.settings import EstimatorSettings
+from tests.procs import REPO, spawn
+
+SMALL = REPO / "tests" / "fixtures" / "mrclam_small"
+
+
+def test_the_trimmed_fit_recovers_a_known_sigma_through_gross_outliers() -> None:
+    rng = np.random.default_rng(1)
+    e = rng.normal(0.0, 0.08, 20000)
+    e[:600] = rng.uniform(0.5, 3.0, 600) * rng.choice([-1, 1], 600)  # 3 % gross outliers
+    a = tuning.fit_variance(e, np.ones((e.size, 1)))
+    assert math.sqrt(a[0]) == pytest.approx(0.08, rel=0.03)
+    plain = float(np.sqrt(np.mean(e ** 2)))
+    assert plain > 3 * 0.08  # what an untrimmed estimate would say
+
+
+def test_the_fit_separates_two_variance_terms() -> None:
+    rng = np.random.default_rng(2)
+    turn, dist = rng.uniform(0.0, 2.0, 30000), rng.uniform(0.0, 3.0, 30000)
+    var = 0.1 ** 2 * turn + 0.03 ** 2 * dist
+    e = rng.normal(0.0, 1.0, turn.size) * np.sqrt(var)
+    a = tuning.fit_variance(e, np.column_stack([turn, dist]))
+    assert math.sqrt(a[0]) == pytest.approx(0.1, rel=0.05)
+    assert math.sqrt(a[1]) == pytest.approx(0.03, rel=0.1)
+
+
+def test_samples_no_term_can_explain_are_left_out() -> None:
+    e = np.r_[np.full(10, 0.01), np.random.default_rng(3).normal(0, 0.2, 5000)]
+    X = np.r_[np.zeros(10), np.ones(5000)].reshape(-1, 1)  # standing still: no noise term
+    assert math.sqrt(tuning.fit_variance(e, X)[0]) == pytest.approx(0.2, rel=0.05)
+
+
+def test_truth_track_interpolates_the_angle_the_short_way_round() -> None:
+    track = tuning.TruthTrack(np.array([0.0, 1.0]), np.array([[0.0, 0.0, 3.1],
+                                                              [1.0, 2.0, -3.1]]),
+                              np.zeros(0, np.int64), np.zeros((0, 2)))
+    p = track.pose_at(0.5)
+    assert p is not None
+    assert p[:2] == pytest.approx([0.5, 1.0])
+    assert abs(p[2]) == pytest.approx(math.pi, abs=1e-9)
+    assert track.pose_at(-0.1) is None and track.pose_at(1.1) is None
+
+
+def test_pose_nees_rigid_fit_and_band() -> None:
+    P = np.diag([0.25, 0.25, 0.01])
+    assert tuning.pose_nees(np.array([1.0, 0.0, 0.1]), P) == pytest.approx(4.0 + 1.0)
+    assert math.isnan(tuning.pose_nees(np.ones(3), np.diag([1.0, 1.0, 0.0])))
+    truth = np.array([[0.0, 0.0], [2.0, 0.0], [0.0, 1.0], [3.0, 3.0]])
+    a = math.radians(25.0)
+    R = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
+    estimated = (truth - 1.0) @ R.T + [4.0, -2.0]
+    rmse, rotation = tuning.rigid_fit(estimated, truth)
+    assert rmse == pytest.approx(0.0, abs=1e-12) and rotation == pytest.approx(-25.0)
+    lo, hi = tuning.nees_band()
+    assert (lo, hi) == pytest.approx((0.2158, 9.348), abs=1e-3)
+
+
+def test_window_figures_of_an_evaluation() -> None:
+    nees = np.r_[np.full(100, 2.0), np.full(100, 20.0), np.full(50, 3.0), [math.nan]]
+    ev = tuning.Evaluation(robot="r", stamps=np.arange(nees.size, dtype=float), nees=nees,
+                           errors=np.zeros((nees.size, 3)), landmark_ids=np.zeros(0, np.int64),
+                           landmark_errors=np.zeros((0, 2)), landmark_rmse=math.nan,
+                           landmark_rmse_rigid=math.nan, map_rotation_deg=math.nan)
+    assert list(ev.windows(100)) == [2.0, 20.0]
+    assert ev.window_fraction(100) == 0.5
+    assert ev.nees_mean == pytest.approx((200 + 2000 + 150) / 250)
+
+
+def test_a_fit_of_the_real_excerpt_agrees_with_a_plain_robust_estimate() -> None:
+    run = load_mrclam(SMALL, 1)
+    v = tuning.fit_noise([run]).values
+    # independent of the fit: the bearing residuals computed here, their scaled MAD
+    ids = [int(i) for i in run.landmark_ids]
+    residuals = []
+    for t, subject, _r, b in run.measurements:
+        pose = run.pose_at(float(t))
+        if pose is None:
+            continue
+        dx, dy = run.landmarks_world[ids.index(int(subject))] - pose[:2]
+        residuals.append((b - (math.atan2(dy, dx) - pose[2]) + math.pi) % (2 * math.pi)
+                         - math.pi)
+    r = np.array(residuals)
+    mad = 1.4826 * float(np.median(np.abs(r - np.median(r))))
+    rms = float(np.sqrt(np.mean(r ** 2)))  # zero mean: a bias is an error the filter sees
+    # trimming only ever removes residuals (then corrects the variance by 1/0.973)
+    assert mad <= v["sigma_bearing"] <= rms / math.sqrt(0.973) * 1.0001
+    assert 0.0 < v["sigma_range"] < 0.15
+    assert v["sigma_v"] > 0 and v["sigma_w"] > 0 and v["sigma_distance"] == 0.0  # SPEC §4
+    opt_in = tuning.fit_noise([run], motion_model="distance").values
+    assert opt_in["sigma_v"] == opt_in["sigma_w"] == 0.0
+    assert opt_in["sigma_distance"] > 0 and opt_in["sigma_turn"] > 0
+
+
+def test_tune_cli_writes_a_profile_the_estimator_loads(tmp_path: Path) -> None:
+    out = tmp_path / "profile.toml"
+    proc = spawn("tune", str(SMALL), "--robot-index", "1", "-o", str(out))
+    stdout, stderr = proc.communicate(timeout=240)
+    assert proc.returncode in (0, 1), stderr  # 1 = the check failed (60 s is little data)
+    assert "tune done:" in stdout and "\r" not in stderr  # no progress bar off a terminal
+    text = out.read_text()
+    assert "fitted by: slamlens tune" in text and "NEES scale c =" in text
+    settings = load_settings(EstimatorSettings, out, {"robot": "robot3"})
+    values = tomllib.loads(text)
+    assert settings.sigma_v == values["sigma_v"] > 0 and settings.sigma_distance == 0.0
+    assert settings.sigma_range_off_axis == values["sigma_range_off_axis"] > 0
+    assert settings.innovation_gate_chi2 == 13.82 and settings.robot == "robot3"
+
+
+def test_the_shipped_profile_is_one_for_the_dataset_and_loads() -> None:
+    path = REPO / "deploy" / "mrclam.toml"
+    values = tomllib.loads(path.read_text())
+    assert "robot" not in values  # not tuned per robot: --robot R picks the robot
+    assert "--robot-index 1,3" in path.read_text()
+    s = load_settings(EstimatorSettings, path, {"robot": "robot1"})
+    assert s.sigma_v > 0 and s.sigma_range_off_axis > 0 and s.innovation_gate_chi2 > 0
