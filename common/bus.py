@@ -122,7 +122,8 @@ class Bus(Protocol):
 
     def serve_latest(self, key: str, provider: Callable[[], bytes | None]) -> Any: ...
 
-    def get(self, key: str, *, timeout: float = 2.0) -> list[Sample]: ...
+    def get(self, key: str, *, timeout: float = 2.0,
+            payload: bytes | None = None) -> list[Sample]: ...
 
     def declare_alive(self, key: str) -> Any: ...
 
@@ -445,9 +446,14 @@ class ZenohBus:
 
         return self._keep(self.session.declare_queryable(key, on_query))
 
-    def get(self, key: str, *, timeout: float = 2.0) -> list[Sample]:
+    def get(self, key: str, *, timeout: float = 2.0,
+            payload: bytes | None = None) -> list[Sample]:
+        """The ok replies to a query on ``key`` (``payload``: the query's own, e.g. a
+        request; answerers that ignore it answer as to any query)."""
         out = []
-        for reply in self.session.get(key, timeout=timeout):
+        replies = (self.session.get(key, timeout=timeout) if payload is None
+                   else self.session.get(key, timeout=timeout, payload=payload))
+        for reply in replies:
             if reply.ok is not None:
                 out.append(Sample(str(reply.ok.key_expr), reply.ok.payload.to_bytes()))
         return out
@@ -555,13 +561,14 @@ class InProcessBus:
         self._queryables.append(entry)
         return entry
 
-    def get(self, key: str, *, timeout: float = 2.0) -> list[Sample]:
+    def get(self, key: str, *, timeout: float = 2.0,
+            payload: bytes | None = None) -> list[Sample]:
         out = []
         for pattern, provider in self._queryables:
             if _intersects(pattern, key):
-                payload = provider()
-                if payload is not None:
-                    out.append(Sample(pattern, payload))
+                answer = provider()
+                if answer is not None:
+                    out.append(Sample(pattern, answer))
         return out
 
     def declare_alive(self, key: str) -> Any:

@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 import threading
 from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -76,6 +77,7 @@ class Renderer:
         self._path: list[tuple[float, float]] = []
         self._path_robot: str | None = None
         self._path_seq = -1
+        self._path_epoch: int | None = None
         self._trackers: OrderedDict[tuple[float, int], ClusterTracker] = OrderedDict()
         self._floor: tuple[tuple[object, ...], np.ndarray] | None = None  # map view cache
 
@@ -85,21 +87,31 @@ class Renderer:
             self._path = []
             self._path_seq = -1
 
+    def new_map(self) -> None:
+        """A new map began (another epoch): forget the path and the cluster identities."""
+        with self._lock:
+            self._path, self._path_seq, self._path_epoch = [], -1, None
+            self._trackers.clear()
+
     @property
     def path_xy(self) -> np.ndarray:
         """The remembered path (k, 2), m, map frame."""
         with self._lock:
             return np.array(self._path, dtype=float).reshape(-1, 2)
 
-    def track(self, robot: str, seq: int, xy: np.ndarray) -> None:
+    def track(self, robot: str, seq: int, xy: np.ndarray, epoch: int = 0) -> None:
         """Add a position to the path without drawing (for callers that draw only some
         states, e.g. a viewer whose latest-wins input skips states)."""
         with self._lock:
-            self._track(robot, seq, (float(xy[0]), float(xy[1])))
+            self._track(robot, seq, (float(xy[0]), float(xy[1])), epoch)
 
-    def _track(self, robot: str, seq: int, point: tuple[float, float]) -> None:
-        if robot != self._path_robot or seq < self._path_seq:
+    def _track(self, robot: str, seq: int, point: tuple[float, float], epoch: int) -> None:
+        # a new path for another robot, another map (epoch), or — epoch 0, unknown — a seq
+        # that went back; the same epoch with a lower seq is a resumed estimator: same map
+        if (robot != self._path_robot or epoch != self._path_epoch
+                or (epoch == 0 and seq < self._path_seq)):
             self._path, self._path_robot, self._path_seq = [], robot, -1
+            self._path_epoch = epoch
         if seq > self._path_seq:
             self._path_seq = seq
             if not self._path or self._path[-1] != point:
@@ -109,7 +121,8 @@ class Renderer:
                 self._path = self._path[:half:2] + self._path[half:]
 
     def _update_path(self, state: SlamState) -> np.ndarray:
-        self._track(state.robot, state.seq, (float(state.pose[0]), float(state.pose[1])))
+        self._track(state.robot, state.seq, (float(state.pose[0]), float(state.pose[1])),
+                    state.epoch)
         return np.array(self._path, dtype=float).reshape(-1, 2)
 
     def cluster_ids(self, state: SlamState, settings: ViewSettings) -> np.ndarray:
@@ -147,17 +160,39 @@ class Renderer:
     def render(self, image_bgr: np.ndarray | None, *, state: SlamState, camera: CameraModel,
                settings: ViewSettings, health: Health | None = None,
                reference_pose: np.ndarray | None = None,
-               reference_estimate: np.ndarray | None = None) -> np.ndarray:
+               reference_estimate: np.ndarray | None = None,
+               notes: Sequence[LegendRow] = ()) -> np.ndarray:
         """A new BGR uint8 picture: ``image_bgr`` (or the map view's floor) with the state.
 
         The camera is rescaled if the image's size differs from the camera's.
         ``reference_pose`` (x, y, θ in the map frame) is an independent measurement of the
         robot — the camera-tracked pose or the simulator's truth — drawn as a white ring
         joined to the estimate of the same instant (``reference_estimate``; the state's own
-        pose if not given), with the position error written beside it.
+        pose if not given), with the position error written beside it. ``notes`` are extra
+        legend rows (e.g. "map restarted").
         """
-        img, camera = (self._floor_image(camera, settings) if image_bgr is None
-                       else _bgr_copy(image_bgr, camera))
+        img, camera = self.background(image_bgr, camera, settings)
+        drawn = self.draw(img, state=state, camera=camera, settings=settings, health=health,
+                          reference_pose=reference_pose, reference_estimate=reference_estimate)
+        if settings.legend:
+            _draw_legend(drawn.canvas, health=health, glyphs_shown=drawn.glyphs_shown,
+                         notes=notes)
+        return img
+
+    def background(self, image_bgr: np.ndarray | None, camera: CameraModel,
+                   settings: ViewSettings) -> tuple[np.ndarray, CameraModel]:
+        """The picture to draw on (a copy of ``image_bgr``, or the map view's floor) and
+        the camera fitted to its size."""
+        return (self._floor_image(camera, settings) if image_bgr is None
+                else _bgr_copy(image_bgr, camera))
+
+    def draw(self, img: np.ndarray, *, state: SlamState, camera: CameraModel,
+             settings: ViewSettings, health: Health | None = None,
+             reference_pose: np.ndarray | None = None,
+             reference_estimate: np.ndarray | None = None) -> Drawn:
+        """Draw the state onto ``img`` in place (everything but the legend): one robot of a
+        picture that may show several, each with its own renderer and camera."""
+        camera = camera.resized(img.shape[1], img.shape[0])
         with self._lock:
             path = self._update_path(state)
         clustered = settings.mode in ("inter", "minmeanmax")
@@ -183,9 +218,63 @@ class Renderer:
             _draw_labels(c)
         if glyphs.shaded is not None and scene.mode == "minmeanmax":
             _draw_roles(c, glyphs)
-        if settings.legend:
-            _draw_legend(c, health=health, glyphs_shown=len(glyphs.shown))
-        return img
+        return Drawn(c, len(glyphs.shown))
+
+
+#: a legend row: [(text, swatch colour or None), …]
+LegendRow = list[tuple[str, tuple[int, int, int] | None]]
+
+
+@dataclass(frozen=True, eq=False)
+class Drawn:
+    """What :meth:`Renderer.draw` drew: its canvas (for the legend) and the glyph count."""
+
+    canvas: Canvas
+    glyphs_shown: int
+
+
+#: colours (BGR) of the second, third … robot of one picture; the first robot keeps the
+#: settings' (the paper's green); none is red (glyphs), yellow (lines) or magenta (faults)
+ROBOT_COLOURS = ((0, 140, 255), (255, 170, 40), (235, 235, 235), (255, 110, 150),
+                 (60, 200, 190))
+
+
+def robot_settings(settings: ViewSettings, index: int) -> ViewSettings:
+    """``settings`` for the ``index``-th robot of a picture: the first as given, the others
+    with their own colour for the robot, its path and (lighter) its features."""
+    if index <= 0:
+        return settings
+    colour = ROBOT_COLOURS[(index - 1) % len(ROBOT_COLOURS)]
+    return settings.replace(colour_robot=colour, colour_path=colour,
+                            colour_features=draw.shade(colour, 0.85, 0.4))
+
+
+@dataclass(frozen=True, eq=False)
+class RobotLegend:
+    """One robot's rows of a shared legend."""
+
+    state: SlamState
+    health: Health | None
+    glyphs_shown: int
+    colour: tuple[int, int, int]
+    notes: Sequence[LegendRow] = ()
+
+
+def draw_robots_legend(img: np.ndarray, settings: ViewSettings, robots: Sequence[RobotLegend],
+                       *, waiting: Sequence[str] = ()) -> None:
+    """The legend of a picture of several robots: mode and glyph meaning once, then one
+    row per robot (its colour, seq, features, glyphs, verdict) and any notes."""
+    rows: list[LegendRow] = [[(f"mode: {_MODE_TEXT[settings.mode]}", None)],
+                             [(_glyph_text(settings), settings.colour_ellipsoids)]]
+    for r in robots:
+        s = r.state
+        rows.append([(f"robot {s.robot}", r.colour),
+                     (f"seq {s.seq} {s.step}  {s.n} features  {r.glyphs_shown} glyphs", None)])
+        if settings.health and r.health is not None:
+            rows.append(_health_row(r.health, settings))
+        rows += [list(row) for row in r.notes]
+    rows += [[(text, None)] for text in waiting]
+    draw.text_box(img, rows, scale=max(0.35, 0.45 * img.shape[0] / 720))
 
 
 def side_by_side(left_bgr: np.ndarray, right_bgr: np.ndarray) -> np.ndarray:
@@ -451,21 +540,41 @@ def _draw_roles(c: Canvas, glyphs: _Glyphs) -> None:
         draw.text(c.img, ROLE_NAMES[role], (int(u + half_w + 4), int(v + 5)), scale=scale)
 
 
-def _draw_legend(c: Canvas, *, health: Health | None, glyphs_shown: int) -> None:
+_MODE_TEXT = {"all": "all pairs", "inter": "inter-cluster pairs",
+              "minmeanmax": "min/mean/max per cluster pair (size = sqrt of largest eigenvalue)"}
+
+
+def _glyph_text(settings: ViewSettings) -> str:
+    if settings.glyph == "sigma":
+        text = f"{settings.sigma_k:g}-sigma ellipsoid of P_d"
+    else:
+        text = "semi-axes = eigenvalues of P_d (m^2 drawn as m)"
+    if settings.scale != 1.0:
+        text += f" x{settings.scale:g}"
+    return text
+
+
+def _health_row(health: Health, settings: ViewSettings) -> LegendRow:
+    if health.ok and not health.violations and not health.suspects.size:
+        return [("health: OK", None)]
+    if health.ok and not health.violations:
+        # this state broke nothing, but the monitor still blames features from before
+        suspects = ", ".join(str(s) for s in health.suspects.tolist())
+        return [(f"health: suspects {suspects} (no violation in this state)",
+                 settings.colour_violation)]
+    suspects = ", ".join(str(s) for s in health.suspects.tolist()) or "none"
+    return [(f"health: {len(health.violations)} violations, suspects {suspects}",
+             settings.colour_violation)]
+
+
+def _draw_legend(c: Canvas, *, health: Health | None, glyphs_shown: int,
+                 notes: Sequence[LegendRow] = ()) -> None:
     """The legend box: robot and seq, mode, glyph meaning, colours, clusters, health."""
     state, scene, settings = c.state, c.scene, c.settings
-    mode_text = {"all": "all pairs", "inter": "inter-cluster pairs",
-                 "minmeanmax": "min/mean/max per cluster pair (size = sqrt of largest eigenvalue)"}
-    if settings.glyph == "sigma":
-        glyph_text = f"{settings.sigma_k:g}-sigma ellipsoid of P_d"
-    else:
-        glyph_text = "semi-axes = eigenvalues of P_d (m^2 drawn as m)"
-    if settings.scale != 1.0:
-        glyph_text += f" x{settings.scale:g}"
-    rows: list[list[tuple[str, tuple[int, int, int] | None]]] = [
+    rows: list[LegendRow] = [
         [(f"robot {state.robot}  seq {state.seq}  {state.step}", None)],
-        [(f"mode: {mode_text[scene.mode]}", None)],
-        [(f"{glyphs_shown} glyphs: {glyph_text}", settings.colour_ellipsoids)],
+        [(f"mode: {_MODE_TEXT[scene.mode]}", None)],
+        [(f"{glyphs_shown} glyphs: {_glyph_text(settings)}", settings.colour_ellipsoids)],
         [("robot", settings.colour_robot), ("heading", settings.colour_heading),
          (f"features ({state.n})", settings.colour_features),
          (f"pair lines ({len(scene.lines_xy)})", settings.colour_lines)],
@@ -475,19 +584,10 @@ def _draw_legend(c: Canvas, *, health: Health | None, glyphs_shown: int) -> None
         rows.append([(f"selected feature {settings.selected_feature}{note}", None)])
     if scene.cluster_ids is not None:
         ids = np.unique(scene.cluster_ids).tolist()
-        row: list[tuple[str, tuple[int, int, int] | None]] = [(f"clusters ({len(ids)}):", None)]
+        row: LegendRow = [(f"clusters ({len(ids)}):", None)]
         row += [(f"{c}", cluster_colour(int(c))) for c in ids[:12]]
         rows.append(row)
     if settings.health and health is not None:
-        if health.ok and not health.violations and not health.suspects.size:
-            rows.append([("health: OK", None)])
-        elif health.ok and not health.violations:
-            # this state broke nothing, but the monitor still blames features from before
-            suspects = ", ".join(str(s) for s in health.suspects.tolist())
-            rows.append([(f"health: suspects {suspects} (no violation in this state)",
-                          settings.colour_violation)])
-        else:
-            suspects = ", ".join(str(s) for s in health.suspects.tolist()) or "none"
-            rows.append([(f"health: {len(health.violations)} violations, suspects {suspects}",
-                          settings.colour_violation)])
+        rows.append(_health_row(health, settings))
+    rows += [list(row) for row in notes]
     draw.text_box(c.img, rows, scale=max(0.35, 0.45 * c.camera.height / 720))

@@ -67,6 +67,7 @@ class SeriesStore:
         self.size_name = size_name
         self._last_state = -math.inf
         self._last_health = -math.inf
+        self._epoch: int | None = None  #: epoch of the map sampled
         self._lock = threading.Lock()
 
     def clear(self) -> None:
@@ -74,6 +75,7 @@ class SeriesStore:
             self._states.clear()
             self._health.clear()
             self._last_state = self._last_health = -math.inf
+            self._epoch = None
 
     # -- filling ------------------------------------------------------------------
     def add_state(self, state: SlamState, *, now: float) -> bool:
@@ -91,9 +93,14 @@ class SeriesStore:
         sample = StateSample(float(state.stamp), int(state.seq), np.array(state.landmark_ids),
                              sizes.astype(np.float32), clusters)  # float32: half the memory
         with self._lock:
-            if self._states and sample.seq < self._states[-1].seq:
-                self._states.clear()  # the estimator restarted: a new run, a new plot
+            new_map = self._epoch is not None and state.epoch != self._epoch
+            if new_map or (state.epoch == 0 and self._states
+                           and sample.seq < self._states[-1].seq):
+                self._states.clear()  # a new map (epoch; or, epoch unknown, seq went back)
                 self._health.clear()
+            elif self._states and sample.seq <= self._states[-1].seq:
+                return False  # the same map replayed from a checkpoint: already plotted
+            self._epoch = int(state.epoch)
             self._states.append(sample)
             self._last_state = now
         return True

@@ -430,3 +430,60 @@ def test_several_viewers_attach_to_the_same_robot(start_viewer, publisher) -> No
                    and s["state"]["seq"] == 3)
         _, headers = snapshot(url)
         assert headers["X-State-Seq"] == "3"
+
+
+def test_a_new_map_is_never_drawn_with_the_old_maps_registration(start_viewer,
+                                                                  publisher) -> None:
+    """An estimator restarted without a checkpoint begins a new epoch (a new map frame):
+    the viewer drops the old map (plots, path), says "map restarted", and shows the camera
+    picture with a note — not a misplaced overlay — until a registration of the new epoch
+    comes."""
+    import dataclasses
+
+    service, url = start_viewer(camera=CAMERA, series_interval_s=0.0)
+    old, new = 1_000, 2_000
+    publisher(KEYS.registration(CAMERA, ROBOT),
+              dataclasses.replace(make_registration(), epoch=old).to_bytes())
+    publisher(KEYS.frame(CAMERA), make_frame(1).to_bytes())
+    for seq in (1, 2, 3):  # one by one: the viewer keeps only the latest
+        publisher(KEYS.state(ROBOT), dataclasses.replace(make_state(seq), epoch=old).to_bytes())
+        wait_until(lambda s=seq: (status_of(url)["state"] or {}).get("seq") == s)
+    wait_until(lambda: status_of(url)["cameras"][0]["registration"] is not None)
+    image, _ = snapshot(url)
+    assert red_pixels(image, midpoint(0, 1)) >= 40
+    assert len(json.loads(http(url + "/api/series?pairs=10-11")[2])["state"]["seq"]) == 3
+
+    # the estimator restarts: a new epoch, seq from 0 again
+    publisher(KEYS.state(ROBOT), dataclasses.replace(make_state(1), epoch=new).to_bytes())
+    wait_until(lambda: (status_of(url)["state"] or {}).get("epoch") == new)
+    status = status_of(url)
+    (robot,) = status["robots"]
+    assert robot["map_restarted"] and robot["restarts"] == 1
+    assert robot["registration"] == {CAMERA: "stale"}
+    image, _ = snapshot(url)
+    assert red_pixels(image, midpoint(0, 1)) == 0  # no overlay in the old map's frame
+    assert np.abs(image[HEIGHT // 2, WIDTH // 2].astype(int) - BACKGROUND_BGR).max() <= 8
+    assert json.loads(http(url + "/api/series?pairs=10-11")[2])["state"]["seq"] == [1]
+    assert len(service.renderer.path_xy) == 1  # the old map's path is gone
+
+    # a registration without an epoch sent *before* the restart would be stale too; one
+    # for the new epoch puts the overlay back
+    publisher(KEYS.registration(CAMERA, ROBOT),
+              dataclasses.replace(make_registration(), epoch=new).to_bytes())
+    wait_until(lambda: status_of(url)["robots"][0]["registration"] == {CAMERA: "current"})
+    image, _ = snapshot(url)
+    assert red_pixels(image, midpoint(0, 1)) >= 40
+
+
+def test_a_resumed_estimator_keeps_its_map(start_viewer, publisher) -> None:
+    """The same epoch with a lower seq (an estimator resumed from its checkpoint replays a
+    few states) is the same map: nothing is dropped."""
+    import dataclasses
+
+    service, url = start_viewer(series_interval_s=0.0)
+    for seq in (1, 2, 3, 4, 2):
+        publisher(KEYS.state(ROBOT), dataclasses.replace(make_state(seq), epoch=7).to_bytes())
+        wait_until(lambda s=seq: (status_of(url)["state"] or {}).get("seq") == s)
+    (robot,) = status_of(url)["robots"]
+    assert robot["restarts"] == 0 and not robot["map_restarted"]
+    assert json.loads(http(url + "/api/series?pairs=10-11")[2])["state"]["seq"] == [1, 2, 3, 4]
