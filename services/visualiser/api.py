@@ -16,6 +16,7 @@ import numpy as np
 
 from common.drops import DropCounter
 from common.errors import ConfigError
+from common.verdict import WORDS, summary_text, violation_text
 from services.visualiser.clients import ClientRegistry
 from services.visualiser.compose import registration_status
 from services.visualiser.intake import Intake, RobotInputs
@@ -130,8 +131,14 @@ class ViewerApi:
         latest = None
         if health is not None:
             latest = {"seq": health.seq, "stamp": health.stamp, "ok": health.ok,
+                      "verdict": health.verdict, "verdict_since": health.verdict_since,
+                      "verdict_words": WORDS.get(health.verdict, health.verdict),
+                      "verdict_text": summary_text(health),
+                      "standing": [{**v.to_dict(), "text": violation_text(v)}
+                                   for v in health.standing],
                       "suspects": [int(s) for s in health.suspects],
-                      "violations": [v.to_dict() for v in health.violations],
+                      "violations": [{**v.to_dict(), "text": violation_text(v)}
+                                     for v in health.violations],
                       "statistics": dict(health.statistics)}
         return {"robot": name, "latest": latest, "recent": recent[::-1]}
 
@@ -174,7 +181,8 @@ class ViewerApi:
                 return None
             h = r.health
             return {"seq": h.seq, "ok": h.ok, "violations": len(h.violations),
-                    "suspects": [int(s) for s in h.suspects]}
+                    "suspects": [int(s) for s in h.suspects], "verdict": h.verdict,
+                    "verdict_text": summary_text(h), "standing": len(h.standing)}
 
         first = inputs.robots[0] if inputs.robots else None
         robots = []

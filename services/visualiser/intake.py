@@ -41,6 +41,7 @@ from common.drops import DropCounter
 from common.keys import Keys
 from common.latest import Latest
 from common.messages import CameraFrame, Health, Registration, SlamState, Truth
+from common.verdict import violation_text
 
 log = logging.getLogger("slamlens.viewer")
 
@@ -473,7 +474,7 @@ class Intake:
                     r.health_version += 1
                     for v in health.violations:
                         r.violations.append({"seq": health.seq, "stamp": health.stamp,
-                                             **v.to_dict()})
+                                             **v.to_dict(), "text": violation_text(v)})
                 healths.append(health)
             if state is not None or tracked is not None or healths:
                 out.append(RobotArrivals(r.name, state, restarted, tracked, tuple(healths)))

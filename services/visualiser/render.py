@@ -27,6 +27,7 @@ import cv2
 import numpy as np
 
 from common.messages import Health, SlamState
+from common.verdict import summary_text
 from services.visualiser import draw
 from services.visualiser.camera_model import CameraModel
 from services.visualiser.clusters import ClusterTracker, cluster_colour, cluster_labels
@@ -554,17 +555,15 @@ def _glyph_text(settings: ViewSettings) -> str:
     return text
 
 
+#: legend colour of a "tuning" verdict (BGR orange: the filter computes right, its noise
+#: or models do not fit the data); a fault is in the violation colour
+TUNING_COLOUR = (0, 165, 255)
+
+
 def _health_row(health: Health, settings: ViewSettings) -> LegendRow:
-    if health.ok and not health.violations and not health.suspects.size:
-        return [("health: OK", None)]
-    if health.ok and not health.violations:
-        # this state broke nothing, but the monitor still blames features from before
-        suspects = ", ".join(str(s) for s in health.suspects.tolist())
-        return [(f"health: suspects {suspects} (no violation in this state)",
-                 settings.colour_violation)]
-    suspects = ", ".join(str(s) for s in health.suspects.tolist()) or "none"
-    return [(f"health: {len(health.violations)} violations, suspects {suspects}",
-             settings.colour_violation)]
+    """The monitor's verdict, as the page and the terminal say it (common.verdict)."""
+    colour = {"fault": settings.colour_violation, "tuning": TUNING_COLOUR}.get(health.verdict)
+    return [(f"verdict: {summary_text(health)}", colour)]
 
 
 def _draw_legend(c: Canvas, *, health: Health | None, glyphs_shown: int,

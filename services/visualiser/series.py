@@ -68,6 +68,7 @@ class SeriesStore:
         self._last_state = -math.inf
         self._last_health = -math.inf
         self._epoch: int | None = None  #: epoch of the map sampled
+        self._pending: dict[str, float] = {}  #: newest statistics since the last sample
         self._lock = threading.Lock()
 
     def clear(self) -> None:
@@ -76,6 +77,7 @@ class SeriesStore:
             self._health.clear()
             self._last_state = self._last_health = -math.inf
             self._epoch = None
+            self._pending = {}
 
     # -- filling ------------------------------------------------------------------
     def add_state(self, state: SlamState, *, now: float) -> bool:
@@ -124,11 +126,16 @@ class SeriesStore:
         return out
 
     def add_health(self, health: Health, *, now: float) -> bool:
-        if now - self._last_health < self._min_interval:
-            return False
+        """Sample the monitor's statistics at most every ``min_interval_s``. A statistic
+        that only some verdicts carry (NIS: update states only) keeps its newest value from
+        the verdicts skipped since the last sample, so decimation never drops a series."""
         with self._lock:
+            self._pending.update(health.statistics)
+            if now - self._last_health < self._min_interval:
+                return False
             self._health.append(HealthSample(float(health.stamp), int(health.seq),
-                                             dict(health.statistics)))
+                                             self._pending))
+            self._pending = {}
             self._last_health = now
         return True
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -299,17 +300,28 @@ def test_reference_pose_is_a_white_ring_joined_to_the_estimate() -> None:
     assert not ((hidden.min(axis=2) > 180) & (plain.min(axis=2) <= 180)).any()
 
 
-def test_legend_keeps_naming_suspects_on_a_state_without_violations() -> None:
-    """Health is per state: a predict step may break nothing while suspects stand."""
+def test_legend_shows_the_standing_verdict_on_a_state_without_violations() -> None:
+    """Health.ok is per state: a predict step may break nothing while a fault stands; the
+    legend shows the robot's verdict (Health.verdict, kept up by Health.standing)."""
     camera = top_down()
     state = paper_state()
     settings = ViewSettings(ellipsoids=False, lines=False)
     ok = Health(robot="robot1", seq=state.seq, stamp=state.stamp, ok=True,
                 suspects=np.zeros(0, np.int64))
-    blamed = Health(robot="robot1", seq=state.seq, stamp=state.stamp, ok=True,
-                    suspects=np.array([3]))
+    standing = Violation(kind="feature", ids=(3,), step=8, value=2e-3, first_step=5, count=4)
+    fault = Health(robot="robot1", seq=state.seq, stamp=state.stamp, ok=True,
+                   suspects=np.array([3]), verdict="fault", verdict_since=5,
+                   standing=(standing,))
+    tuning = dataclasses.replace(ok, verdict="tuning", verdict_since=2, standing=(
+        Violation(kind="nees", ids=(), step=9, value=40.0, first_step=2, count=7),))
     clean = Renderer().render(None, state=state, camera=camera, settings=settings, health=ok)
     flagged = Renderer().render(None, state=state, camera=camera, settings=settings,
-                                health=blamed)
+                                health=fault)
+    tuned = Renderer().render(None, state=state, camera=camera, settings=settings,
+                              health=tuning)
     legend = (slice(0, 160), slice(0, 640))
     assert is_magenta(flagged[legend]).sum() > is_magenta(clean[legend]).sum() + 20
+    orange = (tuned[legend][..., 2] > 200) & (tuned[legend][..., 1] > 120) & (
+        tuned[legend][..., 1] < 200) & (tuned[legend][..., 0] < 60)
+    assert orange.sum() > 20 and is_magenta(tuned[legend]).sum() == is_magenta(
+        clean[legend]).sum()

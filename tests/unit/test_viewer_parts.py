@@ -295,6 +295,20 @@ def test_series_decimates_in_time_and_restarts_with_a_new_run() -> None:
                     statistics={"nis": 1.5})
     assert store.add_health(health, now=11.0)
     assert store.to_json([])["health"]["stats"] == {"nis": [1.5]}
+    # a statistic only some verdicts carry (NIS: updates) survives the decimation
+    predict = dataclasses.replace(health, statistics={"nees_pose": 3.0})
+    update = dataclasses.replace(health, statistics={"nees_pose": 2.0, "nis": 0.7})
+    assert not store.add_health(update, now=11.1)
+    assert store.add_health(predict, now=11.25)
+    assert store.to_json([])["health"]["stats"] == {"nis": [1.5, 0.7],
+                                                    "nees_pose": [None, 3.0]}
+    # epochs: the same epoch with a lower seq is the same map (a resumed estimator)
+    epoch = SeriesStore(min_interval_s=0.0)
+    for seq in (4, 5, 3):
+        epoch.add_state(dataclasses.replace(random_state(3, seq=seq), epoch=9), now=seq)
+    assert epoch.to_json([])["state"]["seq"] == [4, 5]
+    epoch.add_state(dataclasses.replace(random_state(3, seq=8), epoch=10), now=9)
+    assert epoch.to_json([])["state"]["seq"] == [8]  # another epoch: a new map
 
 
 def test_series_marks_missing_pairs_as_null_and_picks_default_pairs() -> None:
