@@ -26,6 +26,7 @@ from services.visualiser.render import (
     LegendRow,
     RobotLegend,
     draw_robots_legend,
+    rejected_legend,
     robot_settings,
     side_by_side,
 )
@@ -190,7 +191,9 @@ class Composer:
                 img, state=robot.state, camera=model, settings=own.replace(legend=False),
                 health=robot.health, reference_pose=reference, reference_estimate=estimate)
             entries.append(RobotLegend(robot.state, robot.health, drawn.glyphs_shown,
-                                       own.colour_robot, self._notes(frame, robot)))
+                                       own.colour_robot,
+                                       [*rejected_legend(robot.state, own),
+                                        *self._notes(frame, robot)]))
         if settings.legend:
             draw_robots_legend(img, settings, entries,
                                waiting=[n for n in notes if n])

@@ -177,7 +177,7 @@ class Renderer:
                           reference_pose=reference_pose, reference_estimate=reference_estimate)
         if settings.legend:
             _draw_legend(drawn.canvas, health=health, glyphs_shown=drawn.glyphs_shown,
-                         notes=notes)
+                         notes=[*rejected_legend(state, settings), *notes])
         return img
 
     def background(self, image_bgr: np.ndarray | None, camera: CameraModel,
@@ -213,13 +213,16 @@ class Renderer:
             estimate = state.pose if reference_estimate is None else reference_estimate
             _draw_reference(c, estimate=np.asarray(estimate, float),
                             reference=np.asarray(reference_pose, float))
+        rejected = rejected_observations(state) if settings.rejected else np.zeros((0, 2))
+        if len(rejected):
+            _draw_rejected(c, rejected)
         if settings.health:
             _draw_health(c, glyphs=glyphs, lines=lines, suspects=suspects)
         if settings.labels and settings.features:
             _draw_labels(c)
         if glyphs.shaded is not None and scene.mode == "minmeanmax":
             _draw_roles(c, glyphs)
-        return Drawn(c, len(glyphs.shown))
+        return Drawn(c, len(glyphs.shown), len(rejected))
 
 
 #: a legend row: [(text, swatch colour or None), …]
@@ -232,6 +235,7 @@ class Drawn:
 
     canvas: Canvas
     glyphs_shown: int
+    rejected_shown: int = 0  #: rejected (gated) observations drawn
 
 
 #: colours (BGR) of the second, third … robot of one picture; the first robot keeps the
@@ -490,6 +494,53 @@ def _draw_reference(c: Canvas, *, estimate: np.ndarray, reference: np.ndarray) -
     u, v = (int(x) for x in uv[0])
     cv2.putText(c.img, f"tracked: {error_cm:.1f} cm", (u + 12 * px, v - 12 * px),
                 cv2.FONT_HERSHEY_SIMPLEX, 0.45 * px, REFERENCE_COLOUR, px, cv2.LINE_AA)
+
+
+REJECTED_COLOUR = (170, 170, 170)  # BGR grey: an observation the filter did not use
+
+
+def rejected_observations(state: SlamState) -> np.ndarray:
+    """Map positions (g, 2) of the observations the estimator's innovation gate refused in
+    this update (``SlamState.gated_observations``: range, bearing from the state's pose);
+    none when the state does not carry them (an estimator without the gate)."""
+    obs = getattr(state, "gated_observations", None)
+    if obs is None:
+        return np.zeros((0, 2))
+    obs = np.asarray(obs, dtype=float).reshape(-1, 2)
+    x, y, theta = (float(v) for v in state.pose)
+    angle = theta + obs[:, 1]
+    return np.column_stack([x + obs[:, 0] * np.cos(angle), y + obs[:, 0] * np.sin(angle)])
+
+
+def rejected_legend(state: SlamState, settings: ViewSettings) -> list[LegendRow]:
+    """"rejected observations: 2 in this update, 17 in all" when the state says."""
+    if not settings.rejected:
+        return []
+    ids = getattr(state, "gated_ids", None)
+    diagnostics = getattr(state, "diagnostics", None) or {}
+    total = diagnostics.get("gated")
+    now = 0 if ids is None else int(np.asarray(ids).size)
+    if ids is None and total is None:
+        return []
+    text = f"rejected observations (gate): {now} in this {state.step}"
+    if total is not None:
+        text += f", {int(total)} in all"
+    return [[(text, REJECTED_COLOUR)]]
+
+
+def _draw_rejected(c: Canvas, xy: np.ndarray) -> None:
+    """A small grey cross at each rejected observation's position, on the floor."""
+    uv, _ = c.camera.project(np.column_stack([xy, np.zeros(len(xy))]))
+    half = 5 * c.px
+    for u, v in uv.tolist():
+        if not (math.isfinite(u) and math.isfinite(v)):
+            continue
+        p = (int(round(u)), int(round(v)))
+        for colour, width in (((0, 0, 0), 3 * c.px), (REJECTED_COLOUR, c.px)):
+            cv2.line(c.img, (p[0] - half, p[1] - half), (p[0] + half, p[1] + half), colour,
+                     width, cv2.LINE_AA)
+            cv2.line(c.img, (p[0] - half, p[1] + half), (p[0] + half, p[1] - half), colour,
+                     width, cv2.LINE_AA)
 
 
 def _draw_health(c: Canvas, *, glyphs: _Glyphs, lines: _Lines, suspects: np.ndarray) -> None:

@@ -27,7 +27,8 @@ VIEWS = ("auto", "camera", "map", "stereo")
 CODECS = ("mp4v", "MJPG")
 MODES = ("all", "inter", "minmeanmax")
 GLYPHS = ("sigma", "linear")
-LAYERS = ("robot", "path", "features", "lines", "ellipsoids", "legend", "labels", "health")
+LAYERS = ("robot", "path", "features", "lines", "ellipsoids", "legend", "labels", "health",
+          "rejected")
 
 BGR = tuple[int, int, int]
 ALL_ROBOTS = "all"  #: --robot all: every robot whose estimator is alive
@@ -72,6 +73,9 @@ class ViewSettings:
     legend: bool = field(default=True, metadata={"doc": "legend box in the top-left corner"})
     labels: bool = field(default=False, metadata={"doc": "feature ids next to the cones"})
     health: bool = field(default=True, metadata={"doc": "violations and suspects outlined"})
+    rejected: bool = field(default=True, metadata={
+        "doc": "observations the estimator's innovation gate rejected: grey crosses where "
+               "they were seen, counted in the legend"})
     selected_feature: int | None = field(default=None, metadata={
         "doc": "only the pairs containing this feature id (None: no selection)"})
     selected_robot: str | None = field(default=None, metadata={

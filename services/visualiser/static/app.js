@@ -2,7 +2,8 @@
 // Plain script, no build step and no network beyond this server.
 "use strict";
 
-const LAYERS = ["robot", "path", "features", "lines", "ellipsoids", "legend", "labels", "health"];
+const LAYERS = ["robot", "path", "features", "lines", "ellipsoids", "legend", "labels", "health",
+                "rejected"];
 const PLOT_COLOURS = ["#4fc3f7", "#ffb74d", "#81c784", "#e57373", "#ba68c8", "#fff176",
                       "#4db6ac", "#f06292"];
 
