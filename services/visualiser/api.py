@@ -108,7 +108,9 @@ class ViewerApi:
         several = len(inputs.robots) > 1
         out: dict[str, Any] = {"seq": None, "ids": [], "xy": [], "uv": [], "robot": [],
                                "selected": settings.selected_feature,
-                               "selected_robot": settings.selected_robot}
+                               "selected_robot": settings.selected_robot,
+                               "selected_cluster": settings.selected_cluster,
+                               "clusters": {}, "overview": {}}
         for r in inputs.robots:
             state = r.state
             if state is None:
@@ -120,6 +122,18 @@ class ViewerApi:
             out["uv"] += project_features(eyes, np.asarray(state.landmarks),
                                           r.name if several else None)
             out["robot"] += [r.name] * state.n
+            history = self._histories.find(r.name)
+            if history is not None:
+                note = history.renderer.overview_note(settings)
+                if note:
+                    out["overview"][r.name] = note
+                # the stable cluster ids of the view's clustering (to select a cluster)
+                known = history.renderer.known_cluster_ids(settings)
+                if known is not None:
+                    lm, cid = known
+                    where = {int(i): int(c) for i, c in zip(lm.tolist(), cid.tolist(),
+                                                            strict=True)}
+                    out["clusters"][r.name] = [where.get(int(i)) for i in state.landmark_ids]
         return out
 
     def health(self, robot: str | None = None) -> dict[str, Any]:

@@ -32,13 +32,15 @@ from services.visualiser import draw
 from services.visualiser.camera_model import CameraModel
 from services.visualiser.clusters import ClusterTracker, cluster_colour, cluster_labels
 from services.visualiser.glyphs import ImageEllipses, project_ellipsoids
-from services.visualiser.scene import ROLE_NAMES, ROLE_PAIR, Scene, build_scene
+from services.visualiser.scene import ROLE_NAMES, ROLE_PAIR, Scene, build_scene, plan_overview
 from services.visualiser.settings import ViewSettings
 
 MAX_PATH_POINTS = 20_000  #: beyond this the older path is thinned (every other point)
 _MAX_TRACKERS = 8  # one per distinct clustering setting in use, oldest dropped
 _AA_LINES_LIMIT = 400  # anti-aliased pair lines up to this many, plain beyond (frame time)
 _AA_GLYPH_LIMIT = 400  # same for the inner shading layers of glyphs
+#: "min" / "mean" / "max" labels up to this many glyphs (beyond: the legend says where)
+MAX_ROLE_LABELS = 30
 
 
 @dataclass(frozen=True, eq=False)
@@ -81,6 +83,9 @@ class Renderer:
         self._path_epoch: int | None = None
         self._trackers: OrderedDict[tuple[float, int], ClusterTracker] = OrderedDict()
         self._floor: tuple[tuple[object, ...], np.ndarray] | None = None  # map view cache
+        self._cluster_of: dict[tuple[float, int], tuple[np.ndarray, np.ndarray]] = {}
+        #: the overview note of the last picture per selection/budget (for the web page)
+        self._overviews: OrderedDict[tuple[object, ...], str] = OrderedDict()
 
     # -- history --------------------------------------------------------------------
     def reset_path(self) -> None:
@@ -93,6 +98,7 @@ class Renderer:
         with self._lock:
             self._path, self._path_seq, self._path_epoch = [], -1, None
             self._trackers.clear()
+            self._cluster_of.clear()
 
     @property
     def path_xy(self) -> np.ndarray:
@@ -138,7 +144,22 @@ class Renderer:
                 while len(self._trackers) > _MAX_TRACKERS:
                     self._trackers.popitem(last=False)
             self._trackers.move_to_end(key)
-            return tracker.update(state.landmark_ids, labels)
+            stable = tracker.update(state.landmark_ids, labels)
+            self._cluster_of[key] = (np.asarray(state.landmark_ids), stable)
+            return stable
+
+    def known_cluster_ids(self, settings: ViewSettings
+                          ) -> tuple[np.ndarray, np.ndarray] | None:
+        """(landmark ids, their stable cluster ids) of the last picture clustered as
+        ``settings`` clusters, or None (none clustered yet)."""
+        with self._lock:
+            return self._cluster_of.get((settings.cluster_threshold_m, settings.cluster_count))
+
+    def overview_note(self, settings: ViewSettings) -> str:
+        """What the last picture drawn under ``settings`` showed instead of its pairs (the
+        glyph budget), or "" — for the web page's note."""
+        with self._lock:
+            return self._overviews.get(_overview_key(settings), "")
 
     # -- drawing --------------------------------------------------------------------
     def _floor_image(self, camera: CameraModel,
@@ -196,16 +217,39 @@ class Renderer:
         camera = camera.resized(img.shape[1], img.shape[0])
         with self._lock:
             path = self._update_path(state)
-        clustered = settings.mode in ("inter", "minmeanmax")
+        # the clusters: for the clustered modes, a selected cluster, and the glyph budget
+        # (a mode whose pairs exceed it draws the min/mean/max overview instead)
+        n = state.n
+        over_budget = (settings.glyph_budget > 0 and settings.mode == "all"
+                       and n * (n - 1) // 2 > settings.glyph_budget
+                       and settings.selected_feature is None
+                       and settings.selected_cluster is None)
+        clustered = (settings.mode in ("inter", "minmeanmax") or over_budget
+                     or settings.selected_cluster is not None)
         cluster_ids = self.cluster_ids(state, settings) if clustered else None
         violating, suspects = _health_sets(health, state) if settings.health else (
             frozenset(), np.zeros(0, np.int64))
+        plan = plan_overview(state, settings, cluster_ids)
         scene = build_scene(state, settings, cluster_ids=cluster_ids,
-                            violating_pairs=violating)
+                            violating_pairs=violating, plan=plan)
+        with self._lock:
+            key = _overview_key(settings)
+            self._overviews[key] = scene.overview
+            self._overviews.move_to_end(key)
+            while len(self._overviews) > 64:
+                self._overviews.popitem(last=False)
         c = Canvas(img, camera, state, scene, settings, px=max(1, round(camera.height / 720)))
 
         # 1. floor layer
-        lines = _draw_floor_layer(c, path_xy=path, cluster_ids=cluster_ids)
+        # outlines: every cluster (or overview group) in the clustered pictures; in "all"
+        # pairs only a selected cluster's
+        pairwise = settings.mode == "all" and scene.mode == "all"
+        outlined = None if pairwise else scene.cluster_ids
+        if pairwise and scene.cluster_ids is not None and \
+                settings.selected_cluster is not None:
+            outlined = np.where(scene.cluster_ids == settings.selected_cluster,
+                                settings.selected_cluster, -1)
+        lines = _draw_floor_layer(c, path_xy=path, cluster_ids=outlined)
         # 2. glyphs and cones, far to near
         glyphs = _draw_objects(c)
         # 3. overlays
@@ -220,7 +264,8 @@ class Renderer:
             _draw_health(c, glyphs=glyphs, lines=lines, suspects=suspects)
         if settings.labels and settings.features:
             _draw_labels(c)
-        if glyphs.shaded is not None and scene.mode == "minmeanmax":
+        if (glyphs.shaded is not None and scene.mode == "minmeanmax"
+                and len(glyphs.shown) <= MAX_ROLE_LABELS):
             _draw_roles(c, glyphs)
         return Drawn(c, len(glyphs.shown), len(rejected))
 
@@ -280,6 +325,12 @@ def draw_robots_legend(img: np.ndarray, settings: ViewSettings, robots: Sequence
         rows += [list(row) for row in r.notes]
     rows += [[(text, None)] for text in waiting]
     draw.text_box(img, rows, scale=max(0.35, 0.45 * img.shape[0] / 720))
+
+
+def _overview_key(settings: ViewSettings) -> tuple[object, ...]:
+    return (settings.mode, settings.glyph_budget, settings.cluster_threshold_m,
+            settings.cluster_count, settings.selected_feature, settings.selected_cluster,
+            settings.selected_robot)
 
 
 def side_by_side(left_bgr: np.ndarray, right_bgr: np.ndarray) -> np.ndarray:
@@ -451,6 +502,8 @@ def _draw_cluster_outlines(c: Canvas, cluster_ids: np.ndarray) -> None:
     pad = 2.5 * c.settings.cone_radius_m
     ring = draw.floor_circle(np.zeros(2), pad, vertices=16)[:, :2]
     for cid in np.unique(cluster_ids).tolist():
+        if cid < 0:  # not outlined
+            continue
         members = c.state.landmarks[cluster_ids == cid]
         pts = (members[:, None, :] + ring[None]).reshape(-1, 2).astype(np.float32)
         hull = cv2.convexHull(pts).reshape(-1, 2).astype(float)
@@ -606,6 +659,8 @@ def _glyph_text(settings: ViewSettings) -> str:
     return text
 
 
+OVERVIEW_COLOUR = (0, 215, 255)  # BGR amber: the picture is not pair by pair
+
 #: legend colour of a "tuning" verdict (BGR orange: the filter computes right, its noise
 #: or models do not fit the data); a fault is in the violation colour
 TUNING_COLOUR = (0, 165, 255)
@@ -632,11 +687,22 @@ def _draw_legend(c: Canvas, *, health: Health | None, glyphs_shown: int,
     if settings.selected_feature is not None:
         note = " (not in the map)" if scene.selected_missing else ""
         rows.append([(f"selected feature {settings.selected_feature}{note}", None)])
-    if scene.cluster_ids is not None:
+    if settings.selected_cluster is not None:
+        rows.append([(f"selected cluster {settings.selected_cluster}: all its pairs",
+                      cluster_colour(settings.selected_cluster))])
+    if scene.tile_m is not None:
+        rows.append([(f"map tiles of {scene.tile_m:g} m ({len(scene.centroids)})",
+                      None)])
+    elif scene.cluster_ids is not None:
         ids = np.unique(scene.cluster_ids).tolist()
         row: LegendRow = [(f"clusters ({len(ids)}):", None)]
         row += [(f"{c}", cluster_colour(int(c))) for c in ids[:12]]
         rows.append(row)
+    if scene.overview:
+        rows.append([(scene.overview, OVERVIEW_COLOUR)])
+    if scene.mode == "minmeanmax" and glyphs_shown > MAX_ROLE_LABELS:
+        rows.append([("per group pair: min below the line, mean at its middle, max above",
+                      None)])
     if settings.health and health is not None:
         rows.append(_health_row(health, settings))
     rows += [list(row) for row in notes]

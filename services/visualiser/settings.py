@@ -78,6 +78,13 @@ class ViewSettings:
                "they were seen, counted in the legend"})
     selected_feature: int | None = field(default=None, metadata={
         "doc": "only the pairs containing this feature id (None: no selection)"})
+    selected_cluster: int | None = field(default=None, metadata={
+        "doc": "only the pairs inside this cluster (its stable id, as the legend shows it), "
+               "all of them whatever the glyph budget (None: no selection)"})
+    glyph_budget: int = field(default=2000, metadata={
+        "min": 0, "doc": "most glyphs a picture draws pair by pair; above it the picture is "
+                         "the min/mean/max overview per cluster (or map tile) pair, with a "
+                         "note; 0: no budget"})
     selected_robot: str | None = field(default=None, metadata={
         "doc": "whose map the selection is in, when several robots are shown (None: every "
                "robot's)"})
@@ -127,8 +134,8 @@ class ViewSettings:
             value: Any = raw
             if isinstance(raw, str):
                 text = raw.strip()
-                if name in ("selected_feature", "selected_robot") and text.lower() in {
-                        "", "none", "null"}:
+                if name in ("selected_feature", "selected_robot", "selected_cluster") and \
+                        text.lower() in {"", "none", "null"}:
                     value = None
                 elif text.lower() in {"on", "off"}:
                     value = text.lower() == "on"

@@ -135,9 +135,9 @@ async function change(changes) {
 form.addEventListener("change", (event) => {
   const element = event.target;
   if (!element.name) return;
-  if (element.id === "feature" && element.value.includes("|")) {  // several robots: R|id
-    const [robot, id] = element.value.split("|");
-    change({selected_robot: robot, selected_feature: id});
+  if ((element.id === "feature" || element.id === "cluster") && element.value.includes("|")) {
+    const [robot, id] = element.value.split("|");  // several robots: R|id
+    change({selected_robot: robot, [element.name]: id});
     return;
   }
   let value;
@@ -191,6 +191,26 @@ async function refreshFeatures() {
     }
     select.value = features.selected === null ? ""
       : several ? `${features.selected_robot}|${features.selected}` : String(features.selected);
+    // clusters of the view's clustering, per robot (known once a picture was clustered)
+    const clusters = $("cluster");
+    const options = [];
+    for (const [robot, ids] of Object.entries(features.clusters || {})) {
+      for (const id of [...new Set(ids.filter((c) => c !== null))].sort((a, b) => a - b)) {
+        options.push([several ? `${robot}|${id}` : String(id),
+                      `${several ? robot + ": " : ""}cluster ${id}`]);
+      }
+    }
+    const wantedClusters = ["", ...options.map(([v]) => v)];
+    if (wantedClusters.join(",") !== Array.from(clusters.options, (o) => o.value).join(",")) {
+      clusters.innerHTML = '<option value="">none</option>' + options.map(([v, label]) =>
+        `<option value="${esc(v)}">${esc(label)}</option>`).join("");
+    }
+    const chosen = features.selected_cluster;
+    clusters.value = chosen === null ? ""
+      : several ? `${features.selected_robot}|${chosen}` : String(chosen);
+    // above the glyph budget the picture is an overview: say so beside the picture
+    $("overview").textContent = Object.entries(features.overview || {}).map(([robot, note]) =>
+      (several ? `${robot}: ` : "") + note).join(" · ");
   } catch (e) { /* the next poll will try again */ }
 }
 
