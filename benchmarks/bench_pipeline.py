@@ -112,12 +112,14 @@ def latency(endpoint: str, samples: int) -> list[float]:
         got.set()
 
     bus.subscribe(KEYS.state("lat"), on_state)
-    pub = bus.publisher(KEYS.observations("lat"))
-    time.sleep(0.3)
+    # published as a driver does: an advanced publisher, inputs numbered (docs/delivery.md)
+    pub = bus.publisher(KEYS.observations("lat"), cache=100)
+    while not bus.wait_for_subscriber(KEYS.observations("lat"), timeout=5):
+        pass
     ids = np.arange(15)
     angles = np.linspace(-1.4, 1.4, 15)
     first = Observations(robot="lat", stamp=0.0, ids=ids, ranges=np.full(15, 1.2),
-                         bearings=angles)
+                         bearings=angles, input_seq=1)
     got.clear()
     pub.put(first.to_bytes())
     got.wait(5)
@@ -127,7 +129,8 @@ def latency(endpoint: str, samples: int) -> list[float]:
         k = int(rng.integers(15))
         msg = Observations(robot="lat", stamp=0.01 * (i + 1), ids=[k],
                            ranges=[1.2 + rng.normal(0, 0.05)],
-                           bearings=[angles[k] + rng.normal(0, 0.02)]).to_bytes()
+                           bearings=[angles[k] + rng.normal(0, 0.02)],
+                           input_seq=i + 2).to_bytes()
         got.clear()
         t0 = time.perf_counter()
         pub.put(msg)

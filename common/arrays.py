@@ -17,6 +17,7 @@ import numpy as np
 from common.errors import MessageError
 
 _WIRE_DTYPES = {"<f8", "<f4", "<i8", "<i4", "|u1", "<u1", "|b1"}
+_DTYPES: dict[str, np.dtype] = {}
 #: no message field has more axes; a deeper shape is refused before numpy sees it
 MAX_DIMS = 4
 
@@ -42,7 +43,24 @@ def decode_array(
     finite (unless ``finite=False``: the caller checks). Raises :class:`MessageError`
     naming the field on any mismatch.
     """
-    want = np.dtype(dtype)
+    want = _DTYPES.get(dtype) or _DTYPES.setdefault(dtype, np.dtype(dtype))
+    # the common case first (a well-formed map of the field's own dtype): checked in full,
+    # in a few operations, without a copy — every state a consumer decodes goes this way
+    if type(raw) is dict and raw.get("dtype") == dtype:
+        wire_shape, data = raw.get("shape"), raw.get("data")
+        if type(data) is bytes and type(wire_shape) is list and len(wire_shape) == len(shape):
+            count = 1
+            for d, s in zip(wire_shape, shape, strict=True):
+                if type(d) is not int or d < 0 or (s is not None and d != s):
+                    break
+                count *= d
+            else:
+                if len(data) == count * want.itemsize:
+                    array = np.frombuffer(data, dtype=want).reshape(wire_shape)
+                    if finite and want.kind == "f" and count and not (
+                            math.isfinite(float(array.sum())) or np.isfinite(array).all()):
+                        raise MessageError(message, field, "finite values", "NaN or infinity")
+                    return array  # read-only: a view of immutable bytes
     if isinstance(raw, dict):
         try:
             wire_dtype = raw["dtype"]

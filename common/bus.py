@@ -41,6 +41,8 @@ from typing import Any, Protocol
 log = logging.getLogger(__name__)
 
 Callback = Callable[[str, bytes], None]
+#: a queryable's handler: (key, query payload or None, selector parameters) → reply or None
+Answer = Callable[[str, "bytes | None", str], "bytes | None"]
 
 DEFAULT_QUEUE_BYTES = 1 << 30  #: 1 GiB of payloads waiting in one channel, then drop oldest
 _LOST_LOG_EVERY = 1000
@@ -116,14 +118,17 @@ class Bus(Protocol):
 
     def channel(self, key: str, *, latest_wins: bool = False, recover: bool = False,
                 history_s: float = 0.0, max_bytes: int = DEFAULT_QUEUE_BYTES,
-                accept: Callable[[str], bool] | None = None) -> Channel: ...
+                accept: Callable[[str], bool] | None = None,
+                also: tuple[str, ...] = ()) -> Channel: ...
 
     def wait_for_subscriber(self, key: str, *, timeout: float = 10.0) -> bool: ...
 
     def serve_latest(self, key: str, provider: Callable[[], bytes | None]) -> Any: ...
 
-    def get(self, key: str, *, timeout: float = 2.0,
-            payload: bytes | None = None) -> list[Sample]: ...
+    def answer(self, key: str, handler: Answer) -> Any: ...
+
+    def get(self, key: str, *, timeout: float = 2.0, payload: bytes | None = None
+            ) -> list[Sample]: ...
 
     def declare_alive(self, key: str) -> Any: ...
 
@@ -393,9 +398,10 @@ class ZenohBus:
 
     def channel(self, key: str, *, latest_wins: bool = False, recover: bool = False,
                 history_s: float = 0.0, max_bytes: int = DEFAULT_QUEUE_BYTES,
-                accept: Callable[[str], bool] | None = None) -> Channel:
-        """One ordered queue for ``key`` (module docstring); ``accept(key)`` filters
-        samples before their payload is copied."""
+                accept: Callable[[str], bool] | None = None,
+                also: tuple[str, ...] = ()) -> Channel:
+        """One ordered queue for ``key`` and the key expressions ``also`` (module
+        docstring); ``accept(key)`` filters samples before their payload is copied."""
         ch = QueueChannel(name=key, capacity=1 if latest_wins else None, max_bytes=max_bytes)
 
         def on_sample(sample: Any) -> None:
@@ -403,22 +409,23 @@ class ZenohBus:
             if accept is None or accept(sample_key):  # filter before copying the payload
                 ch.push(_sample_of(sample, sample_key))
 
-        if recover or history_s > 0:
-            import zenoh.ext as zext
+        for expr in (key, *also):
+            if recover or history_s > 0:
+                import zenoh.ext as zext
 
-            history = (zext.HistoryConfig(detect_late_publishers=True,
-                                          max_age=float(history_s))
-                       if history_s > 0 else None)
-            sub = zext.declare_advanced_subscriber(
-                self.session, key, on_sample, history=history,
-                recovery=zext.RecoveryConfig(periodic_queries=None, heartbeat=True),
-                subscriber_detection=True)
-            misses = sub.sample_miss_listener(lambda miss: ch.count_lost(int(miss.nb)))
-            ch._on_close.append(sub.undeclare)
-            ch._on_close.append(misses.undeclare)
-        else:
-            sub = self.session.declare_subscriber(key, on_sample)
-            ch._on_close.append(sub.undeclare)
+                history = (zext.HistoryConfig(detect_late_publishers=True,
+                                              max_age=float(history_s))
+                           if history_s > 0 else None)
+                sub = zext.declare_advanced_subscriber(
+                    self.session, expr, on_sample, history=history,
+                    recovery=zext.RecoveryConfig(periodic_queries=None, heartbeat=True),
+                    subscriber_detection=True)
+                misses = sub.sample_miss_listener(lambda miss: ch.count_lost(int(miss.nb)))
+                ch._on_close.append(sub.undeclare)
+                ch._on_close.append(misses.undeclare)
+            else:
+                sub = self.session.declare_subscriber(expr, on_sample)
+                ch._on_close.append(sub.undeclare)
         self._keep(ch)
         return ch
 
@@ -446,13 +453,27 @@ class ZenohBus:
 
         return self._keep(self.session.declare_queryable(key, on_query))
 
-    def get(self, key: str, *, timeout: float = 2.0,
-            payload: bytes | None = None) -> list[Sample]:
-        """The ok replies to a query on ``key`` (``payload``: the query's own, e.g. a
-        request; answerers that ignore it answer as to any query)."""
+    def answer(self, key: str, handler: Answer) -> Any:
+        """Answer a ``get`` on ``key`` with ``handler(key, query payload, parameters)`` (a
+        request, e.g. a re-registration, from a client that may query but not publish; or
+        a selector such as ``state?header``). The handler runs on Zenoh's thread: it must
+        only decide and store, never wait."""
+        def on_query(query: Any) -> None:
+            try:
+                payload = query.payload.to_bytes() if query.payload is not None else None
+                reply = handler(str(query.key_expr), payload, str(query.parameters))
+                if reply is not None:
+                    query.reply(key, reply)
+            except Exception:
+                log.exception("queryable %s failed", key)
+
+        return self._keep(self.session.declare_queryable(key, on_query))
+
+    def get(self, key: str, *, timeout: float = 2.0, payload: bytes | None = None
+            ) -> list[Sample]:
         out = []
         replies = (self.session.get(key, timeout=timeout) if payload is None
-                   else self.session.get(key, timeout=timeout, payload=payload))
+                   else self.session.get(key, payload=payload, timeout=timeout))
         for reply in replies:
             if reply.ok is not None:
                 out.append(Sample(str(reply.ok.key_expr), reply.ok.payload.to_bytes()))
@@ -514,6 +535,7 @@ class InProcessBus:
     def __init__(self) -> None:
         self._subs: list[tuple[str, Callable[[Sample], None]]] = []
         self._queryables: list[tuple[str, Callable[[], bytes | None]]] = []
+        self._answerers: list[tuple[str, Answer]] = []
         self._alive: set[str] = set()
         self._clock = 0
         self._lock = threading.Lock()
@@ -543,14 +565,16 @@ class InProcessBus:
 
     def channel(self, key: str, *, latest_wins: bool = False, recover: bool = False,
                 history_s: float = 0.0, max_bytes: int = DEFAULT_QUEUE_BYTES,
-                accept: Callable[[str], bool] | None = None) -> Channel:
+                accept: Callable[[str], bool] | None = None,
+                also: tuple[str, ...] = ()) -> Channel:
         ch = QueueChannel(name=key, capacity=1 if latest_wins else None, max_bytes=max_bytes)
 
         def push(sample: Sample) -> None:
             if accept is None or accept(sample.key):
                 ch.push(sample)
 
-        self._subs.append((key, push))
+        for expr in (key, *also):
+            self._subs.append((expr, push))
         return ch
 
     def wait_for_subscriber(self, key: str, *, timeout: float = 10.0) -> bool:
@@ -561,14 +585,25 @@ class InProcessBus:
         self._queryables.append(entry)
         return entry
 
-    def get(self, key: str, *, timeout: float = 2.0,
-            payload: bytes | None = None) -> list[Sample]:
+    def answer(self, key: str, handler: Answer) -> Any:
+        entry = (key, handler)
+        self._answerers.append(entry)
+        return entry
+
+    def get(self, key: str, *, timeout: float = 2.0, payload: bytes | None = None
+            ) -> list[Sample]:
         out = []
         for pattern, provider in self._queryables:
-            if _intersects(pattern, key):
-                answer = provider()
-                if answer is not None:
-                    out.append(Sample(pattern, answer))
+            if _intersects(pattern, key.partition("?")[0]):
+                reply = provider()
+                if reply is not None:
+                    out.append(Sample(pattern, reply))
+        base, _, parameters = key.partition("?")
+        for pattern, handler in self._answerers:
+            if _intersects(pattern, base):
+                reply = handler(base, payload, parameters)
+                if reply is not None:
+                    out.append(Sample(pattern, reply))
         return out
 
     def declare_alive(self, key: str) -> Any:

@@ -60,12 +60,14 @@ class Keys:
         return self.robot(robot, "health")
 
     def tracked(self, robot: str) -> str:
-        """Camera-measured robot pose (issue 3, fields as Truth)."""
-        return self.robot(robot, "tracked")
+        """Every camera's measured pose of ``robot`` (issue 3, fields as Truth): the key
+        expression to subscribe to. A camera publishes on :meth:`tracked_by` — under its own
+        name, the only keys a camera identity may publish on (SPEC §7b)."""
+        return f"{self.prefix}/camera/*/tracked/{check_name('robot', robot)}"
 
-    def robot_inputs(self, robot: str) -> str:
-        """One expression covering odometry and observations, for one ordered subscriber."""
-        return self.robot(robot, "*")
+    def tracked_by(self, camera: str, robot: str) -> str:
+        """Camera ``camera``'s measured pose of ``robot``."""
+        return self.camera(camera, f"tracked/{check_name('robot', robot)}")
 
     def estimator_alive(self, robot: str) -> str:
         """Liveliness token of the estimator serving ``robot``."""

@@ -537,6 +537,14 @@ class Registration(Message):
         "int", "optional: the epoch of the map this registration is for (SPEC §7a: a new "
         "map has a new frame); absent: whichever map the camera saw the robot start",
         optional=True, range=_UINT64)
+    reason: str | None = _scalar(
+        "str", "optional: why this registration was made: 'start', 'new map', or "
+        "'requested by …' (who asked, as the request said)", optional=True)
+    moved_m: float | None = _scalar(
+        "float", "optional: how far this registration moved the map origin from the "
+        "previous one, m", optional=True)
+    moved_deg: float | None = _scalar(
+        "float", "optional: how far it turned the map frame, degrees", optional=True)
 
 
 @dataclass(frozen=True, eq=False)
@@ -559,6 +567,9 @@ class CameraControl(Message):
                            choices=COMMANDS)
     robot: str | None = _scalar("str", "only the service registering this robot obeys; "
                                 "absent: any", optional=True)
+    requester: str | None = _scalar(
+        "str", "optional: who asks (a person or program, as it says; shown with the "
+        "registration it causes)", optional=True)
 
 
 def peek_fields(payload: bytes | bytearray | memoryview,

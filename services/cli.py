@@ -64,6 +64,12 @@ COMMANDS: dict[str, Command] = {
                        "services.settings:FigureSettings", bus=False),
     "demo": Command("services.demo", "all of it on one machine, with a browser link",
                     "services.settings:DemoSettings"),
+    "record": Command("services.recorder.cli", "record the bus into an MCAP file (with "
+                      "Foxglove channels)", "services.recorder.settings:RecordSettings"),
+    "play": Command("services.recorder.cli", "publish an MCAP recording back on the bus",
+                    "services.recorder.settings:PlaySettings"),
+    "foxglove": Command("services.recorder.cli", "the live scene over Foxglove's WebSocket "
+                        "protocol", "services.recorder.settings:FoxgloveSettings"),
     "certs": Command("services.certs", "create or extend the certificate authority of "
                      "SPEC §7b", "services.settings:CertsSettings", bus=False, config=False),
 }

@@ -172,7 +172,10 @@ def build_service(bus: Bus, keys: Keys, settings: RegistrationSettings) -> Regis
         camera = CameraSettings(
             camera=name, robot=settings.robot, fps=settings.fps,
             jpeg_quality=settings.jpeg_quality, moving=moving, publish_tracked=i == 0,
-            registration_period_s=settings.registration_period_s)
+            registration_period_s=settings.registration_period_s,
+            max_reregister_move_m=settings.max_reregister_move_m,
+            max_reregister_turn_deg=settings.max_reregister_turn_deg,
+            origin_tolerance_m=settings.origin_tolerance_m)
         parts = CameraParts(
             source=source, calib=calib,
             detector=detector if i == 0 else MarkerDetector(settings.dictionary),

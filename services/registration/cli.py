@@ -7,6 +7,7 @@ Settings: :mod:`services.registration.settings` (flags built from them by servic
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 from pathlib import Path
 
@@ -44,9 +45,7 @@ def _run_registration(args: argparse.Namespace) -> int:
                  settings.source, settings.mode, settings.robot, settings.marker_id)
         print(f"registration ready: {names}", flush=True)
         service.run(stop)
-        for p in service.pipelines:
-            log.info("camera %s stopped: %d frames published, %d registrations, %d tracked",
-                     p.camera, p.stats.published, p.stats.registrations, p.stats.tracked)
+        print(f"registration stopped: {json.dumps(service.summary())}", flush=True)
     finally:
         bus.close()
     return 0

@@ -71,6 +71,16 @@ class RegistrationSettings:
     max_reprojection_error_px: float = setting(
         2.0, doc="marker poses with a larger RMS reprojection error are not used", unit="px",
         min=0.0, group=_REGISTER)
+    max_reregister_move_m: float = setting(
+        0.05, doc="a requested re-registration that would move the map origin further than "
+                  "this while the robot is not at its map origin is refused", unit="m",
+        min=0.0, group=_CAMERA)
+    max_reregister_turn_deg: float = setting(
+        5.0, doc="… or turn the map frame more than this", unit="deg", min=0.0, group=_CAMERA)
+    origin_tolerance_m: float = setting(
+        0.05, doc="the robot counts as at its map origin when its estimate is this close to "
+                  "(0, 0) (and within max_reregister_turn_deg of heading 0)", unit="m",
+        min=0.0, group=_CAMERA)
     registration_period_s: float = setting(1.0, doc="re-publish the registration this often",
                                            unit="s", min=0.05, group=_REGISTER)
     reconnect_max_s: float = setting(5.0, doc="longest wait between reconnection attempts of "

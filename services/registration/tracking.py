@@ -6,6 +6,11 @@ T_marker_from_map). A :class:`Registrar` averages the first ``register_frames`` 
 (it stops early if the marker moves: the robot has started), then keeps measuring the robot
 pose from the marker in every later frame (the "tracked" pose, beyond the paper).
 
+A new map (a new epoch of the estimator, SPEC §7a: restarted without a checkpoint) has its
+origin where the robot stood when that map started (its ``origin_stamp``), usually while the
+robot moves. The registrar keeps the marker's recent poses, so :meth:`Registrar.register_at`
+registers the new map frame from the frame nearest that instant.
+
 A moving (head-mounted) camera is handled by an *anchor* frame: each frame comes with
 T_anchor_from_camera (the camera's pose in the world, from the board or a tracker). The
 registration is stored as T_anchor_from_map, and the camera's current
@@ -16,6 +21,7 @@ its own anchor (T_anchor_from_camera = identity).
 from __future__ import annotations
 
 import math
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -85,6 +91,25 @@ class _Sample:
     detection: Detection
 
 
+#: marker poses the registrar remembers for registering a new map at its origin instant
+HISTORY = 600
+
+
+@dataclass(frozen=True)
+class Change:
+    """How far one registration moved the map frame from the previous one."""
+
+    moved_m: float  #: translation of the map origin, m
+    moved_deg: float  #: rotation of the map frame, degrees
+
+
+def frame_change(T_old: np.ndarray, T_new: np.ndarray) -> Change:
+    """The change of the map frame between two T_anchor_from_map."""
+    D = invert_T(T_old) @ T_new
+    return Change(moved_m=float(np.linalg.norm(D[:3, 3])),
+                  moved_deg=rotation_angle_deg(D[:3, :3]))
+
+
 class Registrar:
     """Registration state of one camera for one robot (not thread-safe: one caller)."""
 
@@ -92,6 +117,8 @@ class Registrar:
         self.settings = settings
         self.calib = calib
         self._T_marker_from_map = T_marker_from_map(settings.marker_offset_xyz)
+        #: (stamp, T_anchor_from_robot) of recent frames where the marker was seen
+        self._history: deque[tuple[float, np.ndarray]] = deque(maxlen=HISTORY)
         self._samples: list[_Sample] = []
         self.T_anchor_from_map: np.ndarray | None = None
         self.stamp: float | None = None  #: stamp of the first frame of the registration
@@ -108,6 +135,30 @@ class Registrar:
         """Re-register from the next frames (the previous registration is kept until then)."""
         self._samples = []
         self.collecting = True
+
+    def register_at(self, stamp: float, *, tolerance_s: float) -> Change | None:
+        """Register the map frame as the robot's pose at ``stamp`` (a new map's origin
+        instant), from the remembered frame nearest it; None (and nothing changed) if no
+        frame is within ``tolerance_s`` of it."""
+        if not self._history:
+            return None
+        t, A = min(self._history, key=lambda item: abs(item[0] - stamp))
+        if abs(t - stamp) > tolerance_s:
+            return None
+        old = self.T_anchor_from_map
+        self.T_anchor_from_map = A.copy()
+        self.stamp = t
+        self._samples = []
+        self.collecting = False
+        self.registrations += 1
+        return None if old is None else frame_change(old, A)
+
+    @property
+    def history_span(self) -> tuple[float, float] | None:
+        """Stamps of the oldest and newest remembered marker poses."""
+        if not self._history:
+            return None
+        return self._history[0][0], self._history[-1][0]
 
     # -- internals ----------------------------------------------------------------
     def _marker(self, detections: Sequence[Detection]) -> tuple[np.ndarray, Detection] | None:
@@ -170,6 +221,9 @@ class Registrar:
         """Digest one frame's detections; ``T_anchor_from_camera`` None = pose unknown."""
         found = self._marker(detections)
         registered_now = False
+        if found is not None and T_anchor_from_camera is not None:
+            self._history.append((stamp, T_anchor_from_camera @ found[0]
+                                  @ self._T_marker_from_map))
         if self.collecting and found is not None and T_anchor_from_camera is not None:
             T_cm, det = found
             A = T_anchor_from_camera @ T_cm @ self._T_marker_from_map

@@ -1,6 +1,6 @@
 """The EKF-SLAM estimator as a bus service (SPEC §4, §7, §7a).
 
-Inputs: one recovering channel on ``slamlens/robot/{robot}/*`` (an advanced subscriber:
+Inputs: one recovering channel on the robot's odometry and observations keys (advanced subscribers:
 what congestion, a link cut or a router restart made it miss comes back from the drivers'
 caches). Its Zenoh callback only queues the sample; one worker thread decodes, puts the
 inputs in publication order exactly once (:mod:`services.slam.input_order`) and applies
@@ -22,6 +22,7 @@ import threading
 import time
 from dataclasses import dataclass
 
+import msgpack
 import numpy as np
 
 from common.bus import Bus, Sample
@@ -85,7 +86,8 @@ class EstimatorService:
         self.estimator = Estimator(settings)
         self.stats = EstimatorStats()
         self.drops = DropCounter(log)
-        self.order = InputOrder(gap_wait_s=settings.input_gap_wait_s)
+        self.order = InputOrder(gap_wait_s=settings.input_gap_wait_s,
+                                reorder_s=settings.input_reorder_s)
         self._seq = 0
         self._input_stamp = 0.0
         self._origin_stamp: float | None = None  #: when the robot stood at the map origin
@@ -103,15 +105,17 @@ class EstimatorService:
         # The input channel is declared before the liveliness token, so a driver that
         # waits for the token never publishes into the void; after a resume it also asks
         # the drivers' caches for what was published while the estimator was down.
+        # One queue for both input keys (each subscribed on its own, so the router sends
+        # nothing else: not the truth, not our own states).
         self._inputs = bus.channel(
-            keys.robot_inputs(self.robot), recover=True,
-            history_s=settings.input_history_s if self.resumed else 0.0,
-            accept=lambda key: key.endswith(("/odometry", "/observations")))
+            keys.odometry(self.robot), also=(keys.observations(self.robot),), recover=True,
+            history_s=settings.input_history_s if self.resumed else 0.0)
         if init is None:
             init = self.estimator.to_state(seq=0, stamp=0.0, step="init", epoch=self.epoch,
                                            input_stamp=0.0)
         self._latest = init.to_bytes()
-        bus.serve_latest(keys.state(self.robot), self.latest_bytes)
+        self._header = self._header_of(init)
+        bus.answer(keys.state(self.robot), self._on_query)
         self._publisher.put(self._latest)
         bus.declare_alive(keys.estimator_alive(self.robot))
 
@@ -155,6 +159,22 @@ class EstimatorService:
     def latest_bytes(self) -> bytes:
         with self._lock:
             return self._latest
+
+    def _header_of(self, state: SlamState) -> bytes:
+        """``get state?header``'s answer: what a driver paces on, not the map (and the
+        service's counters)."""
+        return msgpack.packb({"schema": 1, "robot": state.robot, "seq": state.seq,
+                              "stamp": state.stamp, "step": state.step,
+                              "epoch": state.epoch, "input_stamp": state.input_stamp,
+                              "origin_stamp": state.origin_stamp,
+                              "dropped": self.drops.total, "lost": self.order.stats.lost},
+                             use_bin_type=True)
+
+    def _on_query(self, key: str, payload: bytes | None, parameters: str) -> bytes:
+        """The latest state, or with ``?header`` only its header (SPEC §7: a ``get`` on
+        the state key answers the latest state; the header is ours, docs/protocol.md)."""
+        with self._lock:
+            return self._header if "header" in parameters.split(";") else self._latest
 
     def handle(self, key: str, payload: bytes) -> SlamState | None:
         """Decode and apply one input now (no ordering); the state published, or None."""
@@ -210,8 +230,9 @@ class EstimatorService:
                                         epoch=self.epoch, input_stamp=stamp,
                                         origin_stamp=self._origin_stamp)
         payload = state.to_bytes()
+        header = self._header_of(state)
         with self._lock:
-            self._latest = payload
+            self._latest, self._header = payload, header
         self._publisher.put(payload)
         self.stats.states += 1
         return state

@@ -19,20 +19,31 @@ driver already running waits ``gap_wait_s`` once for numbers it will never see, 
 are counted as ``joined_late``, not lost.
 
 A *source* is one publishing Zenoh session (the id in the sample's timestamp). Inputs
-without ``input_seq`` — a third-party driver — are released in arrival order, and
-de-duplicated by their Zenoh timestamp (one session's clock strictly increases over all
-its publications).
+without ``input_seq`` — a third-party driver — are put in the order of their Zenoh
+timestamps (one session's clock strictly increases over all its publications, on every
+key): an input is released once a later-stamped input of the same source has arrived on
+each other input key (Zenoh keeps each key's order, so nothing earlier can still come),
+or ``reorder_s`` after it arrived, whichever is first — so a third-party driver whose other
+key is quiet pays up to ``reorder_s`` of latency (Zenoh was seen to deliver the first put
+of one key before an earlier one of the other). One with the very timestamp of an input
+already released is a duplicate. Inputs with no timestamp at all go in arrival order.
 """
 
 from __future__ import annotations
 
+import heapq
 import time
+from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
 #: how long an input that arrived out of order waits for the ones before it (s)
 DEFAULT_GAP_WAIT_S = 2.0
+#: how long an unnumbered input waits for earlier-stamped ones on the other key (s)
+DEFAULT_REORDER_S = 0.02
+#: publication times remembered per source to tell an unnumbered duplicate
+_RECENT = 4096
 
 
 @dataclass(frozen=True)
@@ -59,6 +70,12 @@ class _Source:
     last_time: int | None = None  #: publication time of the newest input released
     held: dict[int, Input] = field(default_factory=dict)
     held_since: float | None = None  #: when the current gap began (monotonic s)
+    # unnumbered inputs: waiting in timestamp order, the newest time seen per key, and
+    # the times already released (duplicates are told by their exact timestamp)
+    waiting: list[tuple[int, float, int, Input]] = field(default_factory=list)
+    newest: dict[str, int] = field(default_factory=dict)
+    released: set[int] = field(default_factory=set)
+    released_order: deque[int] = field(default_factory=deque)
 
 
 @dataclass
@@ -69,6 +86,7 @@ class OrderStats:
     duplicates: int = 0  #: inputs already folded in, discarded
     reordered: int = 0  #: inputs that arrived early and were held
     lost: int = 0  #: input numbers never seen, skipped after ``gap_wait_s``
+    late: int = 0  #: unnumbered inputs that arrived after a later-stamped one was applied
     joined_late: int = 0  #: numbers a new source had published before we saw it
 
 
@@ -76,8 +94,13 @@ class InputOrder:
     """Releases inputs in publication order, exactly once (module docstring)."""
 
     def __init__(self, *, gap_wait_s: float = DEFAULT_GAP_WAIT_S,
+                 reorder_s: float = DEFAULT_REORDER_S,
+                 leaves: tuple[str, ...] = ("odometry", "observations"),
                  clock: Callable[[], float] = time.monotonic) -> None:
         self._gap_wait_s = float(gap_wait_s)
+        self._reorder_s = float(reorder_s)
+        self._leaves = leaves
+        self._arrivals = 0
         self._clock = clock
         self._sources: dict[str | None, _Source] = {}
         self.stats = OrderStats()
@@ -99,20 +122,24 @@ class InputOrder:
     @property
     def held(self) -> int:
         """Inputs waiting for an earlier one."""
-        return sum(len(s.held) for s in self._sources.values())
+        return sum(len(s.held) + len(s.waiting) for s in self._sources.values())
 
     # -- the ordering -----------------------------------------------------------------
     def offer(self, item: Input) -> list[Input]:
         """Take one arrived input; return what can be applied now, in order."""
         src = self._sources.setdefault(item.source, _Source())
         seq = item.seq
-        if seq is None:  # no number: arrival order, duplicates told by the Zenoh clock
-            if item.time is not None and src.last_time is not None \
-                    and item.time <= src.last_time:
+        if seq is None:  # no number: the order of the Zenoh clock
+            if item.time is None:
+                self._advance(src, item)
+                return [item]
+            if item.time in src.released or any(w[0] == item.time for w in src.waiting):
                 self.stats.duplicates += 1
                 return []
-            self._advance(src, item)
-            return [item]
+            src.newest[item.leaf] = max(src.newest.get(item.leaf, item.time), item.time)
+            self._arrivals += 1
+            heapq.heappush(src.waiting, (item.time, self._clock(), self._arrivals, item))
+            return self._release_waiting(src)
         if src.next_seq is None:
             src.next_seq = FIRST_SEQ
         if seq < src.next_seq or seq in src.held:
@@ -130,10 +157,34 @@ class InputOrder:
         return out
 
     def next_deadline(self) -> float | None:
-        """When the oldest gap gives up (monotonic s), or None if nothing is held."""
+        """When the oldest gap gives up or the oldest unnumbered input stops waiting
+        (monotonic s), or None if nothing is held."""
         times = [s.held_since + self._gap_wait_s for s in self._sources.values()
                  if s.held and s.held_since is not None]
+        times += [min(w[1] for w in s.waiting) + self._reorder_s
+                  for s in self._sources.values() if s.waiting]
         return min(times) if times else None
+
+    def _release_waiting(self, src: _Source) -> list[Input]:
+        """Unnumbered inputs that nothing earlier can precede any more, in time order."""
+        now = self._clock()
+        out: list[Input] = []
+        while src.waiting:
+            t, arrived, _, item = src.waiting[0]
+            others = [src.newest.get(k) for k in self._leaves if k != item.leaf]
+            if not (all(v is not None and v > t for v in others)
+                    or now - arrived >= self._reorder_s):
+                break
+            heapq.heappop(src.waiting)
+            if src.last_time is not None and t < src.last_time:
+                self.stats.late += 1  # later than the window: applied, but out of order
+            self._advance(src, item)
+            src.released.add(t)
+            src.released_order.append(t)
+            if len(src.released_order) > _RECENT:
+                src.released.discard(src.released_order.popleft())
+            out.append(item)
+        return out
 
     def expire(self) -> list[Input]:
         """Give up on gaps older than ``gap_wait_s``: count them lost, release what
@@ -141,6 +192,8 @@ class InputOrder:
         now = self._clock()
         out: list[Input] = []
         for src in self._sources.values():
+            if src.waiting:
+                out += self._release_waiting(src)
             while src.held and src.held_since is not None \
                     and now - src.held_since >= self._gap_wait_s:
                 first = min(src.held)

@@ -224,9 +224,11 @@ class Monitor:
         return self._aligned(truth) if aligned else truth
 
     # -- the check -----------------------------------------------------------------------
-    def check(self, state: SlamState) -> Health:
-        """Check one state; returns its Health (robot, seq, stamp of the state checked)."""
-        stats: dict[str, float] = {}
+    def check(self, state: SlamState, *,
+              extra_statistics: dict[str, float] | None = None) -> Health:
+        """Check one state; returns its Health (robot, seq, stamp of the state checked),
+        with ``extra_statistics`` (what the caller knows: backlog, losses) among its own."""
+        stats: dict[str, float] = dict(extra_statistics or {})
         found: list[Violation] = []
         prev = self._prev
         if prev is not None and state.seq < prev.seq:

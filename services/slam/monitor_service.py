@@ -60,9 +60,10 @@ class MonitorService:
         self._lock = threading.Lock()
         self._said_behind = 0.0
         self._publisher = bus.publisher(keys.health(robot), cache=HEALTH_CACHE)
-        self._inputs = bus.channel(keys.robot_inputs(robot), recover=True,
-                                   accept=lambda key: key.endswith(("/state", "/truth",
-                                                                    "/tracked")))
+        # one ordered queue for what it checks, each key subscribed on its own (the router
+        # sends nothing else: not the estimator's inputs, not our own health)
+        self._inputs = bus.channel(keys.state(robot), recover=True,
+                                   also=(keys.truth(robot), keys.tracked(robot)))
         bus.serve_latest(keys.health(robot), self.latest_bytes)
 
     def latest_bytes(self) -> bytes | None:
@@ -75,7 +76,7 @@ class MonitorService:
         return self._inputs.backlog
 
     def handle(self, key: str, payload: bytes) -> Health | None:
-        leaf = self.keys.leaf_of(key)
+        leaf = "tracked" if "/tracked/" in key else self.keys.leaf_of(key)
         try:
             if leaf in ("truth", "tracked"):
                 self.monitor.add_truth(Truth.from_bytes(payload))
@@ -100,8 +101,7 @@ class MonitorService:
                             "and evidence are dropped", epoch, state.epoch, state.seq)
                 self.monitor.new_map()
         self._position = (state.epoch, state.seq)
-        health = self.monitor.check(state)
-        health = self._annotate(health)
+        health = self.monitor.check(state, extra_statistics=self._service_statistics())
         self.checked += 1
         if health.verdict != self.verdict:
             log.log(logging.INFO if health.verdict == "ok" else logging.WARNING,
@@ -121,19 +121,14 @@ class MonitorService:
         self._publisher.put(payload_out)
         return health
 
-    def _annotate(self, health: Health) -> Health:
-        """Add what the service knows and the core does not: backlog, losses, restarts."""
-        import dataclasses
-
-        stats = dict(health.statistics)
+    def _service_statistics(self) -> dict[str, float]:
+        """What the service knows and the core does not: backlog, losses, restarts."""
         behind = self.behind
-        stats["behind"] = float(behind)
-        stats["lost"] = float(self._inputs.lost)
-        stats["restarts"] = float(self.restarts)
         if behind >= BEHIND_REPORT and time.monotonic() - self._said_behind >= 10.0:
             self._said_behind = time.monotonic()
             log.warning("monitor %d states behind the estimator", behind)
-        return dataclasses.replace(health, statistics=stats)
+        return {"behind": float(behind), "lost": float(self._inputs.lost),
+                "restarts": float(self.restarts), "dropped": float(self.drops.total)}
 
     def status_line(self) -> str:
         verdict = WORDS[self.verdict] if self.verdict else "no verdict yet"

@@ -130,6 +130,10 @@ class EstimatorSettings:
     input_gap_wait_s: float = setting(
         2.0, doc="how long an input that arrived out of order waits for the missing ones "
                  "before they are counted lost", unit="s", min=0.0)
+    input_reorder_s: float = setting(
+        0.02, doc="how long an input without input_seq (a third-party driver) waits for an "
+                  "earlier-stamped one on the other input key (docs/delivery.md)", unit="s",
+        min=0.0)
     input_history_s: float = setting(
         60.0, doc="when resuming from a checkpoint, the drivers' cached inputs asked for",
         unit="s", min=0.0)

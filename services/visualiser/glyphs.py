@@ -19,42 +19,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.errors import ConfigError
+from common.geometry import eig_sym2, semi_axes
 from services.visualiser.camera_model import NEAR_M, CameraModel
 
 MIN_MINOR_PX = 0.5  #: thinnest drawn glyph, pixels
-
-
-def eig_sym2(M: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Closed-form eigen-decomposition of symmetric 2x2 matrices (..., 2, 2).
-
-    Returns ``(lam_major, lam_minor, angle)``: eigenvalues with lam_major ≥ lam_minor and the
-    angle (rad, in (−π/2, π/2]) of the major eigenvector (cos, sin). The off-diagonal is
-    the mean of both entries, so a slightly asymmetric input is read as its symmetric part.
-    """
-    a = M[..., 0, 0]
-    c = M[..., 1, 1]
-    b = 0.5 * (M[..., 0, 1] + M[..., 1, 0])
-    mean = 0.5 * (a + c)
-    half_diff = 0.5 * (a - c)
-    radius = np.hypot(half_diff, b)  # hypot: no overflow/underflow in the square
-    angle = 0.5 * np.arctan2(b, half_diff)  # = ½·atan2(2b, a − c)
-    return mean + radius, mean - radius, angle
-
-
-def semi_axes(lam_major: np.ndarray, lam_minor: np.ndarray, *, glyph: str, sigma_k: float,
-              scale: float) -> tuple[np.ndarray, np.ndarray]:
-    """Glyph semi-axes (m) from eigenvalues (m²): k-sigma ("sigma") or the paper's "linear".
-
-    Negative eigenvalues (rounding on a singular P_d, or a broken estimator) give a zero axis.
-    """
-    lo = np.maximum(lam_minor, 0.0)
-    hi = np.maximum(lam_major, 0.0)
-    if glyph == "sigma":
-        return scale * sigma_k * np.sqrt(hi), scale * sigma_k * np.sqrt(lo)
-    if glyph == "linear":
-        return scale * hi, scale * lo  # the paper: axis length = eigenvalue, read as metres
-    raise ConfigError(f"unknown glyph mode {glyph!r}")
 
 
 @dataclass(frozen=True)

@@ -26,11 +26,11 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from common.clusters import ClusterTracker, cluster_colour, cluster_labels
 from common.messages import Health, SlamState
 from common.verdict import summary_text
 from services.visualiser import draw
 from services.visualiser.camera_model import CameraModel
-from services.visualiser.clusters import ClusterTracker, cluster_colour, cluster_labels
 from services.visualiser.glyphs import ImageEllipses, project_ellipsoids
 from services.visualiser.scene import ROLE_NAMES, ROLE_PAIR, Scene, build_scene, plan_overview
 from services.visualiser.settings import ViewSettings

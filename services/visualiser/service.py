@@ -24,16 +24,17 @@ import time
 from collections.abc import Callable
 from typing import Any
 
+import msgpack
 import numpy as np
 
 from common.bus import Bus
+from common.clusters import ClusterTracker, cluster_labels
 from common.drops import DropCounter
 from common.errors import ConfigError
 from common.keys import Keys
 from common.messages import CameraControl
 from services.visualiser.api import ViewerApi
 from services.visualiser.clients import ClientRegistry
-from services.visualiser.clusters import ClusterTracker, cluster_labels
 from services.visualiser.compose import Composer
 from services.visualiser.intake import Intake
 from services.visualiser.pipeline import RenderPipeline
@@ -158,36 +159,43 @@ class ViewerService:
 
     # -- requests -----------------------------------------------------------------
     def reregister(self, robot: str | None) -> dict[str, Any]:
-        """Ask each camera's registration service to register ``robot`` (None: every
-        robot) again: a Zenoh query carrying a ``CameraControl`` (docs/protocol.md), so a
-        viewer identity that may publish nothing (SPEC §7b) can still ask. Blocks up to
+        """Ask the camera's registration service to register ``robot`` (None: every robot)
+        again: a Zenoh query carrying a ``CameraControl`` (docs/registration.md), so a
+        viewer identity that may publish nothing (SPEC §7b) can still ask; the service
+        answers ``{"answer": "accepted: …" | "ignored: …" | "refused: …"}``. Blocks up to
         ``reregister_timeout_s``: call it off the web loop."""
         if robot is not None and robot not in self.intake.robot_names:
             raise ConfigError(f"robot {robot!r} is not shown by this viewer; shown: "
                               f"{', '.join(self.intake.robot_names) or 'none yet'}")
-        cameras = [c for c in self.intake.camera_names]
-        if not cameras:
+        camera = self.config.camera  # a stereo pair C-left / C-right is asked as C
+        if camera is None:
             raise ConfigError("this viewer draws over no camera (the map view): nothing to "
                               "re-register")
-        request = CameraControl(command="reregister", robot=robot).to_bytes()
-        answers = []
-        for camera in cameras:
-            key = self.keys.camera_control(camera)
-            try:
-                replies = self.bus.get(key, payload=request,
-                                       timeout=self.config.reregister_timeout_s)
-            except Exception as exc:  # the session closing, no route: say so
-                answers.append({"camera": camera, "answered": False, "detail": str(exc)})
-                continue
-            if replies:
-                detail = "; ".join(r.payload.decode("utf-8", "replace")[:200] for r in replies)
-                answers.append({"camera": camera, "answered": True, "detail": detail})
-            else:
-                answers.append({"camera": camera, "answered": False,
-                                "detail": f"no registration service of camera {camera} "
-                                          f"answered within {self.config.reregister_timeout_s:g}"
-                                          " s"})
-        log.info("re-register %s: %s", robot or "every robot", "; ".join(
-            f"{a['camera']}: {a['detail']}" for a in answers))
-        return {"robot": robot, "cameras": answers,
-                "answered": any(a["answered"] for a in answers)}
+        request = CameraControl(command="reregister", robot=robot,
+                                requester=f"the web viewer at {self.config.http}").to_bytes()
+        timeout = self.config.reregister_timeout_s
+        try:
+            replies = self.bus.get(self.keys.camera_control(camera), payload=request,
+                                   timeout=timeout)
+        except Exception as exc:  # the session closing, no route: say so
+            replies, failure = [], str(exc)
+        else:
+            failure = (f"no registration service of camera {camera} answered within "
+                       f"{timeout:g} s")
+        answers = [_answer_text(r.payload) for r in replies]
+        accepted = any(a.startswith("accepted") for a in answers)
+        detail = "; ".join(answers) if answers else failure
+        log.info("re-register %s on camera %s: %s", robot or "every robot", camera, detail)
+        return {"robot": robot, "answered": bool(answers), "accepted": accepted,
+                "cameras": [{"camera": camera, "answered": bool(answers), "detail": detail}]}
+
+
+def _answer_text(payload: bytes) -> str:
+    """The registration service's answer (``{"schema": 1, "answer": …}``) as one line."""
+    try:
+        answer = msgpack.unpackb(payload, raw=False)
+    except Exception:  # not msgpack: show it as text
+        return payload.decode("utf-8", "replace")[:200]
+    if isinstance(answer, dict) and isinstance(answer.get("answer"), str):
+        return answer["answer"][:200]
+    return repr(answer)[:200]

@@ -204,8 +204,10 @@ def test_roles_of_monitor_and_camera(connect, secure_router) -> None:
     viewer.session.declare_subscriber("slamlens/**", inbox)
     health = monitor.session.declare_publisher("slamlens/robot/r1/health")
     frame = camera.session.declare_publisher("slamlens/camera/overhead/frame")
+    tracked = camera.session.declare_publisher("slamlens/camera/overhead/tracked/r1")
     _deliver(health, inbox, b"health 1")
     _deliver(frame, inbox, b"frame 1")
+    _deliver(tracked, inbox, b"tracked 1")  # its own measure of a robot: under its own name
     for _ in range(3):
         monitor.session.put(STATE, b"monitor's forged state")
         camera.session.put("slamlens/camera/other/frame", b"another camera's frame")
@@ -215,7 +217,7 @@ def test_roles_of_monitor_and_camera(connect, secure_router) -> None:
         _settle(camera)
     health.put(b"health 2")
     got = inbox.wait_for(b"health 2")
-    assert set(got) == {b"frame 1", b"health 1", b"health 2"}
+    assert set(got) == {b"frame 1", b"health 1", b"health 2", b"tracked 1"}
     secure_router.wait_log(f"refused: monitor-r1 may not Put (ingress) on {STATE}")
     secure_router.wait_log("refused: camera-overhead may not Put (ingress) on "
                            "slamlens/camera/other/frame")

@@ -88,16 +88,16 @@ def test_third_party_client_from_spec_only(router_endpoint, estimator):
             lambda s: received.append(msgpack.unpackb(s.payload.to_bytes(), raw=False)))
         # our subscriber is declared on this session's link before anything we publish;
         # the estimator's input subscription is another session's: wait until it matches
-        probe = session.declare_publisher("slamlens/robot/r1/odometry")
-        deadline = time.monotonic() + 10
-        while not probe.matching_status and time.monotonic() < deadline:
-            time.sleep(0.01)
-        assert probe.matching_status
-        probe.undeclare()
-        put = session.put
-        put("slamlens/robot/r1/odometry", msgpack.packb(
+        pubs = {}
+        for leaf in ("odometry", "observations"):
+            pubs[leaf] = pub = session.declare_publisher(f"slamlens/robot/r1/{leaf}")
+            deadline = time.monotonic() + 10
+            while not pub.matching_status and time.monotonic() < deadline:
+                time.sleep(0.01)
+            assert pub.matching_status, leaf
+        pubs["odometry"].put(msgpack.packb(
             {"schema": 1, "robot": "r1", "stamp": 0.1, "dt": 0.1, "v": 0.2, "w": 0.0}))
-        put("slamlens/robot/r1/observations", msgpack.packb(
+        pubs["observations"].put(msgpack.packb(
             {"schema": 1, "robot": "r1", "stamp": 0.1,
              "ids": _spec_array(np.array([7, 8]), "<i8"),
              "ranges": _spec_array(np.array([1.0, 1.5]), "<f8"),

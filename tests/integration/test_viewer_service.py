@@ -600,26 +600,26 @@ def test_the_reregister_button_asks_the_registration_service_by_a_query(start_vi
     camera_service = make_client()
     asked: list[CameraControl] = []
 
-    def on_query(query) -> None:  # noqa: ANN001 — a zenoh.Query
-        request = CameraControl.from_bytes(query.payload.to_bytes())
+    def answer(key: str, payload: bytes | None, parameters: str) -> bytes:
+        assert payload is not None
+        request = CameraControl.from_bytes(payload)
         asked.append(request)
-        query.reply(KEYS.camera_control(CAMERA),
-                    f"re-registering camera {CAMERA} for robot {request.robot}".encode())
+        return msgpack.packb({"schema": 1, "answer": f"accepted: re-registering camera "
+                              f"{CAMERA} for robot {request.robot}"})
 
-    queryable = camera_service.session.declare_queryable(KEYS.camera_control(CAMERA),
-                                                         on_query)
-    try:
-        status, _, body = http(url + f"/api/reregister?robot={ROBOT}", data={})
-        assert status == 200, body
-        answer = json.loads(body)
-        assert answer["answered"] is True and answer["robot"] == ROBOT
-        assert answer["cameras"] == [{"camera": CAMERA, "answered": True, "detail":
-                                      f"re-registering camera {CAMERA} for robot {ROBOT}"}]
-        assert [(a.command, a.robot) for a in asked] == [("reregister", ROBOT)]
-        status, _, body = http(url + "/api/reregister?robot=stranger", data={})
-        assert status == 400 and "stranger" in json.loads(body)["error"]
-    finally:
-        queryable.undeclare()
+    camera_service.answer(KEYS.camera_control(CAMERA), answer)  # as the registration service
+    status, _, body = http(url + f"/api/reregister?robot={ROBOT}", data={})
+    assert status == 200, body
+    answer_json = json.loads(body)
+    assert answer_json["answered"] is True and answer_json["accepted"] is True
+    assert answer_json["robot"] == ROBOT
+    assert answer_json["cameras"] == [{
+        "camera": CAMERA, "answered": True,
+        "detail": f"accepted: re-registering camera {CAMERA} for robot {ROBOT}"}]
+    assert [(a.command, a.robot) for a in asked] == [("reregister", ROBOT)]
+    assert asked[0].requester and "web viewer" in asked[0].requester
+    status, _, body = http(url + "/api/reregister?robot=stranger", data={})
+    assert status == 400 and "stranger" in json.loads(body)["error"]
     _, map_url = start_viewer()
     status, _, body = http(map_url + "/api/reregister", data={})
     assert status == 400 and "no camera" in json.loads(body)["error"]

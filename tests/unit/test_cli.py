@@ -19,6 +19,7 @@ from common.config import settings_from_args
 from common.errors import ConfigError
 from services.cli import COMMANDS, Command, command_parser, main
 from services.cli_reference import DOC, reference
+from services.recorder.settings import PlaySettings, RecordSettings
 from services.registration.settings import CalibrateSettings, RegistrationSettings
 from services.settings import CertsSettings, DemoSettings, FigureSettings
 from services.slam.settings import (
@@ -67,6 +68,12 @@ LEGACY_FLAGS = {
              "--log-dir", "--loops", "--no-camera", "--prefix", "--quiet", "--rate", "--robot",
              "--seed", "--verbose", "--zenoh-config"],
     "certs": ["--host", "--name", "--quiet", "--verbose"],  # SPEC §7b, §9
+    "record": ["--robot", "--camera", "--keys", "--mode", "--cluster-threshold", "--connect",
+               "--config", "--quiet", "--verbose"],  # SPEC §9, issue 12
+    "play": ["--rate", "--start", "--end", "--loop", "--inputs-only", "--connect", "--config",
+             "--quiet", "--verbose"],
+    "foxglove": ["--robot", "--camera", "--mode", "--cluster-threshold", "--connect",
+                 "--config", "--quiet", "--verbose"],
 }
 
 
@@ -163,14 +170,15 @@ def test_legacy_flags_set_the_same_settings(command: str, argv: list[str], expec
 def test_no_flags_give_the_documented_defaults(command: str) -> None:
     cls = COMMANDS[command].settings_class()
     required = {"replay": ["p"], "calibrate": ["a.jpg", "-o", "c.yml"],
-                "serial": ["--port", "loop://"], "certs": ["pki", "--name", "robot-r1"]}.get(
-                    command, [])
+                "serial": ["--port", "loop://"], "certs": ["pki", "--name", "robot-r1"],
+                "record": ["a.mcap"], "play": ["a.mcap"]}.get(command, [])
     given = settings_from_args(cls, _parse(command, *required))
     expected = {"replay": ReplaySettings(path="p"),
                 "calibrate": CalibrateSettings(images=("a.jpg",), output="c.yml"),
                 "serial": SerialSettings(port="loop://"),
-                "certs": CertsSettings(directory="pki", names=("robot-r1",))}.get(
-                    command) or cls()
+                "certs": CertsSettings(directory="pki", names=("robot-r1",)),
+                "record": RecordSettings(path="a.mcap"),
+                "play": PlaySettings(path="a.mcap")}.get(command) or cls()
     assert given == expected
 
 

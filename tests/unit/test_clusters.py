@@ -6,7 +6,7 @@ import numpy as np
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial.distance import cdist
 
-from services.visualiser.clusters import ClusterTracker, cluster_colour, cluster_labels
+from common.clusters import ClusterTracker, cluster_colour, cluster_labels
 
 CENTRES = np.array([[1.6, -0.55], [1.55, 1.7], [-0.6, 1.3]])  # the paper world's clusters
 

@@ -134,5 +134,5 @@ def test_garbage_is_counted_and_the_service_goes_on(payload: bytes) -> None:
     _, service, states = _service(EstimatorSettings(robot=ROBOT))
     assert service.ingest(_sample(KEYS.odometry(ROBOT), payload, 1)) == []
     assert service.drops.total == 1
-    good = Odometry(robot=ROBOT, stamp=0.1, dt=0.1, v=0.1, w=0.0)
+    good = Odometry(robot=ROBOT, stamp=0.1, dt=0.1, v=0.1, w=0.0, input_seq=1)
     assert len(service.ingest(_sample(KEYS.odometry(ROBOT), good.to_bytes(), 2))) == 1

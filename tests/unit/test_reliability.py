@@ -133,3 +133,27 @@ def test_backoff_doubles_to_its_cap_and_starts_over_after_a_success(
     assert sum(lv == logging.DEBUG for lv, _ in levels) == 4  # the retries of outage one
     assert (backoff.failures, backoff.outages, backoff.recoveries) == (6, 2, 2)
     assert not backoff.in_outage
+
+
+def test_drop_counter_says_a_flood_in_a_few_lines() -> None:
+    import logging
+
+    from common.drops import DropCounter
+
+    lines: list[str] = []
+
+    class Capture(logging.Handler):
+        def emit(self, record: logging.LogRecord) -> None:
+            lines.append(record.getMessage())
+
+    logger = logging.getLogger("test.drops")
+    logger.addHandler(Capture())
+    logger.propagate = False
+    now = [0.0]
+    drops = DropCounter(logger, burst=3, interval_s=10.0, clock=lambda: now[0])
+    for i in range(150_000):
+        now[0] = i * 1e-4  # 150 000 drops in 15 s
+        drops.drop("CameraControl", f"bad {i}")
+    assert drops.counts["CameraControl"] == 150_000
+    assert len(lines) == 3 + 1  # the burst, then one line once 10 s have passed
+    assert "more in 10 s" in lines[-1] and "(100003 so far)" in lines[-1]
