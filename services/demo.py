@@ -36,6 +36,7 @@ from common.geometry import all_relative_covariances, pd_size_m
 from common.keys import Keys
 from common.messages import Health, SlamState
 from common.session import BusSettings, free_tcp_endpoint, open_bus
+from common.verdict import summary_text
 from services.launch import Supervisor
 from services.launch_file import plan_from_mapping, to_toml
 from services.settings import DemoSettings
@@ -169,8 +170,7 @@ class _Summary:
         text = (f"t {state.stamp:7.1f} s | seq {state.seq:6d} | {state.n:3d} landmarks | "
                 f"{rate:5.1f} states/s | mean P_d size {mean_pd * 100:6.2f} cm")
         if health is not None:
-            text += " | health " + ("ok" if health.ok else
-                                    f"VIOLATIONS, suspects {list(map(int, health.suspects))}")
+            text += " | " + summary_text(health)  # the page's and the legend's words
         return text
 
 

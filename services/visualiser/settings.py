@@ -27,9 +27,11 @@ VIEWS = ("auto", "camera", "map", "stereo")
 CODECS = ("mp4v", "MJPG")
 MODES = ("all", "inter", "minmeanmax")
 GLYPHS = ("sigma", "linear")
-LAYERS = ("robot", "path", "features", "lines", "ellipsoids", "legend", "labels", "health")
+LAYERS = ("robot", "path", "features", "lines", "ellipsoids", "legend", "labels", "health",
+          "rejected")
 
 BGR = tuple[int, int, int]
+ALL_ROBOTS = "all"  #: --robot all: every robot whose estimator is alive
 
 
 def _colour(default: BGR, doc: str) -> Any:
@@ -71,8 +73,21 @@ class ViewSettings:
     legend: bool = field(default=True, metadata={"doc": "legend box in the top-left corner"})
     labels: bool = field(default=False, metadata={"doc": "feature ids next to the cones"})
     health: bool = field(default=True, metadata={"doc": "violations and suspects outlined"})
+    rejected: bool = field(default=True, metadata={
+        "doc": "observations the estimator's innovation gate rejected: grey crosses where "
+               "they were seen, counted in the legend"})
     selected_feature: int | None = field(default=None, metadata={
         "doc": "only the pairs containing this feature id (None: no selection)"})
+    selected_cluster: int | None = field(default=None, metadata={
+        "doc": "only the pairs inside this cluster (its stable id, as the legend shows it), "
+               "all of them whatever the glyph budget (None: no selection)"})
+    glyph_budget: int = field(default=2000, metadata={
+        "min": 0, "doc": "most glyphs a picture draws pair by pair; above it the picture is "
+                         "the min/mean/max overview per cluster (or map tile) pair, with a "
+                         "note; 0: no budget"})
+    selected_robot: str | None = field(default=None, metadata={
+        "doc": "whose map the selection is in, when several robots are shown (None: every "
+               "robot's)"})
     # colours (BGR)
     colour_robot: BGR = _colour((40, 200, 40), "robot cone")
     colour_heading: BGR = _colour((0, 230, 255), "heading arrow")
@@ -119,7 +134,8 @@ class ViewSettings:
             value: Any = raw
             if isinstance(raw, str):
                 text = raw.strip()
-                if name == "selected_feature" and text.lower() in {"", "none", "null"}:
+                if name in ("selected_feature", "selected_robot", "selected_cluster") and \
+                        text.lower() in {"", "none", "null"}:
                     value = None
                 elif text.lower() in {"on", "off"}:
                     value = text.lower() == "on"
@@ -141,7 +157,9 @@ class ViewSettings:
 class ViewerConfig:
     """``slamlens viewer``: the AR renderer and its web viewers (docs/viewer.md)."""
 
-    robot: str = setting("robot1", doc="robot whose state is shown")
+    robot: str = setting("robot1", doc="robot(s) shown: a name, names joined by commas "
+                                       "(each in its own colour), or 'all': every robot whose "
+                                       "estimator is alive, as it appears", metavar="R[,R…]")
     camera: str | None = setting(None, doc="camera to draw over; none: the map view",
                                  metavar="C")
     view: str = setting("auto", doc="auto: the camera if one is named, else the map; "
@@ -167,13 +185,36 @@ class ViewerConfig:
     late_join_timeout_s: float = setting(2.0, doc="at start, wait this long for the latest "
                                                   "state and registrations (0 = do not ask)",
                                          unit="s", min=0.0)
+    restart_note_s: float = setting(10.0, doc="how long 'map restarted' shows (page and "
+                                              "legend) after an estimator begins a new map",
+                                    unit="s", min=0.0)
+    reregister_timeout_s: float = setting(3.0, doc="how long the page's 're-register camera' "
+                                                   "waits for the registration service to "
+                                                   "answer", unit="s", min=0.1)
 
     def __post_init__(self) -> None:
-        check_name("robot", self.robot)
+        if self.robot != ALL_ROBOTS:
+            names = [r.strip() for r in self.robot.split(",")]
+            for name in names:
+                check_name("robot", name)
+            if len(set(names)) != len(names):
+                raise ConfigError(f"setting 'robot': {self.robot!r} names a robot twice")
         if self.camera is not None:
             check_name("camera", self.camera)
         if self.view == "camera" and self.camera is None:
             raise ConfigError("setting 'view': 'camera' needs a camera (--camera C)")
+
+    @property
+    def robots(self) -> tuple[str, ...]:
+        """The robots named (none with 'all': they are discovered)."""
+        if self.robot == ALL_ROBOTS:
+            return ()
+        return tuple(r.strip() for r in self.robot.split(","))
+
+    @property
+    def discover(self) -> bool:
+        """Show every robot whose estimator is alive (``robot = "all"``)."""
+        return self.robot == ALL_ROBOTS
 
     @property
     def resolved_view(self) -> str:

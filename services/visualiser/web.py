@@ -11,7 +11,8 @@ Endpoints (every ``client`` is a browser tab's random id; without one, the defau
 * ``GET /snapshot.png[?client=ID][&download=1]`` the current picture as PNG (SPEC §9);
 * ``GET/POST /api/settings?client=ID``, ``GET /api/status``, ``GET /api/features``,
   ``GET /api/health``, ``GET /api/series[?pairs=1-2,3-4]``,
-  ``POST /api/record/start|stop?client=ID``, ``GET /recordings/NAME``.
+  ``POST /api/record/start|stop?client=ID``, ``GET /recordings/NAME``,
+  ``POST /api/reregister[?robot=R]`` (asks the camera(s) to register the robot again).
 
 User input never causes a 500: bad values answer 400 with ``{"error": "..."}``.
 """
@@ -204,6 +205,7 @@ class WebServer:
         r.add_get("/api/features", self.features)
         r.add_get("/api/health", self.health)
         r.add_get("/api/series", self.series)
+        r.add_post("/api/reregister", self.reregister)
         r.add_post("/api/record/start", self.record_start)
         r.add_post("/api/record/stop", self.record_stop)
         r.add_get("/recordings/{name}", self.recording)
@@ -351,13 +353,22 @@ class WebServer:
         return _json(self.api.features(self._settings(request)))
 
     async def health(self, request: web.Request) -> web.StreamResponse:
-        return _json(self.api.health())
+        return _json(self.api.health(request.query.get("robot")))
 
     async def series(self, request: web.Request) -> web.StreamResponse:
         pairs = parse_pairs(request.query.get("pairs", ""))
         settings = self._settings(request)
         loop = asyncio.get_running_loop()
-        data = await loop.run_in_executor(None, self.api.series, settings, pairs)
+        data = await loop.run_in_executor(None, self.api.series, settings, pairs,
+                                          request.query.get("robot"))
+        return _json(data)
+
+    async def reregister(self, request: web.Request) -> web.StreamResponse:
+        """Ask the camera(s) to register a robot again (a query to the registration
+        service: docs/protocol.md); answers what the service(s) said."""
+        robot = request.query.get("robot")
+        data = await asyncio.get_running_loop().run_in_executor(
+            None, self.api.reregister, robot)
         return _json(data)
 
     async def record_start(self, request: web.Request) -> web.StreamResponse:

@@ -3,6 +3,7 @@ map bounds, plots' series, parsing, video."""
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
@@ -11,16 +12,25 @@ import numpy as np
 import pytest
 
 from common.errors import ConfigError, SlamlensError
-from common.messages import Health, SlamState, Truth
+from common.messages import Health, Registration, SlamState, Truth
 from services.visualiser.camera_model import CameraModel
 from services.visualiser.clients import ClientRegistry
-from services.visualiser.intake import Queue, RateMeter
+from services.visualiser.compose import camera_views
+from services.visualiser.intake import (
+    CameraInputs,
+    Inputs,
+    Queue,
+    RateMeter,
+    RobotInputs,
+    is_new_map,
+)
 from services.visualiser.recording import Recorder, encode_png, recording_name
 from services.visualiser.series import SeriesStore, pair_index
 from services.visualiser.settings import ViewSettings
 from services.visualiser.tracked import TrackedMatch
 from services.visualiser.views import (
     DEFAULT_BOUNDS,
+    CameraView,
     Eye,
     EyeChooser,
     Rendered,
@@ -101,32 +111,85 @@ def test_a_view_is_active_for_its_ttl_and_current_only_for_its_inputs() -> None:
 
 # -- eyes ---------------------------------------------------------------------------------
 def test_eyes_follow_the_view_choice_and_the_map_bounds_restart() -> None:
-    map_eyes = EyeChooser("map", robot="r", map_width=640, map_height=360,
-                          stereo_baseline_m=0.1)
-    (eye,) = map_eyes.choose(None, [])
+    map_eyes = EyeChooser("map", map_width=640, map_height=360, stereo_baseline_m=0.1)
+    (eye,) = map_eyes.choose([], [])
     assert eye.name == "map" and map_eyes.bounds is None  # before any state: default floor
     assert eye.camera is not None and (eye.camera.width, eye.camera.height) == (640, 360)
     default = CameraModel.top_down(bounds_xy=DEFAULT_BOUNDS, width=640, height=360)
     np.testing.assert_array_equal(eye.camera.T_camera_from_map, default.T_camera_from_map)
     wide = random_state(2, landmarks=[[0.1, 0.2], [5.2, 0.4]])
     narrow = random_state(2, landmarks=[[0.1, 0.2], [2.2, 0.4]])
-    map_eyes.choose(wide, [])
+    map_eyes.choose([wide], [])
     assert map_eyes.bounds == grow_bounds(None, wide)
-    map_eyes.choose(narrow, [])
+    map_eyes.choose([narrow], [])
     assert map_eyes.bounds == grow_bounds(None, wide)  # grows only …
     map_eyes.restart()
-    map_eyes.choose(narrow, [])
+    map_eyes.choose([narrow], [])
     assert map_eyes.bounds == grow_bounds(None, narrow) != grow_bounds(None, wide)  # … a new run
-    stereo = EyeChooser("stereo", robot="r", map_width=640, map_height=360,
-                        stereo_baseline_m=0.1)
-    assert [e.name for e in stereo.choose(None, [])] == ["map-left", "map-right"]
+    # several robots: the bounds hold every map
+    map_eyes.restart()
+    far = random_state(2, landmarks=[[-4.0, -3.0], [-3.5, -3.0]])
+    map_eyes.choose([narrow, far], [])
+    bounds = map_eyes.bounds
+    assert bounds is not None and bounds[0] <= -4.0 and bounds[2] >= 2.2
+    stereo = EyeChooser("stereo", map_width=640, map_height=360, stereo_baseline_m=0.1)
+    assert [e.name for e in stereo.choose([], [])] == ["map-left", "map-right"]
     frame = np.zeros((360, 640, 3), np.uint8)
-    camera = EyeChooser("camera", robot="r7", map_width=640, map_height=360,
-                        stereo_baseline_m=0.1)
-    (waiting,) = camera.choose(None, [("top", None, frame)])
-    assert waiting.camera is None and waiting.image is frame
-    assert waiting.note == "waiting for the registration of camera top for robot r7"
+    camera = EyeChooser("camera", map_width=640, map_height=360, stereo_baseline_m=0.1)
+    note = "waiting for the registration of camera top for robot r7"
+    (waiting,) = camera.choose([], [CameraView("top", frame, {}, {"r7": note})])
+    assert waiting.camera is None and waiting.image is frame and waiting.note == note
+    assert waiting.model_for("r7") == (None, note)
     assert camera.current == (waiting,)
+
+
+def registration_for(robot: str, *, epoch: int | None = None) -> Registration:
+    K = np.array([[500.0, 0, 320], [0, 500.0, 180], [0, 0, 1]])
+    T = np.eye(4)
+    T[:3, :3], T[2, 3] = np.diag([1.0, -1.0, -1.0]), 3.0
+    return Registration(camera="top", robot=robot, stamp=0.0, K=K, dist=np.zeros(5),
+                        width=640, height=360, T_camera_from_map=T,
+                        reprojection_error_px=0.2, epoch=epoch)
+
+
+def robot_inputs(name: str, state: SlamState | None, *, epoch_started: float = -np.inf
+                 ) -> RobotInputs:
+    return RobotInputs(name, 0, state, 0.0, None, epoch_started, None, 0, RateMeter())
+
+
+def test_a_registration_places_only_its_own_map() -> None:
+    """A registration with another epoch, or without one and received before the state
+    that began the current map, is stale: never drawn with the new map."""
+    old_map = dataclasses.replace(random_state(2), epoch=111)
+    new_map = dataclasses.replace(random_state(2), epoch=222)
+    r = robot_inputs("r", new_map, epoch_started=50.0)
+    assert r.registration_usable(registration_for("r", epoch=222), received=10.0)
+    assert not r.registration_usable(registration_for("r", epoch=111), received=60.0)
+    assert not r.registration_usable(registration_for("r"), received=49.0)  # before the map
+    assert r.registration_usable(registration_for("r"), received=51.0)
+    first = robot_inputs("r", old_map)  # the first map the viewer sees: any epoch-less one
+    assert first.registration_usable(registration_for("r"), received=-1e9)
+    assert is_new_map(old_map, new_map) and not is_new_map(new_map, new_map)
+    resumed = dataclasses.replace(new_map, seq=new_map.seq - 1)  # same epoch, seq back
+    assert not is_new_map(new_map, resumed)
+    unknown = dataclasses.replace(random_state(2, seq=5), epoch=0)
+    assert is_new_map(unknown, dataclasses.replace(unknown, seq=4))  # epoch 0: seq back
+
+    # a camera that places one robot's map and not the other's (stale): per-robot models
+    inputs = Inputs(robots=(robot_inputs("a", new_map, epoch_started=50.0),
+                            robot_inputs("b", new_map, epoch_started=50.0)),
+                    cameras=(CameraInputs("top", None, None, None, {
+                        "a": (registration_for("a", epoch=222), 10.0),
+                        "b": (registration_for("b", epoch=111), 60.0)}, RateMeter()),),
+                    versions=())
+    (view,) = camera_views(inputs)
+    assert list(view.registrations) == ["a"]
+    assert "new map of robot b" in view.waiting["b"]
+    chooser = EyeChooser("camera", map_width=640, map_height=360, stereo_baseline_m=0.1)
+    (eye,) = chooser.choose([new_map], [view])
+    assert eye.model_for("a")[0] is not None
+    model, why = eye.model_for("b")
+    assert model is None and "register the new map of robot b" in why
 
 
 # -- the tracked pose ---------------------------------------------------------------------
@@ -232,6 +295,20 @@ def test_series_decimates_in_time_and_restarts_with_a_new_run() -> None:
                     statistics={"nis": 1.5})
     assert store.add_health(health, now=11.0)
     assert store.to_json([])["health"]["stats"] == {"nis": [1.5]}
+    # a statistic only some verdicts carry (NIS: updates) survives the decimation
+    predict = dataclasses.replace(health, statistics={"nees_pose": 3.0})
+    update = dataclasses.replace(health, statistics={"nees_pose": 2.0, "nis": 0.7})
+    assert not store.add_health(update, now=11.1)
+    assert store.add_health(predict, now=11.25)
+    assert store.to_json([])["health"]["stats"] == {"nis": [1.5, 0.7],
+                                                    "nees_pose": [None, 3.0]}
+    # epochs: the same epoch with a lower seq is the same map (a resumed estimator)
+    epoch = SeriesStore(min_interval_s=0.0)
+    for seq in (4, 5, 3):
+        epoch.add_state(dataclasses.replace(random_state(3, seq=seq), epoch=9), now=seq)
+    assert epoch.to_json([])["state"]["seq"] == [4, 5]
+    epoch.add_state(dataclasses.replace(random_state(3, seq=8), epoch=10), now=9)
+    assert epoch.to_json([])["state"]["seq"] == [8]  # another epoch: a new map
 
 
 def test_series_marks_missing_pairs_as_null_and_picks_default_pairs() -> None:
