@@ -34,7 +34,7 @@ from services.visualiser.clusters import ClusterTracker, cluster_labels
 from services.visualiser.compose import Composer
 from services.visualiser.intake import Intake
 from services.visualiser.pipeline import RenderPipeline
-from services.visualiser.recording import Recorder, recording_name
+from services.visualiser.recording import MB, Recorder, recording_name
 from services.visualiser.render import Renderer
 from services.visualiser.series import SeriesStore
 from services.visualiser.settings import ViewerConfig, ViewSettings
@@ -63,14 +63,18 @@ class ViewerService:
                                map_width=config.map_width, map_height=config.map_height,
                                stereo_baseline_m=config.stereo_baseline_m)
         self.clients = ClientRegistry(self.default_settings, ttl_s=config.client_ttl_s,
-                                      on_new_view=self._wake, new_recorder=self._recorder)
+                                      on_new_view=self._wake, new_recorder=self._recorder,
+                                      max_views=config.max_views,
+                                      max_recordings=config.max_recordings)
         self.intake = Intake(bus, keys=keys, robot=config.robot, cameras=config.cameras,
                              fps=config.fps, late_join_timeout_s=config.late_join_timeout_s,
-                             on_input=self._wake, drops=self.bad)
+                             on_input=self._wake, drops=self.bad,
+                             max_frame_pixels=config.max_frame_pixels)
         self.composer = Composer(self.intake, eyes=self.eyes, renderer=self.renderer,
                                  tracked=self.tracked, failures=self.failures)
         self.pipeline = RenderPipeline(self.composer, self.clients, ingest=self._ingest,
-                                       fps=config.fps, jpeg_quality=config.jpeg_quality)
+                                       fps=config.fps, jpeg_quality=config.jpeg_quality,
+                                       other_views_share=config.other_views_share)
         self.api = ViewerApi(intake=self.intake, eyes=self.eyes, clients=self.clients,
                              pipeline=self.pipeline, series=self.series,
                              failures=self.failures, camera=config.camera,
@@ -96,7 +100,9 @@ class ViewerService:
         c = self.config
         return Recorder(directory=c.recordings_dir,
                         name=recording_name(c.robot, client, c.record_codec),
-                        fps=c.fps, codec=c.record_codec, source=source, settings=settings)
+                        fps=c.fps, codec=c.record_codec, source=source, settings=settings,
+                        max_seconds=c.max_recording_s, max_bytes=c.max_recording_mb * MB,
+                        min_free_bytes=c.min_free_disk_mb * MB)
 
     # -- life cycle ---------------------------------------------------------------
     def start(self) -> None:
