@@ -172,10 +172,21 @@ def run(command: str, args: argparse.Namespace) -> int:
         camera = s.camera
         plan.append(("registration", ["registration", "--camera", camera, "--robot", s.robot,
                                       "--source", "synthetic", *common]))
+    link = f"http://{http}/"
     if have_viewer:
         viewer = ["viewer", "--robot", s.robot, "--http", http, *common]
         if camera:
             viewer += ["--camera", camera]
+        from services.visualiser.web_access import is_loopback, new_token
+
+        if not is_loopback(http.rpartition(":")[0].strip("[]")):
+            # beyond loopback the viewer asks for a token: give it one, and put it in the link
+            token = new_token()
+            token_file = log_dir / "viewer.token"
+            token_file.write_text(token + "\n")
+            token_file.chmod(0o600)
+            viewer += ["--token-file", str(token_file)]
+            link += f"?token={token}"
         plan.append(("viewer", viewer))
     sim = ["sim", "--robot", s.robot, "--seed", str(s.seed), "--rate", str(s.rate),
            "--loops", str(s.loops), *common]
@@ -204,7 +215,7 @@ def run(command: str, args: argparse.Namespace) -> int:
         bus.subscribe(keys.health(s.robot), summary.on_health)
         print(f"slamlens demo: router {endpoint}, logs in {log_dir}", flush=True)
         if have_viewer:
-            print(f"open http://{http}/ in a browser", flush=True)
+            print(f"open {link} in a browser", flush=True)
         else:
             print("(the viewer is not installed: showing the summary only)", flush=True)
         deadline = time.monotonic() + s.duration_s if s.duration_s else None
