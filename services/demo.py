@@ -220,9 +220,10 @@ def run(command: str, args: argparse.Namespace) -> int:
         print(f"slamlens demo: router {endpoint}, logs in {log_dir}", flush=True)
         if http is not None:
             ready = supervisor.wait_ready("viewer", stop)
-            url = re.search(r"(http://\S+?)/?$", ready)
-            if url:
-                print(f"open {url.group(1)}/ in a browser", flush=True)
+            url = re.search(r"(http://\S+)", ready)
+            if url:  # beyond loopback the viewer puts its access token in it
+                link = url.group(1) if "?" in url.group(1) else url.group(1).rstrip("/") + "/"
+                print(f"open {link} in a browser", flush=True)
         else:
             print("(the viewer is not installed: showing the summary only)", flush=True)
         deadline = time.monotonic() + s.duration_s if s.duration_s else None

@@ -63,8 +63,17 @@ class ViewerApi:
         return self._clients.settings_for(client)
 
     def touch(self, settings: ViewSettings) -> None:
-        """Keep rendering ``settings`` (somebody is looking)."""
+        """Keep rendering ``settings`` (somebody is looking); TooManyViews if it is a new
+        view and the viewer keeps as many as it may, all streamed."""
         self._clients.touch(settings)
+
+    def watch(self, settings: ViewSettings, client: str | None) -> None:
+        """A stream of ``client`` shows ``settings`` until :meth:`unwatch`
+        (TooManyViews: no room for it)."""
+        self._clients.watch(settings, client)
+
+    def unwatch(self, settings: ViewSettings, client: str | None) -> None:
+        self._clients.unwatch(settings, client)
 
     def latest(self, settings: ViewSettings) -> Rendered | None:
         return self._clients.latest(settings)
@@ -227,6 +236,7 @@ class ViewerApi:
             "fps": max((v.rate.rate(now) for v in active), default=0.0),
             "render_ms_median": float(np.median(render_ms)) if render_ms else None,
             "views_active": len(active), "clients": self._clients.client_count,
+            "views": self._clients.memory(),
             "bad_messages": dict(self._intake.bad.counts),
             "failures": dict(self._failures.counts),
             "recording": self._clients.recording(),

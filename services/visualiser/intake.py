@@ -6,7 +6,9 @@ frames and registrations are kept latest-wins (:class:`~common.latest.Latest`); 
 verdicts in a bounded FIFO (:class:`Queue`: every verdict feeds the plots). Frames are
 decoded on the ``viewer-decode`` thread as they arrive; everything else when the render
 thread calls :meth:`Intake.ingest`. A bad payload is logged (the first few of each kind,
-then one line in a hundred: :class:`~common.drops.DropCounter`), counted and dropped.
+then one line in a hundred: :class:`~common.drops.DropCounter`), counted and dropped; so
+is a frame whose JPEG header (read without decoding) claims another size than its message
+or more pixels than allowed (a decode bomb).
 
 Several robots: each has its own state, health and tracked pose, and one registration
 per camera (``camera/C/registration/R``). Robots are named, or discovered: with
@@ -42,6 +44,7 @@ from common.keys import Keys
 from common.latest import Latest
 from common.messages import CameraFrame, Health, Registration, SlamState, Truth
 from common.verdict import violation_text
+from services.visualiser.jpeg import JpegError, jpeg_size
 
 log = logging.getLogger("slamlens.viewer")
 
@@ -282,8 +285,9 @@ class Intake:
     def __init__(self, bus: Bus, *, keys: Keys, robots: tuple[str, ...],
                  cameras: tuple[str, ...], fps: float, late_join_timeout_s: float,
                  on_input: Callable[[], None], drops: DropCounter,
-                 discover: bool = False) -> None:
+                 discover: bool = False, max_frame_pixels: int = 16_777_216) -> None:
         self.bus = bus
+        self.max_frame_pixels = max_frame_pixels  #: frames claiming more are not decoded
         self.keys = keys
         self.bad = drops  #: malformed input messages, by input
         self._fps = fps
@@ -432,6 +436,10 @@ class Intake:
         frame = decode(f"frame {cam.name}", raw, CameraFrame.from_bytes, self.bad)
         if frame is None:
             return False
+        refused = self._refuse_size(cam, frame)  # before decoding: a bomb never allocates
+        if refused:
+            self.bad.drop(f"frame {cam.name}", refused)
+            return False
         try:
             image = cv2.imdecode(np.frombuffer(frame.data, np.uint8), cv2.IMREAD_COLOR)
         except cv2.error:  # e.g. empty data
@@ -446,6 +454,29 @@ class Intake:
             cam.image, cam.frame, cam.frame_received = image, frame, raw.received
             cam.frame_version += 1
         return True
+
+    def _refuse_size(self, cam: _Camera, frame: CameraFrame) -> str:
+        """Why the frame must not be decoded (its JPEG header's size), or ""."""
+        try:
+            width, height = jpeg_size(frame.data)
+        except JpegError as exc:
+            return f"CameraFrame.data: {exc}"
+        if (width, height) != (frame.width, frame.height):
+            return (f"CameraFrame.data: the JPEG header says {width}×{height} pixels, the "
+                    f"message {frame.width}×{frame.height} (not decoded)")
+        limit, why = self.max_frame_pixels, "max_frame_pixels"
+        with self._lock:  # the largest size this camera was registered with, for any robot
+            regs = [r.registration for r in cam.registrations.values()
+                    if r.registration is not None]
+        if regs:
+            reg = max(regs, key=lambda r: r.width * r.height)
+            if 4 * reg.width * reg.height < limit:
+                limit, why = (4 * reg.width * reg.height,
+                              f"4 × the registered {reg.width}×{reg.height}")
+        if width * height > limit:
+            return (f"CameraFrame.data: a {width}×{height} JPEG has more pixels than {limit} "
+                    f"({why}; not decoded)")
+        return ""
 
     def ingest(self) -> Arrivals:
         """Decode whatever states, tracked poses, health and registrations arrived since

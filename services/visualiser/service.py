@@ -38,7 +38,7 @@ from services.visualiser.clients import ClientRegistry
 from services.visualiser.compose import Composer
 from services.visualiser.intake import Intake
 from services.visualiser.pipeline import RenderPipeline
-from services.visualiser.recording import Recorder, recording_name
+from services.visualiser.recording import MB, Recorder, recording_name
 from services.visualiser.render import Renderer
 from services.visualiser.robots import RobotHistories
 from services.visualiser.series import SeriesStore
@@ -65,15 +65,19 @@ class ViewerService:
                                map_height=config.map_height,
                                stereo_baseline_m=config.stereo_baseline_m)
         self.clients = ClientRegistry(self.default_settings, ttl_s=config.client_ttl_s,
-                                      on_new_view=self._wake, new_recorder=self._recorder)
+                                      on_new_view=self._wake, new_recorder=self._recorder,
+                                      max_views=config.max_views,
+                                      max_recordings=config.max_recordings)
         self.intake = Intake(bus, keys=keys, robots=config.robots, cameras=config.cameras,
                              fps=config.fps, late_join_timeout_s=config.late_join_timeout_s,
-                             on_input=self._wake, drops=self.bad, discover=config.discover)
+                             on_input=self._wake, drops=self.bad, discover=config.discover,
+                             max_frame_pixels=config.max_frame_pixels)
         self.composer = Composer(self.intake, eyes=self.eyes, histories=self.histories,
                                  failures=self.failures,
                                  restart_note_s=config.restart_note_s)
         self.pipeline = RenderPipeline(self.composer, self.clients, ingest=self._ingest,
-                                       fps=config.fps, jpeg_quality=config.jpeg_quality)
+                                       fps=config.fps, jpeg_quality=config.jpeg_quality,
+                                       other_views_share=config.other_views_share)
         self.api = ViewerApi(intake=self.intake, eyes=self.eyes, clients=self.clients,
                              pipeline=self.pipeline, histories=self.histories,
                              failures=self.failures, camera=config.camera,
@@ -114,7 +118,9 @@ class ViewerService:
         return Recorder(directory=c.recordings_dir,
                         name=recording_name(self.intake.robot or "robots", client,
                                             c.record_codec),
-                        fps=c.fps, codec=c.record_codec, source=source, settings=settings)
+                        fps=c.fps, codec=c.record_codec, source=source, settings=settings,
+                        max_seconds=c.max_recording_s, max_bytes=c.max_recording_mb * MB,
+                        min_free_bytes=c.min_free_disk_mb * MB)
 
     # -- life cycle ---------------------------------------------------------------
     def start(self) -> None:

@@ -15,6 +15,7 @@ from a web page's query string (``from_query``) or from code (``replace``); bad 
 from __future__ import annotations
 
 import dataclasses
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -32,6 +33,8 @@ LAYERS = ("robot", "path", "features", "lines", "ellipsoids", "legend", "labels"
 
 BGR = tuple[int, int, int]
 ALL_ROBOTS = "all"  #: --robot all: every robot whose estimator is alive
+#: a host name or IP literal ([…] for IPv6), with an optional port: the Host header's form
+HOST_PATTERN = re.compile(r"^(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+)(:[0-9]{1,5})?$")
 
 
 def _colour(default: BGR, doc: str) -> Any:
@@ -180,8 +183,9 @@ class ViewerConfig:
     map_height: int = setting(720, doc="map view height", unit="px", min=64)
     series_length: int = setting(600, doc="samples kept per plot", min=2)
     series_interval_s: float = setting(0.2, doc="plot sampling interval", unit="s", min=0.0)
-    client_ttl_s: float = setting(5.0, doc="a view keeps rendering this long after its last "
-                                           "client request", unit="s", min=0.1)
+    client_ttl_s: float = setting(5.0, doc="a view nobody streams keeps rendering this long "
+                                           "after its last request, then is dropped with its "
+                                           "picture", unit="s", min=0.1)
     late_join_timeout_s: float = setting(2.0, doc="at start, wait this long for the latest "
                                                   "state and registrations (0 = do not ask)",
                                          unit="s", min=0.0)
@@ -191,6 +195,39 @@ class ViewerConfig:
     reregister_timeout_s: float = setting(3.0, doc="how long the page's 're-register camera' "
                                                    "waits for the registration service to "
                                                    "answer", unit="s", min=0.1)
+    # -- the web viewer's guard (docs/security.md) ---------------------------------
+    token_file: str | None = setting(
+        None, doc="file holding the web viewer's access token (its first line); every "
+                  "request must then carry it. Without it a viewer bound beyond loopback "
+                  "makes a token and prints it in its URL; on loopback none is asked",
+        metavar="FILE")
+    allowed_hosts: tuple[str, ...] = setting(
+        (), doc="more names the web viewer may be reached by (Host header), NAME or "
+                "NAME:PORT, besides the address it is bound to (repeatable)",
+        flag="--allow-host", action="append", metavar="NAME[:PORT]")
+    allowed_origins: tuple[str, ...] = setting(
+        (), doc="more web origins allowed to call the viewer (Origin header), e.g. "
+                "https://dashboard.lab, besides its own page (repeatable)",
+        flag="--allow-origin", action="append", metavar="ORIGIN")
+    # -- bounded resources (docs/viewer.md "Limits") -------------------------------
+    max_views: int = setting(64, doc="distinct view settings kept at once besides the "
+                                     "default view (oldest idle evicted; beyond: refused)",
+                             min=1)
+    other_views_share: float = setting(
+        0.3, doc="share of the render thread the views other than the default may take "
+                 "while somebody watches the default view", min=0.05, max=1.0)
+    max_frame_pixels: int = setting(
+        16_777_216, doc="camera frames whose JPEG header claims more pixels are refused "
+                        "before decoding (also more than 4 × the camera's registered size)",
+        min=1)
+    max_recordings: int = setting(2, doc="recordings running at once", min=0)
+    max_recording_s: float = setting(600.0, doc="a recording stops after this long",
+                                     unit="s", min=1.0)
+    max_recording_mb: float = setting(1000.0, doc="a recording stops at this file size",
+                                      unit="MB", min=1.0)
+    min_free_disk_mb: float = setting(
+        1000.0, doc="no recording starts, and a running one stops, when the recordings "
+                    "folder's disk has less free space than this", unit="MB", min=0.0)
 
     def __post_init__(self) -> None:
         if self.robot != ALL_ROBOTS:
@@ -203,6 +240,15 @@ class ViewerConfig:
             check_name("camera", self.camera)
         if self.view == "camera" and self.camera is None:
             raise ConfigError("setting 'view': 'camera' needs a camera (--camera C)")
+        for host in self.allowed_hosts:
+            if not HOST_PATTERN.match(host):
+                raise ConfigError(f"setting 'allowed_hosts': {host!r} is not NAME or "
+                                  "NAME:PORT (e.g. viewer.lab or viewer.lab:8080)")
+        for origin in self.allowed_origins:
+            scheme, sep, host = origin.partition("://")
+            if scheme not in ("http", "https") or not sep or not HOST_PATTERN.match(host):
+                raise ConfigError(f"setting 'allowed_origins': {origin!r} is not an origin "
+                                  "like https://host or http://host:port")
 
     @property
     def robots(self) -> tuple[str, ...]:

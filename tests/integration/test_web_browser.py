@@ -63,13 +63,26 @@ def state(seq: int) -> SlamState:
                      landmark_ids=IDS, landmarks=LANDMARKS, covariance=P)
 
 
+TOKEN = "browser-token-0123456789abcdef"
+
+
 @pytest.fixture
 def live_viewer(make_client, tmp_path: Path) -> Iterator[str]:
     """A viewer (map view) at a URL, fed 10 states a second until the test ends."""
+    yield from _live_viewer(make_client, tmp_path, token=None)
+
+
+@pytest.fixture
+def live_viewer_with_token(make_client, tmp_path: Path) -> Iterator[str]:
+    """The same, asking every request for TOKEN (as a viewer bound beyond loopback)."""
+    yield from _live_viewer(make_client, tmp_path, token=TOKEN)
+
+
+def _live_viewer(make_client, tmp_path: Path, *, token: str | None) -> Iterator[str]:
     service = ViewerService(make_client(), keys=KEYS, config=ViewerConfig(
         robot=ROBOT, recordings_dir=str(tmp_path)))
     service.start()
-    web = WebServer(service, host="127.0.0.1", port=0)
+    web = WebServer(service, host="127.0.0.1", port=0, token=token)
     url = web.start()
     bus = make_client()
     publisher = bus.publisher(KEYS.state(ROBOT))
@@ -114,10 +127,10 @@ def browser() -> Iterator:
             browser.close()
 
 
-def open_page(browser, url: str, errors: list[str]):
+def open_page(browser, url: str, errors: list[str], *, path: str = "/"):
     page = browser.new_context(viewport={"width": 1600, "height": 1000}).new_page()
     page.on("pageerror", lambda exc: errors.append(str(exc)))
-    page.goto(url + "/")
+    page.goto(url + path)
     page.wait_for_function("window.slamlens && window.slamlens.frames >= 2", timeout=15000)
     return page
 
@@ -285,3 +298,27 @@ def test_the_plots_are_real_charts_and_the_verdict_is_the_monitors(live_viewer, 
     assert all("feature features" not in t and "np." not in t for t in standing)
     assert violation_text(health(10).standing[0]).split(" (since")[0] in standing[0]
     assert errors == []
+
+
+def test_the_page_works_from_the_url_with_the_token(live_viewer_with_token, browser) -> None:
+    """The URL a viewer bound beyond loopback prints: the page keeps the token in a cookie,
+    so its own requests and its websocket carry it; the address bar loses it."""
+    url = live_viewer_with_token
+    errors: list[str] = []
+    page = open_page(browser, url, errors, path=f"/?token={TOKEN}")
+    assert page.url == url + "/"  # redirected: the token is out of the address bar
+    wait_for_frames(page, 3)  # the websocket carries the cookie
+    page.select_option("select[name=mode]", "inter")  # and so do the page's fetches
+    page.wait_for_function("window.slamlens.settings.mode === 'inter'", timeout=10000)
+    client = page.evaluate("window.slamlens.client")
+    request = urllib.request.Request(f"{url}/api/settings?client={client}",
+                                     headers={"Authorization": f"Bearer {TOKEN}"})
+    with urllib.request.urlopen(request, timeout=10) as r:
+        assert json.loads(r.read())["settings"]["mode"] == "inter"
+    assert errors == []
+
+    # a browser without the token gets nothing but the reason
+    stranger = browser.new_context().new_page()
+    response = stranger.goto(url + "/")
+    assert response is not None and response.status == 401
+    assert "token" in stranger.content()

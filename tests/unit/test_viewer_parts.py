@@ -14,7 +14,7 @@ import pytest
 from common.errors import ConfigError, SlamlensError
 from common.messages import Health, Registration, SlamState, Truth
 from services.visualiser.camera_model import CameraModel
-from services.visualiser.clients import ClientRegistry
+from services.visualiser.clients import ClientRegistry, RenderBudget, TooManyViews
 from services.visualiser.compose import camera_views
 from services.visualiser.intake import (
     CameraInputs,
@@ -24,7 +24,12 @@ from services.visualiser.intake import (
     RobotInputs,
     is_new_map,
 )
-from services.visualiser.recording import Recorder, encode_png, recording_name
+from services.visualiser.recording import (
+    Recorder,
+    RecordingRefused,
+    encode_png,
+    recording_name,
+)
 from services.visualiser.series import SeriesStore, pair_index
 from services.visualiser.settings import ViewSettings
 from services.visualiser.tracked import TrackedMatch
@@ -391,6 +396,104 @@ def test_recorder_writes_real_time_video(tmp_path: Path, codec: str) -> None:
         read += 1
     capture.release()
     assert read == info["frames"]
+
+
+def test_a_recording_is_refused_without_disk_space_and_stops_itself_at_its_limits(
+        tmp_path: Path) -> None:
+    # noise: ~100 kB a frame in MJPG, so the file grows on disk (the writer buffers)
+    picture = np.random.default_rng(1).integers(0, 255, (240, 320, 3), dtype=np.uint8)
+
+    def recorder(name: str, free: list[int], **limits: float) -> Recorder:
+        space = iter(free)
+        return Recorder(directory=tmp_path, name=name, fps=20.0, codec="MJPG",
+                        source=lambda: picture, settings=lambda: None,
+                        free=lambda _dir: next(space, free[-1]), **limits)
+
+    def stopped_by_itself(r: Recorder) -> dict:
+        deadline = time.monotonic() + 20
+        while r.running and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not r.running
+        return r.info()
+
+    short = recorder("a.avi", [10 ** 12], min_free_bytes=10 ** 13)
+    with pytest.raises(RecordingRefused, match="min_free_disk_mb 10000000"):
+        short.start()
+    assert not (tmp_path / "a.avi").exists()
+
+    timed = recorder("b.avi", [10 ** 12], max_seconds=0.5)
+    timed.start()
+    info = stopped_by_itself(timed)
+    assert "max_recording_s 0.5" in info["limit"] and info["frames"] >= 1
+    assert cv2.VideoCapture(str(tmp_path / "b.avi")).read()[0]  # a file a player reads
+
+    sized = recorder("c.avi", [10 ** 12], max_bytes=200_000)
+    sized.start()
+    assert "max_recording_mb" in stopped_by_itself(sized)["limit"]
+
+    filling = recorder("d.avi", [10 ** 12, 10 ** 5], min_free_bytes=10 ** 6)  # the disk fills
+    filling.start()
+    info = stopped_by_itself(filling)
+    assert "0 MB free on the disk" in info["limit"] and not info["recording"]
+
+
+def test_render_budget_holds_other_views_to_their_share() -> None:
+    budget = RenderBudget(0.25, bank_s=0.02)
+    budget.refill(100.0)
+    assert budget.allows and budget.wait_s() == 0.0
+    budget.spend(0.03)  # one slow render of another view: 10 ms over
+    assert not budget.allows and budget.wait_s() == pytest.approx(0.04)  # 10 ms at 25 %
+    budget.refill(100.03)
+    assert not budget.allows  # 7.5 ms of the 10 ms back
+    budget.refill(100.05)
+    assert budget.allows
+    budget.refill(200.0)  # a long pause banks at most bank_s
+    budget.spend(0.02)
+    assert not budget.allows
+    # over a long run, others get share × elapsed time whatever they ask
+    budget, spent, now = RenderBudget(0.3, bank_s=0.02), 0.0, 0.0
+    while now < 10.0:
+        budget.refill(now)
+        if budget.allows:
+            budget.spend(0.015)
+            spent += 0.015
+        now += 0.001
+    assert spent == pytest.approx(0.3 * 10.0, abs=0.05)
+
+
+def test_the_default_view_renders_first_then_the_one_drawn_longest_ago() -> None:
+    clients = ClientRegistry(ViewSettings(), ttl_s=60.0, on_new_view=lambda: None,
+                             new_recorder=no_recorder, max_views=3)
+    others = [ViewSettings(scale=s) for s in (2.0, 3.0, 4.0)]
+    for settings in others:
+        clients.touch(settings)
+    clients.touch(ViewSettings())
+    views = {v.settings: v for v in clients.active()}
+    for settings, drawn in zip(others, (5.0, 1.0, 3.0), strict=True):
+        views[settings].drawn_at = drawn
+    views[ViewSettings()].drawn_at = 9.0
+    order = [v.settings for v in clients.render_order(list(views.values()))]
+    assert order == [ViewSettings(), others[1], others[2], others[0]]
+
+
+def test_views_are_capped_and_a_client_leaving_its_streamed_view_makes_room() -> None:
+    clients = ClientRegistry(ViewSettings(), ttl_s=60.0, on_new_view=lambda: None,
+                             new_recorder=no_recorder, max_views=2)
+    a = clients.update_settings("a", {"scale": 2})
+    clients.watch(a, "a")
+    b = clients.update_settings("b", {"scale": 3})
+    clients.watch(b, "b")
+    with pytest.raises(TooManyViews, match="max_views 2"):
+        clients.update_settings("c", {"scale": 4})
+    assert clients.settings_for("c") == ViewSettings()  # unchanged
+    clients.watch(ViewSettings(), None)  # the default view never counts
+    moved = clients.update_settings("a", {"scale": 5})  # a's stream follows a: room
+    assert moved.scale == 5 and clients.memory()["evicted"] == 1
+    assert {v.settings for v in clients.active()} == {b, moved, ViewSettings()}
+    clients.unwatch(b, "b")
+    assert clients.update_settings("c", {"scale": 4}).scale == 4  # b is idle now: evicted
+    assert clients.memory() | {"picture_bytes": 0} == {
+        "kept": 3, "streamed": 1, "max": 2, "evicted": 2, "refused": 1, "picture_bytes": 0}
 
 
 def test_png_snapshot_round_trips() -> None:
