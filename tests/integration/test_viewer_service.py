@@ -320,6 +320,8 @@ def test_health_and_series_endpoints_report_the_monitor(start_viewer, publisher)
     _, url = start_viewer(series_interval_s=0.0)
     for seq in range(1, 4):
         publisher(KEYS.state(ROBOT), make_state(seq, sigma_m=0.05 / seq).to_bytes())
+        # the viewer keeps the newest state: wait for this one before the next
+        wait_until(lambda s=seq: (status_of(url)["state"] or {}).get("seq") == s)
         health = Health(robot=ROBOT, seq=seq, stamp=0.1 * seq, ok=seq < 3,
                         suspects=np.array([12] if seq == 3 else [], dtype=np.int64),
                         violations=(Violation("pair", (10, 12), seq, 1e-3),) if seq == 3
