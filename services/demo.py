@@ -36,6 +36,7 @@ from common.geometry import all_relative_covariances, pd_size_m
 from common.keys import Keys
 from common.messages import Health, SlamState
 from common.session import BusSettings, free_tcp_endpoint, open_bus
+from common.verdict import summary_text
 from services.launch import Supervisor
 from services.launch_file import plan_from_mapping, to_toml
 from services.settings import DemoSettings
@@ -169,8 +170,7 @@ class _Summary:
         text = (f"t {state.stamp:7.1f} s | seq {state.seq:6d} | {state.n:3d} landmarks | "
                 f"{rate:5.1f} states/s | mean P_d size {mean_pd * 100:6.2f} cm")
         if health is not None:
-            text += " | health " + ("ok" if health.ok else
-                                    f"VIOLATIONS, suspects {list(map(int, health.suspects))}")
+            text += " | " + summary_text(health)  # the page's and the legend's words
         return text
 
 
@@ -220,9 +220,10 @@ def run(command: str, args: argparse.Namespace) -> int:
         print(f"slamlens demo: router {endpoint}, logs in {log_dir}", flush=True)
         if http is not None:
             ready = supervisor.wait_ready("viewer", stop)
-            url = re.search(r"(http://\S+?)/?$", ready)
-            if url:
-                print(f"open {url.group(1)}/ in a browser", flush=True)
+            url = re.search(r"(http://\S+)", ready)
+            if url:  # beyond loopback the viewer puts its access token in it
+                link = url.group(1) if "?" in url.group(1) else url.group(1).rstrip("/") + "/"
+                print(f"open {link} in a browser", flush=True)
         else:
             print("(the viewer is not installed: showing the summary only)", flush=True)
         deadline = time.monotonic() + s.duration_s if s.duration_s else None

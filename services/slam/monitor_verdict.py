@@ -24,14 +24,12 @@ import dataclasses
 from dataclasses import dataclass
 
 from common.messages import Violation
+from common.verdict import WORDS, summary_text  # noqa: F401  (the one wording: common/verdict.py)
 
 FAULT_KINDS = ("pair", "feature", "prediction", "symmetry", "psd", "correlation")
 TUNING_KINDS = ("nees", "nis")
 VERDICTS = ("ok", "fault", "tuning")
 _RANK = {k: i for i, k in enumerate(FAULT_KINDS + TUNING_KINDS)}
-#: the verdict in words, as every view shows it
-WORDS = {"ok": "ok", "fault": "estimator fault",
-         "tuning": "inconsistent tuning or model mismatch"}
 
 
 @dataclass

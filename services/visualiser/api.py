@@ -15,28 +15,40 @@ from typing import Any
 import numpy as np
 
 from common.drops import DropCounter
+from common.errors import ConfigError
+from common.verdict import WORDS, summary_text, violation_text
 from services.visualiser.clients import ClientRegistry
-from services.visualiser.intake import Intake
+from services.visualiser.compose import registration_status
+from services.visualiser.intake import Intake, RobotInputs
 from services.visualiser.pipeline import RenderPipeline
+from services.visualiser.render import ROBOT_COLOURS
+from services.visualiser.robots import RobotHistories
 from services.visualiser.series import SeriesStore
 from services.visualiser.settings import ViewSettings
 from services.visualiser.views import EyeChooser, Rendered, project_features
+
+
+def _css(bgr: tuple[int, int, int]) -> str:
+    return f"rgb({bgr[2]},{bgr[1]},{bgr[0]})"
 
 
 class ViewerApi:
     """Status, health, plots, features, settings, recordings and pictures of one viewer."""
 
     def __init__(self, *, intake: Intake, eyes: EyeChooser, clients: ClientRegistry,
-                 pipeline: RenderPipeline, series: SeriesStore, failures: DropCounter,
-                 camera: str | None, recordings_dir: str) -> None:
+                 pipeline: RenderPipeline, histories: RobotHistories, failures: DropCounter,
+                 camera: str | None, recordings_dir: str, restart_note_s: float = 10.0,
+                 reregister: Callable[[str | None], dict[str, Any]] | None = None) -> None:
         self._intake = intake
         self._eyes = eyes
         self._clients = clients
         self._pipeline = pipeline
-        self._series = series
+        self._histories = histories
         self._failures = failures
         self._camera = camera
         self._recordings_dir = Path(recordings_dir)
+        self._restart_note_s = restart_note_s
+        self._reregister = reregister
 
     @property
     def robot(self) -> str:
@@ -51,8 +63,17 @@ class ViewerApi:
         return self._clients.settings_for(client)
 
     def touch(self, settings: ViewSettings) -> None:
-        """Keep rendering ``settings`` (somebody is looking)."""
+        """Keep rendering ``settings`` (somebody is looking); TooManyViews if it is a new
+        view and the viewer keeps as many as it may, all streamed."""
         self._clients.touch(settings)
+
+    def watch(self, settings: ViewSettings, client: str | None) -> None:
+        """A stream of ``client`` shows ``settings`` until :meth:`unwatch`
+        (TooManyViews: no room for it)."""
+        self._clients.watch(settings, client)
+
+    def unwatch(self, settings: ViewSettings, client: str | None) -> None:
+        self._clients.unwatch(settings, client)
 
     def latest(self, settings: ViewSettings) -> Rendered | None:
         return self._clients.latest(settings)
@@ -74,53 +95,132 @@ class ViewerApi:
         """Apply web-page changes (strings, numbers, booleans); ConfigError if bad."""
         return self._clients.update_settings(client, changes)
 
-    def features(self, settings: ViewSettings) -> dict[str, Any]:
-        """Feature ids, map positions and pixel positions in this view (click to select)."""
-        state, eyes = self._intake.snapshot().state, self._eyes.current
-        if state is None:
-            return {"seq": None, "ids": [], "xy": [], "uv": [], "selected":
-                    settings.selected_feature}
-        return {"seq": state.seq, "ids": [int(i) for i in state.landmark_ids],
-                "xy": [[float(x), float(y)] for x, y in state.landmarks],
-                "uv": project_features(eyes, np.asarray(state.landmarks)),
-                "selected": settings.selected_feature}
+    def _robot(self, robot: str | None) -> str:
+        """``robot``, checked to be shown (default: the first robot)."""
+        if robot is None or robot == "":
+            return self._intake.robot
+        if robot not in self._intake.robot_names:
+            raise ConfigError(f"robot: {robot!r} is not shown by this viewer; shown: "
+                              f"{', '.join(self._intake.robot_names) or 'none yet'}")
+        return robot
 
-    def health(self) -> dict[str, Any]:
-        """The latest verdict and the recent violations, newest first."""
-        health, recent = self._intake.snapshot().health, self._intake.recent_violations()
+    def colour_of(self, robot: RobotInputs) -> str:
+        """The robot's colour in the picture (CSS), as the settings' colours give it."""
+        if robot.index == 0:
+            return _css(self.default_settings.colour_robot)
+        return _css(ROBOT_COLOURS[(robot.index - 1) % len(ROBOT_COLOURS)])
+
+    def features(self, settings: ViewSettings) -> dict[str, Any]:
+        """Feature ids, map positions and pixel positions in this view (click to select),
+        of every robot shown (``robot`` names the map of each)."""
+        inputs, eyes = self._intake.snapshot(), self._eyes.current
+        several = len(inputs.robots) > 1
+        out: dict[str, Any] = {"seq": None, "ids": [], "xy": [], "uv": [], "robot": [],
+                               "selected": settings.selected_feature,
+                               "selected_robot": settings.selected_robot,
+                               "selected_cluster": settings.selected_cluster,
+                               "clusters": {}, "overview": {}}
+        for r in inputs.robots:
+            state = r.state
+            if state is None:
+                continue
+            if out["seq"] is None:
+                out["seq"] = state.seq
+            out["ids"] += [int(i) for i in state.landmark_ids]
+            out["xy"] += [[float(x), float(y)] for x, y in state.landmarks]
+            out["uv"] += project_features(eyes, np.asarray(state.landmarks),
+                                          r.name if several else None)
+            out["robot"] += [r.name] * state.n
+            history = self._histories.find(r.name)
+            if history is not None:
+                note = history.renderer.overview_note(settings)
+                if note:
+                    out["overview"][r.name] = note
+                # the stable cluster ids of the view's clustering (to select a cluster)
+                known = history.renderer.known_cluster_ids(settings)
+                if known is not None:
+                    lm, cid = known
+                    where = {int(i): int(c) for i, c in zip(lm.tolist(), cid.tolist(),
+                                                            strict=True)}
+                    out["clusters"][r.name] = [where.get(int(i)) for i in state.landmark_ids]
+        return out
+
+    def health(self, robot: str | None = None) -> dict[str, Any]:
+        """The latest verdict and the recent violations of ``robot``, newest first."""
+        name = self._robot(robot)
+        inputs = self._intake.snapshot().robot(name)
+        health = None if inputs is None else inputs.health
+        recent = self._intake.recent_violations(name)
         latest = None
         if health is not None:
             latest = {"seq": health.seq, "stamp": health.stamp, "ok": health.ok,
+                      "verdict": health.verdict, "verdict_since": health.verdict_since,
+                      "verdict_words": WORDS.get(health.verdict, health.verdict),
+                      "verdict_text": summary_text(health),
+                      "standing": [{**v.to_dict(), "text": violation_text(v)}
+                                   for v in health.standing],
                       "suspects": [int(s) for s in health.suspects],
-                      "violations": [v.to_dict() for v in health.violations],
+                      "violations": [{**v.to_dict(), "text": violation_text(v)}
+                                     for v in health.violations],
                       "statistics": dict(health.statistics)}
-        return {"latest": latest, "recent": recent[::-1]}
+        return {"robot": name, "latest": latest, "recent": recent[::-1]}
 
-    def series(self, settings: ViewSettings,
-               pairs: list[tuple[int, int]] | None = None) -> dict[str, Any]:
-        """Time series of ``pairs`` (default: the flagged, selected or largest pairs)."""
+    def series(self, settings: ViewSettings, pairs: list[tuple[int, int]] | None = None,
+               robot: str | None = None) -> dict[str, Any]:
+        """Time series of ``robot``'s ``pairs`` (default: the flagged, selected or largest
+        pairs)."""
+        name = self._robot(robot)
+        history = self._histories.find(name)
+        if history is None:
+            return {"robot": name, **SeriesStore().to_json([])}
         if not pairs:
-            health = self._intake.snapshot().health
+            inputs = self._intake.snapshot().robot(name)
+            health = None if inputs is None else inputs.health
             flagged = [] if health is None else [
                 (v.ids[0], v.ids[1]) for v in health.violations
                 if v.kind == "pair" and len(v.ids) == 2]
-            pairs = self._series.default_pairs(selected=settings.selected_feature,
-                                               flagged=flagged)
-        return self._series.to_json(pairs)
+            selected = (settings.selected_feature
+                        if settings.selected_robot in (None, name) else None)
+            pairs = history.series.default_pairs(selected=selected, flagged=flagged)
+        return {"robot": name, **history.series.to_json(pairs)}
 
     def status(self) -> dict[str, Any]:
         now = time.monotonic()
         inputs = self._intake.snapshot()
-        state, health = inputs.state, inputs.health
         active = self._clients.looked_at(now)
         render_ms = list(self._pipeline.render_ms)
+
+        def state_of(r: RobotInputs | None) -> dict[str, Any] | None:
+            if r is None or r.state is None:
+                return None
+            state = r.state
+            return {"seq": state.seq, "stamp": state.stamp, "step": state.step, "n": state.n,
+                    "epoch": state.epoch,
+                    "age_s": None if r.state_received is None else now - r.state_received,
+                    "rate_hz": r.state_rate.rate(now)}
+
+        def health_of(r: RobotInputs | None) -> dict[str, Any] | None:
+            if r is None or r.health is None:
+                return None
+            h = r.health
+            return {"seq": h.seq, "ok": h.ok, "violations": len(h.violations),
+                    "suspects": [int(s) for s in h.suspects], "verdict": h.verdict,
+                    "verdict_text": summary_text(h), "standing": len(h.standing)}
+
+        first = inputs.robots[0] if inputs.robots else None
+        robots = []
+        for r in inputs.robots:
+            restarted = (r.restarted_at is not None
+                         and now - r.restarted_at < self._restart_note_s)
+            robots.append({
+                "name": r.name, "colour": self.colour_of(r), "state": state_of(r),
+                "health": health_of(r), "restarts": r.restarts,
+                "map_restarted": restarted,
+                "registration": {c.name: registration_status(c, r) for c in inputs.cameras}})
         return {
-            "robot": self.robot, "view": self._eyes.view, "camera": self._camera,
-            "state": None if state is None else {
-                "seq": state.seq, "stamp": state.stamp, "step": state.step, "n": state.n,
-                "age_s": None if inputs.state_received is None
-                else now - inputs.state_received,
-                "rate_hz": self._intake.state_rate.rate(now)},
+            "robot": self.robot, "robots": robots, "discover": self._intake.discovering,
+            "view": self._eyes.view, "camera": self._camera,
+            "state": state_of(first),
             "cameras": [{
                 "name": c.name,
                 "frame": None if c.frame is None else {
@@ -129,18 +229,25 @@ class ViewerApi:
                     "age_s": None if c.frame_received is None else now - c.frame_received},
                 "registration": None if c.registration is None else {
                     "status": c.registration.status, "stamp": c.registration.stamp,
+                    "epoch": c.registration.epoch,
                     "reprojection_error_px": c.registration.reprojection_error_px},
             } for c in inputs.cameras],
-            "health": None if health is None else {
-                "seq": health.seq, "ok": health.ok, "violations": len(health.violations),
-                "suspects": [int(s) for s in health.suspects]},
+            "health": health_of(first),
             "fps": max((v.rate.rate(now) for v in active), default=0.0),
             "render_ms_median": float(np.median(render_ms)) if render_ms else None,
             "views_active": len(active), "clients": self._clients.client_count,
+            "views": self._clients.memory(),
             "bad_messages": dict(self._intake.bad.counts),
             "failures": dict(self._failures.counts),
             "recording": self._clients.recording(),
         }
+
+    def reregister(self, robot: str | None) -> dict[str, Any]:
+        """Ask the camera(s) to register ``robot`` (None: every robot) again; blocks up to
+        the viewer's ``reregister_timeout_s``."""
+        if self._reregister is None:
+            raise ConfigError("this viewer cannot ask for a re-registration")
+        return self._reregister(None if robot in (None, "") else self._robot(robot))
 
     # -- recordings ---------------------------------------------------------------
     def record_start(self, client: str) -> dict[str, Any]:

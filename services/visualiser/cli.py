@@ -22,14 +22,22 @@ def run(command: str, args: argparse.Namespace) -> int:
     # imported here so that `slamlens viewer --help` does not load the web stack
     from services.visualiser.service import ViewerService
     from services.visualiser.web import WebServer, parse_http
+    from services.visualiser.web_access import is_loopback, new_token, read_token
 
     setup_logging(args, "viewer")
     config = settings_from_args(ViewerConfig, args)
     host, port = parse_http(config.http)
+    # beyond loopback nothing is served without a token (SPEC §7b, docs/security.md)
+    token = read_token(config.token_file) if config.token_file else (
+        None if is_loopback(host) else new_token())
+    if host in ("0.0.0.0", "::", ""):
+        log.warning("the web viewer listens on every interface (%s): bind it to the one "
+                    "interface its users reach (docs/security.md)", config.http)
     stop = stop_event()
     bus = open_bus(bus_settings(args))
     service = ViewerService(bus, keys=keys_from(args), config=config)
-    web = WebServer(service, host=host, port=port)
+    web = WebServer(service, host=host, port=port, token=token,
+                    allowed_hosts=config.allowed_hosts, allowed_origins=config.allowed_origins)
     try:
         service.start()
         url = web.start()
@@ -46,8 +54,15 @@ def run(command: str, args: argparse.Namespace) -> int:
                           dropped=int(sum(now.get("bad_messages", {}).values())))
 
         announce(bus, args, "viewer", status, robot=config.robot, camera=config.camera)
-        log.info("web viewer at %s", url)
-        print(f"viewer ready {url}", flush=True)
+        if token is None:
+            log.info("web viewer at %s", url)
+        else:
+            log.info("web viewer at %s: every request needs the access token (%s)", url,
+                     f"from {config.token_file}" if config.token_file else "in the URL "
+                     "printed on standard output")
+        # a token read from a file stays out of the output (which may end up in a log)
+        print(f"viewer ready {url if config.token_file else web.url_with_token}",
+              flush=True)
         stop.wait()
     finally:
         web.stop()

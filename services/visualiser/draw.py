@@ -118,6 +118,8 @@ class Cones:
     """Projected upright cones, tip down on the floor, flat base up (paper §3.2 markers)."""
 
     VERTICES = 20
+    DOT_BELOW_PX = 5.0  #: cones whose picture is narrower than this are drawn as a dot
+    FULL_DETAIL = 300  #: more cones than this: the lit cap and the tip only (no side, edge)
 
     def __init__(self, camera: CameraModel, tips_xy: np.ndarray, *, height_m: float,
                  radius_m: float, colour: BGR) -> None:
@@ -139,6 +141,19 @@ class Cones:
         self.cap_visible = bool(camera.centre_map[2] > height_m)
         self._tip = fixed(np.nan_to_num(self.tip_uv))
         self._base = fixed(np.nan_to_num(base_uv))
+        # level of detail: a cone a few pixels wide is drawn as one dot (a large map shows
+        # hundreds of them), and one wholly off the picture not at all
+        with np.errstate(invalid="ignore"):
+            lo = np.minimum(base_uv.min(axis=1), self.tip_uv)
+            hi = np.maximum(base_uv.max(axis=1), self.tip_uv)
+        extent = (hi - lo).max(axis=1) if c else np.zeros(0)
+        self.valid &= ~((hi[:, 0] < 0) | (hi[:, 1] < 0) | (lo[:, 0] >= camera.width)
+                        | (lo[:, 1] >= camera.height)) if c else self.valid
+        self._dot_radius = (np.where(extent < self.DOT_BELOW_PX, np.maximum(extent / 2, 1.5),
+                                     0.0) * _ONE).astype(np.int64).tolist() if c else []
+        self._dot_centre = [tuple(p) for p in fixed(np.nan_to_num(
+            (lo + hi) / 2)).tolist()] if c else []
+        self._simple = c > self.FULL_DETAIL and self.cap_visible
 
     def __len__(self) -> int:
         return len(self.depth)
@@ -147,7 +162,16 @@ class Cones:
         """Draw cone ``k``: shaded side (hull of tip and base), lit cap, tip dot."""
         if not self.valid[k]:
             return
+        if self._dot_radius[k] > 0:
+            cv2.circle(img, self._dot_centre[k], self._dot_radius[k], self._cap, -1,
+                       cv2.LINE_AA, SHIFT)
+            return
         base = self._base[k]
+        if self._simple:  # hundreds of cones: a third of the drawing calls
+            cv2.fillConvexPoly(img, base, self._cap, cv2.LINE_AA, SHIFT)
+            cv2.circle(img, tuple(self._tip[k].tolist()), 2 * _ONE, self._dot, -1,
+                       cv2.LINE_AA, SHIFT)
+            return
         hull = cv2.convexHull(np.concatenate([base, self._tip[k:k + 1]]))
         cv2.fillConvexPoly(img, hull, self._side, cv2.LINE_AA, SHIFT)
         if self.cap_visible:

@@ -6,7 +6,23 @@ frames and registrations are kept latest-wins (:class:`~common.latest.Latest`); 
 verdicts in a bounded FIFO (:class:`Queue`: every verdict feeds the plots). Frames are
 decoded on the ``viewer-decode`` thread as they arrive; everything else when the render
 thread calls :meth:`Intake.ingest`. A bad payload is logged (the first few of each kind,
-then one line in a hundred: :class:`~common.drops.DropCounter`), counted and dropped.
+then one line in a hundred: :class:`~common.drops.DropCounter`), counted and dropped; so
+is a frame whose JPEG header (read without decoding) claims another size than its message
+or more pixels than allowed (a decode bomb).
+
+Several robots: each has its own state, health and tracked pose, and one registration
+per camera (``camera/C/registration/R``). Robots are named, or discovered: with
+``discover`` every robot whose estimator is alive (liveliness
+``robot/*/alive/estimator``) is added as it appears, by the ``viewer-discover`` thread
+(subscriptions and the late-join ``get`` never run on a Zenoh thread or the render thread).
+
+Maps and epochs (SPEC §7a): a state whose ``epoch`` differs from the robot's previous one
+(or, with epoch 0 = unknown, whose seq went back) starts a new map: :class:`Arrivals`
+says so and the viewer drops what it holds of the old one. A registration places one
+epoch's map frame: one whose ``epoch`` differs from the state's, or without an epoch and
+received before the state that began the current epoch, is *stale*
+(:meth:`RobotInputs.registration_usable`): the picture then shows a note, never an
+overlay in the wrong frame.
 """
 
 from __future__ import annotations
@@ -27,6 +43,8 @@ from common.drops import DropCounter
 from common.keys import Keys
 from common.latest import Latest
 from common.messages import CameraFrame, Health, Registration, SlamState, Truth
+from common.verdict import violation_text
+from services.visualiser.jpeg import JpegError, jpeg_size
 
 log = logging.getLogger("slamlens.viewer")
 
@@ -110,20 +128,61 @@ class RateMeter:
             self._times.popleft()
 
 
+def is_new_map(previous: SlamState | None, state: SlamState) -> bool:
+    """Whether ``state`` starts a new map after ``previous`` (SPEC §7a, docs/protocol.md):
+    another epoch, or (epoch 0 = unknown, a third-party estimator) a seq that went back. The
+    same epoch with a lower seq is an estimator resumed from its checkpoint: the same map."""
+    if previous is None:
+        return False
+    if state.epoch != previous.epoch:
+        return True
+    return state.epoch == 0 and state.seq < previous.seq
+
+
+@dataclass
+class _RegistrationInput:
+    """One camera's registration for one robot: raw slot and decoded value."""
+
+    slot: Latest[Raw]
+    registration: Registration | None = None
+    received: float | None = None  #: time.monotonic() at receipt of the decoded one
+    version: int = 0  #: +1 per registration decoded
+
+
 @dataclass
 class _Camera:
     """Inputs of one camera: raw slots and their decoded values."""
 
     name: str
     frame_slot: Latest[Raw]
-    registration_slot: Latest[Raw]
     image: np.ndarray | None = None  #: decoded BGR frame
     frame: CameraFrame | None = None  #: its message (data kept for the status only)
     frame_received: float | None = None
     frame_version: int = 0  #: +1 per frame decoded
-    registration: Registration | None = None
-    registration_version: int = 0  #: +1 per registration decoded
+    registrations: dict[str, _RegistrationInput] = field(default_factory=dict)  #: by robot
     rate: RateMeter = field(default_factory=RateMeter)
+
+
+@dataclass
+class _Robot:
+    """Inputs of one robot: raw slots, decoded values, and where its current map began."""
+
+    name: str
+    index: int  #: order of arrival (its colour)
+    state_slot: Latest[Raw]
+    tracked_slot: Latest[Raw]
+    health_queue: Queue
+    state: SlamState | None = None
+    state_received: float | None = None
+    state_version: int = 0
+    state_rate: RateMeter = field(default_factory=RateMeter)
+    health: Health | None = None
+    health_version: int = 0
+    violations: deque[dict[str, Any]] = field(default_factory=lambda: deque(maxlen=200))
+    #: receipt time of the state that began the current map (−inf: the first map seen)
+    epoch_started: float = -float("inf")
+    restarted_at: float | None = None  #: time.monotonic() of the last new map seen
+    restarts: int = 0  #: new maps seen
 
 
 @dataclass(frozen=True, eq=False)
@@ -134,94 +193,186 @@ class CameraInputs:
     image: np.ndarray | None  #: BGR frame
     frame: CameraFrame | None
     frame_received: float | None  #: time.monotonic() at receipt, s
-    registration: Registration | None
+    #: robot → (registration, time.monotonic() at its receipt)
+    registrations: dict[str, tuple[Registration, float]]
     rate: RateMeter  #: frames decoded per second
+
+    @property
+    def registration(self) -> Registration | None:
+        """The registration of the first robot that has one (single-robot callers)."""
+        return next((reg for reg, _ in self.registrations.values()), None)
+
+
+@dataclass(frozen=True, eq=False)
+class RobotInputs:
+    """One robot's newest decoded inputs."""
+
+    name: str
+    index: int  #: order of arrival: 0 for the first robot (the settings' colours)
+    state: SlamState | None
+    state_received: float | None  #: time.monotonic() at receipt, s
+    health: Health | None
+    epoch_started: float  #: receipt time of the state that began the current map
+    restarted_at: float | None  #: time.monotonic() of the last new map seen (None: none)
+    restarts: int
+    state_rate: RateMeter
+
+    def registration_usable(self, registration: Registration, received: float) -> bool:
+        """Whether ``registration`` places this robot's *current* map (module docstring)."""
+        if registration.epoch is not None:
+            return self.state is None or registration.epoch == self.state.epoch
+        return received >= self.epoch_started
 
 
 @dataclass(frozen=True, eq=False)
 class Inputs:
     """The newest decoded inputs at one instant; ``versions`` changes whenever one does."""
 
-    state: SlamState | None
-    state_received: float | None  #: time.monotonic() at receipt, s
-    health: Health | None
+    robots: tuple[RobotInputs, ...]
     cameras: tuple[CameraInputs, ...]
     versions: tuple[Any, ...]
 
+    @property
+    def state(self) -> SlamState | None:
+        """The first robot's state (single-robot callers)."""
+        return self.robots[0].state if self.robots else None
+
+    @property
+    def state_received(self) -> float | None:
+        return self.robots[0].state_received if self.robots else None
+
+    @property
+    def health(self) -> Health | None:
+        return self.robots[0].health if self.robots else None
+
+    def robot(self, name: str) -> RobotInputs | None:
+        return next((r for r in self.robots if r.name == name), None)
+
 
 @dataclass(frozen=True, eq=False)
-class Arrivals:
-    """What one :meth:`Intake.ingest` took in, for the parts that keep a history."""
+class RobotArrivals:
+    """What one :meth:`Intake.ingest` took in for one robot."""
 
+    robot: str
     state: SlamState | None = None  #: a new state
-    restarted: bool = False  #: its seq went backwards: a new run
+    restarted: bool = False  #: it began a new map (another epoch, or seq went back)
     tracked: Truth | None = None  #: a new camera-tracked pose
     healths: tuple[Health, ...] = ()  #: new verdicts, oldest first
 
 
-class Intake:
-    """Subscribes to one robot's state, health and tracked pose and to its cameras.
+@dataclass(frozen=True, eq=False)
+class Arrivals:
+    """What one :meth:`Intake.ingest` took in, per robot, for the parts that keep a history."""
 
-    ``on_input`` is called (on a Zenoh thread or the decode thread, so it must only wake
-    somebody) when a state, health, registration or decoded frame arrives; the tracked
-    pose wakes nobody: it is drawn with the next state.
+    robots: tuple[RobotArrivals, ...] = ()
+    added: tuple[str, ...] = ()  #: robots discovered since the last call
+
+    def of(self, robot: str) -> RobotArrivals:
+        return next((a for a in self.robots if a.robot == robot), RobotArrivals(robot))
+
+
+class Intake:
+    """Subscribes to the robots' state, health and tracked pose and to the cameras.
+
+    ``robots`` are subscribed at :meth:`start`; with ``discover`` every robot whose
+    estimator is alive is added as it appears. ``on_input`` is called (on a Zenoh thread or
+    the decode thread, so it must only wake somebody) when a state, health, registration
+    or decoded frame arrives; the tracked pose wakes nobody: it is drawn with the next state.
     """
 
-    def __init__(self, bus: Bus, *, keys: Keys, robot: str, cameras: tuple[str, ...],
-                 fps: float, late_join_timeout_s: float, on_input: Callable[[], None],
-                 drops: DropCounter) -> None:
+    DISCOVER_EVERY_S = 1.0  #: how often the alive estimators are asked for (discover)
+
+    def __init__(self, bus: Bus, *, keys: Keys, robots: tuple[str, ...],
+                 cameras: tuple[str, ...], fps: float, late_join_timeout_s: float,
+                 on_input: Callable[[], None], drops: DropCounter,
+                 discover: bool = False, max_frame_pixels: int = 16_777_216) -> None:
         self.bus = bus
+        self.max_frame_pixels = max_frame_pixels  #: frames claiming more are not decoded
         self.keys = keys
-        self.robot = robot
         self.bad = drops  #: malformed input messages, by input
         self._fps = fps
         self._late_join_timeout_s = late_join_timeout_s
+        self._discover = discover
         self._lock = threading.Lock()
         self._stop = threading.Event()
         self._decode_wake = threading.Event()
-        self._thread: threading.Thread | None = None
-        self._state_slot: Latest[Raw] = Latest(on_put=on_input)
-        self._tracked_slot: Latest[Raw] = Latest()
-        self._health_queue = Queue("health", on_input)
-        self._cameras = {c: _Camera(c, Latest(on_put=self._decode_wake.set),
-                                    Latest(on_put=on_input)) for c in cameras}
+        self._threads: list[threading.Thread] = []
         self._on_input = on_input
-        self.state: SlamState | None = None
-        self.state_received: float | None = None
-        self._state_version = 0
-        self.state_rate = RateMeter()  #: states taken in per second
-        self.health: Health | None = None
-        self._health_version = 0
-        self._violations: deque[dict[str, Any]] = deque(maxlen=200)
+        self._named = tuple(robots)
+        self._robots: dict[str, _Robot] = {}
+        self._added: list[str] = []
+        self._cameras = {c: _Camera(c, Latest(on_put=self._decode_wake.set)) for c in cameras}
+
+    @property
+    def robot(self) -> str:
+        """The first robot (named first, or discovered first; "" before any)."""
+        with self._lock:
+            names = list(self._robots)
+        return names[0] if names else (self._named[0] if self._named else "")
+
+    @property
+    def robot_names(self) -> tuple[str, ...]:
+        with self._lock:
+            return tuple(self._robots)
 
     @property
     def camera_names(self) -> tuple[str, ...]:
         return tuple(self._cameras)
 
+    @property
+    def discovering(self) -> bool:
+        return self._discover
+
     # -- life cycle ---------------------------------------------------------------
     def start(self) -> None:
-        """Subscribe, fetch the latest state and registrations (late join), start decoding."""
-        k, robot = self.keys, self.robot
-        self.bus.subscribe(k.state(robot), _store(self._state_slot))
-        self.bus.subscribe(k.health(robot), lambda _key, p: self._health_queue.offer(p))
-        self.bus.subscribe(k.tracked(robot), _store(self._tracked_slot))
+        """Subscribe, fetch the latest state and registrations (late join), start decoding
+        (and discovering robots)."""
         for cam in self._cameras.values():
-            self.bus.subscribe(k.frame(cam.name), _store(cam.frame_slot))
-            self.bus.subscribe(k.registration(cam.name, robot), _store(cam.registration_slot))
-        self._late_join()
-        self._thread = threading.Thread(target=self._decode_loop, name="viewer-decode",
-                                        daemon=True)
-        self._thread.start()
+            self.bus.subscribe(self.keys.frame(cam.name), _store(cam.frame_slot))
+        for robot in self._named:
+            self.add_robot(robot)
+        self._start_thread("viewer-decode", self._decode_loop)
+        if self._discover:
+            self._start_thread("viewer-discover", self._discover_loop)
 
-    def _late_join(self) -> None:
+    def _start_thread(self, name: str, target: Callable[[], None]) -> None:
+        thread = threading.Thread(target=target, name=name, daemon=True)
+        thread.start()
+        self._threads.append(thread)
+
+    def add_robot(self, robot: str) -> bool:
+        """Subscribe to one more robot and fetch its latest (not on a Zenoh thread: the
+        late-join ``get`` waits). False if it was there already."""
+        k = self.keys
+        with self._lock:
+            if robot in self._robots:
+                return False
+            r = _Robot(robot, len(self._robots), Latest(on_put=self._on_input), Latest(),
+                       Queue("health", self._on_input))
+            regs = {c.name: _RegistrationInput(Latest(on_put=self._on_input))
+                    for c in self._cameras.values()}
+        self.bus.subscribe(k.state(robot), _store(r.state_slot))
+        self.bus.subscribe(k.health(robot), lambda _key, p: r.health_queue.offer(p))
+        self.bus.subscribe(k.tracked(robot), _store(r.tracked_slot))
+        for name, reg in regs.items():
+            self.bus.subscribe(k.registration(name, robot), _store(reg.slot))
+        with self._lock:
+            self._robots[robot] = r
+            for name, reg in regs.items():
+                self._cameras[name].registrations[robot] = reg
+            self._added.append(robot)
+        self._late_join(r, regs)
+        self._on_input()
+        return True
+
+    def _late_join(self, robot: _Robot, regs: dict[str, _RegistrationInput]) -> None:
         """Ask the estimator and the cameras for their latest (SPEC §7), so a viewer that
         joins late shows the current picture at once."""
         timeout = self._late_join_timeout_s
         if timeout <= 0:
             return
-        wanted = [(self.keys.state(self.robot), self._state_slot)]
-        wanted += [(self.keys.registration(c.name, self.robot), c.registration_slot)
-                   for c in self._cameras.values()]
+        wanted = [(self.keys.state(robot.name), robot.state_slot)]
+        wanted += [(self.keys.registration(c, robot.name), reg.slot) for c, reg in regs.items()]
         for key, slot in wanted:
             try:
                 replies = self.bus.get(key, timeout=timeout)
@@ -230,20 +381,35 @@ class Intake:
                 continue
             if replies and slot.count == 0:  # a live sample that came first is newer
                 slot.put(Raw(replies[-1].payload, time.monotonic()))
-        health_key = self.keys.health(self.robot)
+        health_key = self.keys.health(robot.name)
         try:  # the monitor may answer too; its verdict is optional for the picture
             replies = self.bus.get(health_key, timeout=min(timeout, 0.5))
         except Exception as exc:
             log.debug("late-join get on %s failed: %s", health_key, exc)
             replies = []
-        if replies and self._health_queue.received_count == 0:
-            self._health_queue.offer(replies[-1].payload)
+        if replies and robot.health_queue.received_count == 0:
+            robot.health_queue.offer(replies[-1].payload)
+
+    def _discover_loop(self) -> None:
+        pattern = self.keys.any_estimator_alive()
+        while not self._stop.is_set():
+            try:
+                alive = self.bus.alive(pattern, timeout=1.0)
+            except Exception as exc:  # the session closing, a router away: try again
+                log.debug("liveliness get on %s failed: %s", pattern, exc)
+                alive = []
+            for key in alive:
+                robot = self.keys.robot_of(key)
+                if robot and robot not in self.robot_names and not self._stop.is_set():
+                    log.info("robot %s: its estimator is alive; shown from now on", robot)
+                    self.add_robot(robot)
+            self._stop.wait(self.DISCOVER_EVERY_S)
 
     def stop(self) -> None:
         self._stop.set()
         self._decode_wake.set()
-        if self._thread is not None:
-            self._thread.join(timeout=5.0)
+        for thread in self._threads:
+            thread.join(timeout=5.0)
 
     # -- decoding -----------------------------------------------------------------
     def _decode_loop(self) -> None:
@@ -270,6 +436,10 @@ class Intake:
         frame = decode(f"frame {cam.name}", raw, CameraFrame.from_bytes, self.bad)
         if frame is None:
             return False
+        refused = self._refuse_size(cam, frame)  # before decoding: a bomb never allocates
+        if refused:
+            self.bad.drop(f"frame {cam.name}", refused)
+            return False
         try:
             image = cv2.imdecode(np.frombuffer(frame.data, np.uint8), cv2.IMREAD_COLOR)
         except cv2.error:  # e.g. empty data
@@ -285,40 +455,77 @@ class Intake:
             cam.frame_version += 1
         return True
 
-    def ingest(self) -> Arrivals:
-        """Decode whatever state, tracked pose, health and registration arrived since the
-        last call (on the render thread); returns what is new."""
-        state, restarted = self._ingest_state()
-        tracked = None
-        raw_tracked = self._tracked_slot.take()
-        if raw_tracked is not None:
-            tracked = decode("tracked", raw_tracked, Truth.from_bytes, self.bad)
-        healths = []
-        for raw in self._health_queue.drain():
-            health = decode("health", raw, Health.from_bytes, self.bad)
-            if health is None:
-                continue
-            with self._lock:
-                self.health = health
-                self._health_version += 1
-                for v in health.violations:
-                    self._violations.append({"seq": health.seq, "stamp": health.stamp,
-                                             **v.to_dict()})
-            healths.append(health)
-        for cam in self._cameras.values():
-            raw_reg = cam.registration_slot.take()
-            if raw_reg is None:
-                continue
-            reg = decode(f"registration {cam.name}", raw_reg, Registration.from_bytes, self.bad)
-            if reg is not None:
-                with self._lock:
-                    cam.registration = reg
-                    cam.registration_version += 1
-        return Arrivals(state=state, restarted=restarted, tracked=tracked,
-                        healths=tuple(healths))
+    def _refuse_size(self, cam: _Camera, frame: CameraFrame) -> str:
+        """Why the frame must not be decoded (its JPEG header's size), or ""."""
+        try:
+            width, height = jpeg_size(frame.data)
+        except JpegError as exc:
+            return f"CameraFrame.data: {exc}"
+        if (width, height) != (frame.width, frame.height):
+            return (f"CameraFrame.data: the JPEG header says {width}×{height} pixels, the "
+                    f"message {frame.width}×{frame.height} (not decoded)")
+        limit, why = self.max_frame_pixels, "max_frame_pixels"
+        with self._lock:  # the largest size this camera was registered with, for any robot
+            regs = [r.registration for r in cam.registrations.values()
+                    if r.registration is not None]
+        if regs:
+            reg = max(regs, key=lambda r: r.width * r.height)
+            if 4 * reg.width * reg.height < limit:
+                limit, why = (4 * reg.width * reg.height,
+                              f"4 × the registered {reg.width}×{reg.height}")
+        if width * height > limit:
+            return (f"CameraFrame.data: a {width}×{height} JPEG has more pixels than {limit} "
+                    f"({why}; not decoded)")
+        return ""
 
-    def _ingest_state(self) -> tuple[SlamState | None, bool]:
-        raw = self._state_slot.take()
+    def ingest(self) -> Arrivals:
+        """Decode whatever states, tracked poses, health and registrations arrived since
+        the last call (on the render thread); returns what is new."""
+        with self._lock:
+            robots = list(self._robots.values())
+            added, self._added = tuple(self._added), []
+        out = []
+        for r in robots:
+            state, restarted = self._ingest_state(r)
+            tracked = None
+            raw_tracked = r.tracked_slot.take()
+            if raw_tracked is not None:
+                tracked = decode("tracked", raw_tracked, Truth.from_bytes, self.bad)
+            healths = []
+            for raw in r.health_queue.drain():
+                health = decode("health", raw, Health.from_bytes, self.bad)
+                if health is None:
+                    continue
+                if health.robot != r.name:
+                    self.bad.drop("health", f"Health.robot: expected {r.name!r}, "
+                                  f"got {health.robot!r}")
+                    continue
+                with self._lock:
+                    r.health = health
+                    r.health_version += 1
+                    for v in health.violations:
+                        r.violations.append({"seq": health.seq, "stamp": health.stamp,
+                                             **v.to_dict(), "text": violation_text(v)})
+                healths.append(health)
+            if state is not None or tracked is not None or healths:
+                out.append(RobotArrivals(r.name, state, restarted, tracked, tuple(healths)))
+        for cam in self._cameras.values():
+            with self._lock:
+                regs = list(cam.registrations.items())
+            for _robot, reg_input in regs:
+                raw_reg = reg_input.slot.take()
+                if raw_reg is None:
+                    continue
+                reg = decode(f"registration {cam.name}", raw_reg, Registration.from_bytes,
+                             self.bad)
+                if reg is not None:
+                    with self._lock:
+                        reg_input.registration, reg_input.received = reg, raw_reg.received
+                        reg_input.version += 1
+        return Arrivals(robots=tuple(out), added=added)
+
+    def _ingest_state(self, r: _Robot) -> tuple[SlamState | None, bool]:
+        raw = r.state_slot.take()
         if raw is None:
             return None, False
         # symmetry is the monitor's business: the viewer shows what the estimator sent
@@ -326,15 +533,22 @@ class Intake:
             b, check_symmetry=False), self.bad)
         if state is None:
             return None, False
-        if state.robot != self.robot:
-            self.bad.drop("state", f"SlamState.robot: expected {self.robot!r}, "
+        if state.robot != r.name:
+            self.bad.drop("state", f"SlamState.robot: expected {r.name!r}, "
                           f"got {state.robot!r}")
             return None, False
         with self._lock:
-            restarted = self.state is not None and state.seq < self.state.seq
-            self.state, self.state_received = state, raw.received
-            self._state_version += 1
-        self.state_rate.tick()
+            restarted = is_new_map(r.state, state)
+            if restarted:
+                assert r.state is not None
+                log.warning("robot %s: map restarted (epoch %d → %d, seq %d → %d): the old "
+                            "map's path, plots and registration are dropped", r.name,
+                            r.state.epoch, state.epoch, r.state.seq, state.seq)
+                r.epoch_started, r.restarted_at = raw.received, time.monotonic()
+                r.restarts += 1
+            r.state, r.state_received = state, raw.received
+            r.state_version += 1
+        r.state_rate.tick()
         return state, restarted
 
     # -- what the other parts read ------------------------------------------------
@@ -344,21 +558,28 @@ class Intake:
             return self._versions()
 
     def _versions(self) -> tuple[Any, ...]:
-        return (self._state_version, self._health_version,
-                tuple((c.frame_version, c.registration_version)
+        return (tuple((r.state_version, r.health_version) for r in self._robots.values()),
+                tuple((c.frame_version, tuple(g.version for g in c.registrations.values()))
                       for c in self._cameras.values()))
 
     def snapshot(self) -> Inputs:
         """One consistent view of the newest inputs and their versions."""
         with self._lock:
-            return Inputs(
-                state=self.state, state_received=self.state_received, health=self.health,
-                cameras=tuple(CameraInputs(c.name, c.image, c.frame, c.frame_received,
-                                           c.registration, c.rate)
-                              for c in self._cameras.values()),
-                versions=self._versions())
+            robots = tuple(RobotInputs(r.name, r.index, r.state, r.state_received, r.health,
+                                       r.epoch_started, r.restarted_at, r.restarts,
+                                       r.state_rate)
+                           for r in self._robots.values())
+            cameras = tuple(CameraInputs(
+                c.name, c.image, c.frame, c.frame_received,
+                {robot: (g.registration, g.received) for robot, g in c.registrations.items()
+                 if g.registration is not None and g.received is not None}, c.rate)
+                for c in self._cameras.values())
+            return Inputs(robots=robots, cameras=cameras, versions=self._versions())
 
-    def recent_violations(self) -> list[dict[str, Any]]:
-        """The last 200 violations the monitor reported, oldest first."""
+    def recent_violations(self, robot: str | None = None) -> list[dict[str, Any]]:
+        """The last 200 violations the monitor reported for ``robot`` (default: the
+        first), oldest first."""
+        name = robot or self.robot
         with self._lock:
-            return list(self._violations)
+            r = self._robots.get(name)
+            return [] if r is None else list(r.violations)

@@ -19,7 +19,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from services.visualiser.clients import ClientRegistry, View
+from services.visualiser.clients import ClientRegistry, RenderBudget, View
 from services.visualiser.compose import Composer, Frame
 from services.visualiser.settings import ViewSettings
 from services.visualiser.views import Rendered
@@ -33,12 +33,17 @@ class RenderPipeline:
     BURST = 2.0  # render cycles the fps cap lets through back to back after a pause
 
     def __init__(self, composer: Composer, clients: ClientRegistry, *,
-                 ingest: Callable[[], None], fps: float, jpeg_quality: int) -> None:
+                 ingest: Callable[[], None], fps: float, jpeg_quality: int,
+                 other_views_share: float = 1.0) -> None:
         self.composer = composer
         self.clients = clients
         self._ingest = ingest
         self.fps = fps
         self.jpeg_quality = jpeg_quality
+        # the views other than the default take at most this share of the render thread
+        # while the default view is looked at (banked for two frame periods)
+        self.budget = RenderBudget(other_views_share, bank_s=other_views_share * 2.0 / fps)
+        self._deferred_s = 0.0  # > 0: views wait for the budget; render again this soon
         self._stop = threading.Event()
         self._wake = threading.Event()
         self._encode_queue: queue.Queue[tuple[Any, ...]] = queue.Queue(maxsize=2)
@@ -80,7 +85,7 @@ class RenderPipeline:
         rate, burst = self.fps, self.BURST
         tokens, refilled = burst, time.monotonic()
         while not self._stop.is_set():
-            self._wake.wait(0.5)
+            self._wake.wait(min(0.5, self._deferred_s) if self._deferred_s > 0 else 0.5)
             if self._stop.is_set():
                 break
             now = time.monotonic()
@@ -98,19 +103,31 @@ class RenderPipeline:
                 log.exception("render cycle failed")
 
     def _render_active(self) -> bool:
-        """Render every active view whose inputs changed; hand the pictures to encoding."""
-        views = self.clients.active()
+        """Render every active view whose inputs changed, the default view first and the
+        others within their budget; hand the pictures to encoding."""
+        self._deferred_s = 0.0
+        views = self.clients.render_order(self.clients.active())
         if not views:
             return False
         frame = self.composer.frame()
+        default = self.clients.default_settings
+        contended = views[0].settings == default  # somebody looks at the default view
+        self.budget.refill(time.monotonic())
         produced = False
         for view in views:
             if view.rendered is not None and frame.inputs in (view.inputs, view.pending):
                 continue
+            other = contended and view.settings != default
+            if other and not self.budget.allows:
+                self._deferred_s = max(self.budget.wait_s(), 1e-3)  # the rest wait
+                break
             t0 = time.perf_counter()
+            view.drawn_at = time.monotonic()
             image = self.composer.compose(frame, view.settings)
             image.setflags(write=False)
             view.pending = frame.inputs
+            if other:
+                self.budget.spend(time.perf_counter() - t0)
             # encoding runs on its own thread, overlapping the next render (throughput);
             # a full queue makes this thread wait: the encoder sets the pace then
             while not self._stop.is_set():

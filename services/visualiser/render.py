@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 import threading
 from collections import OrderedDict
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -27,16 +28,19 @@ import numpy as np
 
 from common.clusters import ClusterTracker, cluster_colour, cluster_labels
 from common.messages import Health, SlamState
+from common.verdict import summary_text
 from services.visualiser import draw
 from services.visualiser.camera_model import CameraModel
 from services.visualiser.glyphs import ImageEllipses, project_ellipsoids
-from services.visualiser.scene import ROLE_NAMES, ROLE_PAIR, Scene, build_scene
+from services.visualiser.scene import ROLE_NAMES, ROLE_PAIR, Scene, build_scene, plan_overview
 from services.visualiser.settings import ViewSettings
 
 MAX_PATH_POINTS = 20_000  #: beyond this the older path is thinned (every other point)
 _MAX_TRACKERS = 8  # one per distinct clustering setting in use, oldest dropped
 _AA_LINES_LIMIT = 400  # anti-aliased pair lines up to this many, plain beyond (frame time)
 _AA_GLYPH_LIMIT = 400  # same for the inner shading layers of glyphs
+#: "min" / "mean" / "max" labels up to this many glyphs (beyond: the legend says where)
+MAX_ROLE_LABELS = 30
 
 
 @dataclass(frozen=True, eq=False)
@@ -76,8 +80,12 @@ class Renderer:
         self._path: list[tuple[float, float]] = []
         self._path_robot: str | None = None
         self._path_seq = -1
+        self._path_epoch: int | None = None
         self._trackers: OrderedDict[tuple[float, int], ClusterTracker] = OrderedDict()
         self._floor: tuple[tuple[object, ...], np.ndarray] | None = None  # map view cache
+        self._cluster_of: dict[tuple[float, int], tuple[np.ndarray, np.ndarray]] = {}
+        #: the overview note of the last picture per selection/budget (for the web page)
+        self._overviews: OrderedDict[tuple[object, ...], str] = OrderedDict()
 
     # -- history --------------------------------------------------------------------
     def reset_path(self) -> None:
@@ -85,21 +93,32 @@ class Renderer:
             self._path = []
             self._path_seq = -1
 
+    def new_map(self) -> None:
+        """A new map began (another epoch): forget the path and the cluster identities."""
+        with self._lock:
+            self._path, self._path_seq, self._path_epoch = [], -1, None
+            self._trackers.clear()
+            self._cluster_of.clear()
+
     @property
     def path_xy(self) -> np.ndarray:
         """The remembered path (k, 2), m, map frame."""
         with self._lock:
             return np.array(self._path, dtype=float).reshape(-1, 2)
 
-    def track(self, robot: str, seq: int, xy: np.ndarray) -> None:
+    def track(self, robot: str, seq: int, xy: np.ndarray, epoch: int = 0) -> None:
         """Add a position to the path without drawing (for callers that draw only some
         states, e.g. a viewer whose latest-wins input skips states)."""
         with self._lock:
-            self._track(robot, seq, (float(xy[0]), float(xy[1])))
+            self._track(robot, seq, (float(xy[0]), float(xy[1])), epoch)
 
-    def _track(self, robot: str, seq: int, point: tuple[float, float]) -> None:
-        if robot != self._path_robot or seq < self._path_seq:
+    def _track(self, robot: str, seq: int, point: tuple[float, float], epoch: int) -> None:
+        # a new path for another robot, another map (epoch), or — epoch 0, unknown — a seq
+        # that went back; the same epoch with a lower seq is a resumed estimator: same map
+        if (robot != self._path_robot or epoch != self._path_epoch
+                or (epoch == 0 and seq < self._path_seq)):
             self._path, self._path_robot, self._path_seq = [], robot, -1
+            self._path_epoch = epoch
         if seq > self._path_seq:
             self._path_seq = seq
             if not self._path or self._path[-1] != point:
@@ -109,7 +128,8 @@ class Renderer:
                 self._path = self._path[:half:2] + self._path[half:]
 
     def _update_path(self, state: SlamState) -> np.ndarray:
-        self._track(state.robot, state.seq, (float(state.pose[0]), float(state.pose[1])))
+        self._track(state.robot, state.seq, (float(state.pose[0]), float(state.pose[1])),
+                    state.epoch)
         return np.array(self._path, dtype=float).reshape(-1, 2)
 
     def cluster_ids(self, state: SlamState, settings: ViewSettings) -> np.ndarray:
@@ -124,7 +144,22 @@ class Renderer:
                 while len(self._trackers) > _MAX_TRACKERS:
                     self._trackers.popitem(last=False)
             self._trackers.move_to_end(key)
-            return tracker.update(state.landmark_ids, labels)
+            stable = tracker.update(state.landmark_ids, labels)
+            self._cluster_of[key] = (np.asarray(state.landmark_ids), stable)
+            return stable
+
+    def known_cluster_ids(self, settings: ViewSettings
+                          ) -> tuple[np.ndarray, np.ndarray] | None:
+        """(landmark ids, their stable cluster ids) of the last picture clustered as
+        ``settings`` clusters, or None (none clustered yet)."""
+        with self._lock:
+            return self._cluster_of.get((settings.cluster_threshold_m, settings.cluster_count))
+
+    def overview_note(self, settings: ViewSettings) -> str:
+        """What the last picture drawn under ``settings`` showed instead of its pairs (the
+        glyph budget), or "" — for the web page's note."""
+        with self._lock:
+            return self._overviews.get(_overview_key(settings), "")
 
     # -- drawing --------------------------------------------------------------------
     def _floor_image(self, camera: CameraModel,
@@ -147,29 +182,74 @@ class Renderer:
     def render(self, image_bgr: np.ndarray | None, *, state: SlamState, camera: CameraModel,
                settings: ViewSettings, health: Health | None = None,
                reference_pose: np.ndarray | None = None,
-               reference_estimate: np.ndarray | None = None) -> np.ndarray:
+               reference_estimate: np.ndarray | None = None,
+               notes: Sequence[LegendRow] = ()) -> np.ndarray:
         """A new BGR uint8 picture: ``image_bgr`` (or the map view's floor) with the state.
 
         The camera is rescaled if the image's size differs from the camera's.
         ``reference_pose`` (x, y, θ in the map frame) is an independent measurement of the
         robot — the camera-tracked pose or the simulator's truth — drawn as a white ring
         joined to the estimate of the same instant (``reference_estimate``; the state's own
-        pose if not given), with the position error written beside it.
+        pose if not given), with the position error written beside it. ``notes`` are extra
+        legend rows (e.g. "map restarted").
         """
-        img, camera = (self._floor_image(camera, settings) if image_bgr is None
-                       else _bgr_copy(image_bgr, camera))
+        img, camera = self.background(image_bgr, camera, settings)
+        drawn = self.draw(img, state=state, camera=camera, settings=settings, health=health,
+                          reference_pose=reference_pose, reference_estimate=reference_estimate)
+        if settings.legend:
+            _draw_legend(drawn.canvas, health=health, glyphs_shown=drawn.glyphs_shown,
+                         notes=[*rejected_legend(state, settings), *notes])
+        return img
+
+    def background(self, image_bgr: np.ndarray | None, camera: CameraModel,
+                   settings: ViewSettings) -> tuple[np.ndarray, CameraModel]:
+        """The picture to draw on (a copy of ``image_bgr``, or the map view's floor) and
+        the camera fitted to its size."""
+        return (self._floor_image(camera, settings) if image_bgr is None
+                else _bgr_copy(image_bgr, camera))
+
+    def draw(self, img: np.ndarray, *, state: SlamState, camera: CameraModel,
+             settings: ViewSettings, health: Health | None = None,
+             reference_pose: np.ndarray | None = None,
+             reference_estimate: np.ndarray | None = None) -> Drawn:
+        """Draw the state onto ``img`` in place (everything but the legend): one robot of a
+        picture that may show several, each with its own renderer and camera."""
+        camera = camera.resized(img.shape[1], img.shape[0])
         with self._lock:
             path = self._update_path(state)
-        clustered = settings.mode in ("inter", "minmeanmax")
+        # the clusters: for the clustered modes, a selected cluster, and the glyph budget
+        # (a mode whose pairs exceed it draws the min/mean/max overview instead)
+        n = state.n
+        over_budget = (settings.glyph_budget > 0 and settings.mode == "all"
+                       and n * (n - 1) // 2 > settings.glyph_budget
+                       and settings.selected_feature is None
+                       and settings.selected_cluster is None)
+        clustered = (settings.mode in ("inter", "minmeanmax") or over_budget
+                     or settings.selected_cluster is not None)
         cluster_ids = self.cluster_ids(state, settings) if clustered else None
         violating, suspects = _health_sets(health, state) if settings.health else (
             frozenset(), np.zeros(0, np.int64))
+        plan = plan_overview(state, settings, cluster_ids)
         scene = build_scene(state, settings, cluster_ids=cluster_ids,
-                            violating_pairs=violating)
+                            violating_pairs=violating, plan=plan)
+        with self._lock:
+            key = _overview_key(settings)
+            self._overviews[key] = scene.overview
+            self._overviews.move_to_end(key)
+            while len(self._overviews) > 64:
+                self._overviews.popitem(last=False)
         c = Canvas(img, camera, state, scene, settings, px=max(1, round(camera.height / 720)))
 
         # 1. floor layer
-        lines = _draw_floor_layer(c, path_xy=path, cluster_ids=cluster_ids)
+        # outlines: every cluster (or overview group) in the clustered pictures; in "all"
+        # pairs only a selected cluster's
+        pairwise = settings.mode == "all" and scene.mode == "all"
+        outlined = None if pairwise else scene.cluster_ids
+        if pairwise and scene.cluster_ids is not None and \
+                settings.selected_cluster is not None:
+            outlined = np.where(scene.cluster_ids == settings.selected_cluster,
+                                settings.selected_cluster, -1)
+        lines = _draw_floor_layer(c, path_xy=path, cluster_ids=outlined)
         # 2. glyphs and cones, far to near
         glyphs = _draw_objects(c)
         # 3. overlays
@@ -177,15 +257,80 @@ class Renderer:
             estimate = state.pose if reference_estimate is None else reference_estimate
             _draw_reference(c, estimate=np.asarray(estimate, float),
                             reference=np.asarray(reference_pose, float))
+        rejected = rejected_observations(state) if settings.rejected else np.zeros((0, 2))
+        if len(rejected):
+            _draw_rejected(c, rejected)
         if settings.health:
             _draw_health(c, glyphs=glyphs, lines=lines, suspects=suspects)
         if settings.labels and settings.features:
             _draw_labels(c)
-        if glyphs.shaded is not None and scene.mode == "minmeanmax":
+        if (glyphs.shaded is not None and scene.mode == "minmeanmax"
+                and len(glyphs.shown) <= MAX_ROLE_LABELS):
             _draw_roles(c, glyphs)
-        if settings.legend:
-            _draw_legend(c, health=health, glyphs_shown=len(glyphs.shown))
-        return img
+        return Drawn(c, len(glyphs.shown), len(rejected))
+
+
+#: a legend row: [(text, swatch colour or None), …]
+LegendRow = list[tuple[str, tuple[int, int, int] | None]]
+
+
+@dataclass(frozen=True, eq=False)
+class Drawn:
+    """What :meth:`Renderer.draw` drew: its canvas (for the legend) and the glyph count."""
+
+    canvas: Canvas
+    glyphs_shown: int
+    rejected_shown: int = 0  #: rejected (gated) observations drawn
+
+
+#: colours (BGR) of the second, third … robot of one picture; the first robot keeps the
+#: settings' (the paper's green); none is red (glyphs), yellow (lines) or magenta (faults)
+ROBOT_COLOURS = ((0, 140, 255), (255, 170, 40), (235, 235, 235), (255, 110, 150),
+                 (60, 200, 190))
+
+
+def robot_settings(settings: ViewSettings, index: int) -> ViewSettings:
+    """``settings`` for the ``index``-th robot of a picture: the first as given, the others
+    with their own colour for the robot, its path and (lighter) its features."""
+    if index <= 0:
+        return settings
+    colour = ROBOT_COLOURS[(index - 1) % len(ROBOT_COLOURS)]
+    return settings.replace(colour_robot=colour, colour_path=colour,
+                            colour_features=draw.shade(colour, 0.85, 0.4))
+
+
+@dataclass(frozen=True, eq=False)
+class RobotLegend:
+    """One robot's rows of a shared legend."""
+
+    state: SlamState
+    health: Health | None
+    glyphs_shown: int
+    colour: tuple[int, int, int]
+    notes: Sequence[LegendRow] = ()
+
+
+def draw_robots_legend(img: np.ndarray, settings: ViewSettings, robots: Sequence[RobotLegend],
+                       *, waiting: Sequence[str] = ()) -> None:
+    """The legend of a picture of several robots: mode and glyph meaning once, then one
+    row per robot (its colour, seq, features, glyphs, verdict) and any notes."""
+    rows: list[LegendRow] = [[(f"mode: {_MODE_TEXT[settings.mode]}", None)],
+                             [(_glyph_text(settings), settings.colour_ellipsoids)]]
+    for r in robots:
+        s = r.state
+        rows.append([(f"robot {s.robot}", r.colour),
+                     (f"seq {s.seq} {s.step}  {s.n} features  {r.glyphs_shown} glyphs", None)])
+        if settings.health and r.health is not None:
+            rows.append(_health_row(r.health, settings))
+        rows += [list(row) for row in r.notes]
+    rows += [[(text, None)] for text in waiting]
+    draw.text_box(img, rows, scale=max(0.35, 0.45 * img.shape[0] / 720))
+
+
+def _overview_key(settings: ViewSettings) -> tuple[object, ...]:
+    return (settings.mode, settings.glyph_budget, settings.cluster_threshold_m,
+            settings.cluster_count, settings.selected_feature, settings.selected_cluster,
+            settings.selected_robot)
 
 
 def side_by_side(left_bgr: np.ndarray, right_bgr: np.ndarray) -> np.ndarray:
@@ -357,6 +502,8 @@ def _draw_cluster_outlines(c: Canvas, cluster_ids: np.ndarray) -> None:
     pad = 2.5 * c.settings.cone_radius_m
     ring = draw.floor_circle(np.zeros(2), pad, vertices=16)[:, :2]
     for cid in np.unique(cluster_ids).tolist():
+        if cid < 0:  # not outlined
+            continue
         members = c.state.landmarks[cluster_ids == cid]
         pts = (members[:, None, :] + ring[None]).reshape(-1, 2).astype(np.float32)
         hull = cv2.convexHull(pts).reshape(-1, 2).astype(float)
@@ -400,6 +547,53 @@ def _draw_reference(c: Canvas, *, estimate: np.ndarray, reference: np.ndarray) -
     u, v = (int(x) for x in uv[0])
     cv2.putText(c.img, f"tracked: {error_cm:.1f} cm", (u + 12 * px, v - 12 * px),
                 cv2.FONT_HERSHEY_SIMPLEX, 0.45 * px, REFERENCE_COLOUR, px, cv2.LINE_AA)
+
+
+REJECTED_COLOUR = (170, 170, 170)  # BGR grey: an observation the filter did not use
+
+
+def rejected_observations(state: SlamState) -> np.ndarray:
+    """Map positions (g, 2) of the observations the estimator's innovation gate refused in
+    this update (``SlamState.gated_observations``: range, bearing from the state's pose);
+    none when the state does not carry them (an estimator without the gate)."""
+    obs = getattr(state, "gated_observations", None)
+    if obs is None:
+        return np.zeros((0, 2))
+    obs = np.asarray(obs, dtype=float).reshape(-1, 2)
+    x, y, theta = (float(v) for v in state.pose)
+    angle = theta + obs[:, 1]
+    return np.column_stack([x + obs[:, 0] * np.cos(angle), y + obs[:, 0] * np.sin(angle)])
+
+
+def rejected_legend(state: SlamState, settings: ViewSettings) -> list[LegendRow]:
+    """"rejected observations: 2 in this update, 17 in all" when the state says."""
+    if not settings.rejected:
+        return []
+    ids = getattr(state, "gated_ids", None)
+    diagnostics = getattr(state, "diagnostics", None) or {}
+    total = diagnostics.get("gated")
+    now = 0 if ids is None else int(np.asarray(ids).size)
+    if ids is None and total is None:
+        return []
+    text = f"rejected observations (gate): {now} in this {state.step}"
+    if total is not None:
+        text += f", {int(total)} in all"
+    return [[(text, REJECTED_COLOUR)]]
+
+
+def _draw_rejected(c: Canvas, xy: np.ndarray) -> None:
+    """A small grey cross at each rejected observation's position, on the floor."""
+    uv, _ = c.camera.project(np.column_stack([xy, np.zeros(len(xy))]))
+    half = 5 * c.px
+    for u, v in uv.tolist():
+        if not (math.isfinite(u) and math.isfinite(v)):
+            continue
+        p = (int(round(u)), int(round(v)))
+        for colour, width in (((0, 0, 0), 3 * c.px), (REJECTED_COLOUR, c.px)):
+            cv2.line(c.img, (p[0] - half, p[1] - half), (p[0] + half, p[1] + half), colour,
+                     width, cv2.LINE_AA)
+            cv2.line(c.img, (p[0] - half, p[1] + half), (p[0] + half, p[1] - half), colour,
+                     width, cv2.LINE_AA)
 
 
 def _draw_health(c: Canvas, *, glyphs: _Glyphs, lines: _Lines, suspects: np.ndarray) -> None:
@@ -451,21 +645,41 @@ def _draw_roles(c: Canvas, glyphs: _Glyphs) -> None:
         draw.text(c.img, ROLE_NAMES[role], (int(u + half_w + 4), int(v + 5)), scale=scale)
 
 
-def _draw_legend(c: Canvas, *, health: Health | None, glyphs_shown: int) -> None:
+_MODE_TEXT = {"all": "all pairs", "inter": "inter-cluster pairs",
+              "minmeanmax": "min/mean/max per cluster pair (size = sqrt of largest eigenvalue)"}
+
+
+def _glyph_text(settings: ViewSettings) -> str:
+    if settings.glyph == "sigma":
+        text = f"{settings.sigma_k:g}-sigma ellipsoid of P_d"
+    else:
+        text = "semi-axes = eigenvalues of P_d (m^2 drawn as m)"
+    if settings.scale != 1.0:
+        text += f" x{settings.scale:g}"
+    return text
+
+
+OVERVIEW_COLOUR = (0, 215, 255)  # BGR amber: the picture is not pair by pair
+
+#: legend colour of a "tuning" verdict (BGR orange: the filter computes right, its noise
+#: or models do not fit the data); a fault is in the violation colour
+TUNING_COLOUR = (0, 165, 255)
+
+
+def _health_row(health: Health, settings: ViewSettings) -> LegendRow:
+    """The monitor's verdict, as the page and the terminal say it (common.verdict)."""
+    colour = {"fault": settings.colour_violation, "tuning": TUNING_COLOUR}.get(health.verdict)
+    return [(f"verdict: {summary_text(health)}", colour)]
+
+
+def _draw_legend(c: Canvas, *, health: Health | None, glyphs_shown: int,
+                 notes: Sequence[LegendRow] = ()) -> None:
     """The legend box: robot and seq, mode, glyph meaning, colours, clusters, health."""
     state, scene, settings = c.state, c.scene, c.settings
-    mode_text = {"all": "all pairs", "inter": "inter-cluster pairs",
-                 "minmeanmax": "min/mean/max per cluster pair (size = sqrt of largest eigenvalue)"}
-    if settings.glyph == "sigma":
-        glyph_text = f"{settings.sigma_k:g}-sigma ellipsoid of P_d"
-    else:
-        glyph_text = "semi-axes = eigenvalues of P_d (m^2 drawn as m)"
-    if settings.scale != 1.0:
-        glyph_text += f" x{settings.scale:g}"
-    rows: list[list[tuple[str, tuple[int, int, int] | None]]] = [
+    rows: list[LegendRow] = [
         [(f"robot {state.robot}  seq {state.seq}  {state.step}", None)],
-        [(f"mode: {mode_text[scene.mode]}", None)],
-        [(f"{glyphs_shown} glyphs: {glyph_text}", settings.colour_ellipsoids)],
+        [(f"mode: {_MODE_TEXT[scene.mode]}", None)],
+        [(f"{glyphs_shown} glyphs: {_glyph_text(settings)}", settings.colour_ellipsoids)],
         [("robot", settings.colour_robot), ("heading", settings.colour_heading),
          (f"features ({state.n})", settings.colour_features),
          (f"pair lines ({len(scene.lines_xy)})", settings.colour_lines)],
@@ -473,21 +687,23 @@ def _draw_legend(c: Canvas, *, health: Health | None, glyphs_shown: int) -> None
     if settings.selected_feature is not None:
         note = " (not in the map)" if scene.selected_missing else ""
         rows.append([(f"selected feature {settings.selected_feature}{note}", None)])
-    if scene.cluster_ids is not None:
+    if settings.selected_cluster is not None:
+        rows.append([(f"selected cluster {settings.selected_cluster}: all its pairs",
+                      cluster_colour(settings.selected_cluster))])
+    if scene.tile_m is not None:
+        rows.append([(f"map tiles of {scene.tile_m:g} m ({len(scene.centroids)})",
+                      None)])
+    elif scene.cluster_ids is not None:
         ids = np.unique(scene.cluster_ids).tolist()
-        row: list[tuple[str, tuple[int, int, int] | None]] = [(f"clusters ({len(ids)}):", None)]
+        row: LegendRow = [(f"clusters ({len(ids)}):", None)]
         row += [(f"{c}", cluster_colour(int(c))) for c in ids[:12]]
         rows.append(row)
+    if scene.overview:
+        rows.append([(scene.overview, OVERVIEW_COLOUR)])
+    if scene.mode == "minmeanmax" and glyphs_shown > MAX_ROLE_LABELS:
+        rows.append([("per group pair: min below the line, mean at its middle, max above",
+                      None)])
     if settings.health and health is not None:
-        if health.ok and not health.violations and not health.suspects.size:
-            rows.append([("health: OK", None)])
-        elif health.ok and not health.violations:
-            # this state broke nothing, but the monitor still blames features from before
-            suspects = ", ".join(str(s) for s in health.suspects.tolist())
-            rows.append([(f"health: suspects {suspects} (no violation in this state)",
-                          settings.colour_violation)])
-        else:
-            suspects = ", ".join(str(s) for s in health.suspects.tolist()) or "none"
-            rows.append([(f"health: {len(health.violations)} violations, suspects {suspects}",
-                          settings.colour_violation)])
+        rows.append(_health_row(health, settings))
+    rows += [list(row) for row in notes]
     draw.text_box(c.img, rows, scale=max(0.35, 0.45 * c.camera.height / 720))

@@ -67,6 +67,8 @@ class SeriesStore:
         self.size_name = size_name
         self._last_state = -math.inf
         self._last_health = -math.inf
+        self._epoch: int | None = None  #: epoch of the map sampled
+        self._pending: dict[str, float] = {}  #: newest statistics since the last sample
         self._lock = threading.Lock()
 
     def clear(self) -> None:
@@ -74,6 +76,8 @@ class SeriesStore:
             self._states.clear()
             self._health.clear()
             self._last_state = self._last_health = -math.inf
+            self._epoch = None
+            self._pending = {}
 
     # -- filling ------------------------------------------------------------------
     def add_state(self, state: SlamState, *, now: float) -> bool:
@@ -91,9 +95,14 @@ class SeriesStore:
         sample = StateSample(float(state.stamp), int(state.seq), np.array(state.landmark_ids),
                              sizes.astype(np.float32), clusters)  # float32: half the memory
         with self._lock:
-            if self._states and sample.seq < self._states[-1].seq:
-                self._states.clear()  # the estimator restarted: a new run, a new plot
+            new_map = self._epoch is not None and state.epoch != self._epoch
+            if new_map or (state.epoch == 0 and self._states
+                           and sample.seq < self._states[-1].seq):
+                self._states.clear()  # a new map (epoch; or, epoch unknown, seq went back)
                 self._health.clear()
+            elif self._states and sample.seq <= self._states[-1].seq:
+                return False  # the same map replayed from a checkpoint: already plotted
+            self._epoch = int(state.epoch)
             self._states.append(sample)
             self._last_state = now
         return True
@@ -117,11 +126,16 @@ class SeriesStore:
         return out
 
     def add_health(self, health: Health, *, now: float) -> bool:
-        if now - self._last_health < self._min_interval:
-            return False
+        """Sample the monitor's statistics at most every ``min_interval_s``. A statistic
+        that only some verdicts carry (NIS: update states only) keeps its newest value from
+        the verdicts skipped since the last sample, so decimation never drops a series."""
         with self._lock:
+            self._pending.update(health.statistics)
+            if now - self._last_health < self._min_interval:
+                return False
             self._health.append(HealthSample(float(health.stamp), int(health.seq),
-                                             dict(health.statistics)))
+                                             self._pending))
+            self._pending = {}
             self._last_health = now
         return True
 

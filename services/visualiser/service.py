@@ -22,23 +22,27 @@ from __future__ import annotations
 import logging
 import time
 from collections.abc import Callable
+from typing import Any
 
+import msgpack
 import numpy as np
 
 from common.bus import Bus
 from common.clusters import ClusterTracker, cluster_labels
 from common.drops import DropCounter
+from common.errors import ConfigError
 from common.keys import Keys
+from common.messages import CameraControl
 from services.visualiser.api import ViewerApi
 from services.visualiser.clients import ClientRegistry
 from services.visualiser.compose import Composer
 from services.visualiser.intake import Intake
 from services.visualiser.pipeline import RenderPipeline
-from services.visualiser.recording import Recorder, recording_name
+from services.visualiser.recording import MB, Recorder, recording_name
 from services.visualiser.render import Renderer
+from services.visualiser.robots import RobotHistories
 from services.visualiser.series import SeriesStore
 from services.visualiser.settings import ViewerConfig, ViewSettings
-from services.visualiser.tracked import TrackedMatch
 from services.visualiser.views import EyeChooser
 
 log = logging.getLogger("slamlens.viewer")
@@ -49,39 +53,55 @@ class ViewerService:
     def __init__(self, bus: Bus, *, keys: Keys, config: ViewerConfig,
                  default_settings: ViewSettings | None = None) -> None:
         self.config = config
+        self.bus = bus
+        self.keys = keys
         self.default_settings = default_settings or ViewSettings()
         self.bad = DropCounter(log)  #: malformed input messages, by input
         self.failures = DropCounter(log)  #: states that could not be drawn or plotted
-        self.series = SeriesStore(length=config.series_length,
-                                  min_interval_s=config.series_interval_s,
-                                  cluster=self._series_clusters())
-        # one renderer for every view: it keeps the robot's path and the cluster identities
-        # (per clustering setting), so switching a tab's mode keeps the path and colours
-        self.renderer = Renderer()
-        self.tracked = TrackedMatch()
-        self.eyes = EyeChooser(config.resolved_view, robot=config.robot,
-                               map_width=config.map_width, map_height=config.map_height,
+        # one history per robot for every view: the path and the cluster identities (per
+        # clustering setting) survive a tab switching modes; a new map empties it
+        self.histories = RobotHistories(self._new_series)
+        self.eyes = EyeChooser(config.resolved_view, map_width=config.map_width,
+                               map_height=config.map_height,
                                stereo_baseline_m=config.stereo_baseline_m)
         self.clients = ClientRegistry(self.default_settings, ttl_s=config.client_ttl_s,
-                                      on_new_view=self._wake, new_recorder=self._recorder)
-        self.intake = Intake(bus, keys=keys, robot=config.robot, cameras=config.cameras,
+                                      on_new_view=self._wake, new_recorder=self._recorder,
+                                      max_views=config.max_views,
+                                      max_recordings=config.max_recordings)
+        self.intake = Intake(bus, keys=keys, robots=config.robots, cameras=config.cameras,
                              fps=config.fps, late_join_timeout_s=config.late_join_timeout_s,
-                             on_input=self._wake, drops=self.bad)
-        self.composer = Composer(self.intake, eyes=self.eyes, renderer=self.renderer,
-                                 tracked=self.tracked, failures=self.failures)
+                             on_input=self._wake, drops=self.bad, discover=config.discover,
+                             max_frame_pixels=config.max_frame_pixels)
+        self.composer = Composer(self.intake, eyes=self.eyes, histories=self.histories,
+                                 failures=self.failures,
+                                 restart_note_s=config.restart_note_s)
         self.pipeline = RenderPipeline(self.composer, self.clients, ingest=self._ingest,
-                                       fps=config.fps, jpeg_quality=config.jpeg_quality)
+                                       fps=config.fps, jpeg_quality=config.jpeg_quality,
+                                       other_views_share=config.other_views_share)
         self.api = ViewerApi(intake=self.intake, eyes=self.eyes, clients=self.clients,
-                             pipeline=self.pipeline, series=self.series,
+                             pipeline=self.pipeline, histories=self.histories,
                              failures=self.failures, camera=config.camera,
-                             recordings_dir=config.recordings_dir)
+                             recordings_dir=config.recordings_dir,
+                             restart_note_s=config.restart_note_s,
+                             reregister=self.reregister)
         self.started = time.monotonic()
+
+    @property
+    def renderer(self) -> Renderer:
+        """The first robot's renderer (its path and cluster identities)."""
+        return self.histories.get(self.intake.robot).renderer
+
+    @property
+    def series(self) -> SeriesStore:
+        """The first robot's plots."""
+        return self.histories.get(self.intake.robot).series
 
     def _wake(self) -> None:
         self.pipeline.wake()
 
-    def _series_clusters(self) -> Callable[[np.ndarray, np.ndarray], np.ndarray]:
-        """Clusters of the plots' min/mean/max: the default settings' cut, stable ids."""
+    def _new_series(self) -> SeriesStore:
+        """A robot's plots: its clusters for min/mean/max cut as the default settings cut
+        them, with stable ids (of its current map)."""
         tracker = ClusterTracker()
         threshold, count = (self.default_settings.cluster_threshold_m,
                             self.default_settings.cluster_count)
@@ -89,14 +109,18 @@ class ViewerService:
         def clusters(xy: np.ndarray, ids: np.ndarray) -> np.ndarray:
             return tracker.update(ids, cluster_labels(xy, threshold_m=threshold, count=count))
 
-        return clusters
+        return SeriesStore(length=self.config.series_length,
+                           min_interval_s=self.config.series_interval_s, cluster=clusters)
 
     def _recorder(self, client: str, source: Callable[[], np.ndarray | None],
                   settings: Callable[[], ViewSettings]) -> Recorder:
         c = self.config
         return Recorder(directory=c.recordings_dir,
-                        name=recording_name(c.robot, client, c.record_codec),
-                        fps=c.fps, codec=c.record_codec, source=source, settings=settings)
+                        name=recording_name(self.intake.robot or "robots", client,
+                                            c.record_codec),
+                        fps=c.fps, codec=c.record_codec, source=source, settings=settings,
+                        max_seconds=c.max_recording_s, max_bytes=c.max_recording_mb * MB,
+                        min_free_bytes=c.min_free_disk_mb * MB)
 
     # -- life cycle ---------------------------------------------------------------
     def start(self) -> None:
@@ -104,7 +128,9 @@ class ViewerService:
         self.intake.start()
         self.pipeline.start()
         cameras = self.intake.camera_names
-        log.info("viewer of robot %s, %s view%s", self.config.robot, self.config.resolved_view,
+        robots = ("every robot whose estimator is alive" if self.config.discover
+                  else "robot " + ", ".join(self.config.robots))
+        log.info("viewer of %s, %s view%s", robots, self.config.resolved_view,
                  f" over {', '.join(cameras)}" if cameras else "")
 
     def stop(self) -> None:
@@ -117,19 +143,65 @@ class ViewerService:
         """Take in what arrived; hand it to the parts that keep a history of it."""
         now = time.monotonic()
         new = self.intake.ingest()
-        state = new.state
-        if state is not None:
-            if new.restarted:
-                self.eyes.restart()  # a new run: the map view starts over
-            # the path remembers every state taken in, drawn or not: views render
-            # only on demand, and a path started at the first render would be short
-            self.renderer.track(state.robot, state.seq, state.pose[:2])
-            self.tracked.add_estimate(state.stamp, state.pose)
-            try:
-                self.series.add_state(state, now=now)
-            except Exception as exc:  # the plots are optional; the picture is not
-                self.failures.drop("plots", f"state seq {state.seq}: {exc!r}")
-        if new.tracked is not None:
-            self.tracked.set_tracked(new.tracked)
-        for health in new.healths:
-            self.series.add_health(health, now=now)
+        for arrived in new.robots:
+            history = self.histories.get(arrived.robot)
+            state = arrived.state
+            if state is not None:
+                if arrived.restarted:
+                    history.new_map()  # a new map: its path, clusters and plots start over
+                    self.eyes.restart()
+                # the path remembers every state taken in, drawn or not: views render
+                # only on demand, and a path started at the first render would be short
+                history.renderer.track(state.robot, state.seq, state.pose[:2], state.epoch)
+                history.tracked.add_estimate(state.stamp, state.pose)
+                try:
+                    history.series.add_state(state, now=now)
+                except Exception as exc:  # the plots are optional; the picture is not
+                    self.failures.drop("plots", f"state seq {state.seq}: {exc!r}")
+            if arrived.tracked is not None:
+                history.tracked.set_tracked(arrived.tracked)
+            for health in arrived.healths:
+                history.series.add_health(health, now=now)
+
+    # -- requests -----------------------------------------------------------------
+    def reregister(self, robot: str | None) -> dict[str, Any]:
+        """Ask the camera's registration service to register ``robot`` (None: every robot)
+        again: a Zenoh query carrying a ``CameraControl`` (docs/registration.md), so a
+        viewer identity that may publish nothing (SPEC §7b) can still ask; the service
+        answers ``{"answer": "accepted: …" | "ignored: …" | "refused: …"}``. Blocks up to
+        ``reregister_timeout_s``: call it off the web loop."""
+        if robot is not None and robot not in self.intake.robot_names:
+            raise ConfigError(f"robot {robot!r} is not shown by this viewer; shown: "
+                              f"{', '.join(self.intake.robot_names) or 'none yet'}")
+        camera = self.config.camera  # a stereo pair C-left / C-right is asked as C
+        if camera is None:
+            raise ConfigError("this viewer draws over no camera (the map view): nothing to "
+                              "re-register")
+        request = CameraControl(command="reregister", robot=robot,
+                                requester=f"the web viewer at {self.config.http}").to_bytes()
+        timeout = self.config.reregister_timeout_s
+        try:
+            replies = self.bus.get(self.keys.camera_control(camera), payload=request,
+                                   timeout=timeout)
+        except Exception as exc:  # the session closing, no route: say so
+            replies, failure = [], str(exc)
+        else:
+            failure = (f"no registration service of camera {camera} answered within "
+                       f"{timeout:g} s")
+        answers = [_answer_text(r.payload) for r in replies]
+        accepted = any(a.startswith("accepted") for a in answers)
+        detail = "; ".join(answers) if answers else failure
+        log.info("re-register %s on camera %s: %s", robot or "every robot", camera, detail)
+        return {"robot": robot, "answered": bool(answers), "accepted": accepted,
+                "cameras": [{"camera": camera, "answered": bool(answers), "detail": detail}]}
+
+
+def _answer_text(payload: bytes) -> str:
+    """The registration service's answer (``{"schema": 1, "answer": …}``) as one line."""
+    try:
+        answer = msgpack.unpackb(payload, raw=False)
+    except Exception:  # not msgpack: show it as text
+        return payload.decode("utf-8", "replace")[:200]
+    if isinstance(answer, dict) and isinstance(answer.get("answer"), str):
+        return answer["answer"][:200]
+    return repr(answer)[:200]

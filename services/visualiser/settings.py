@@ -15,6 +15,7 @@ from a web page's query string (``from_query``) or from code (``replace``); bad 
 from __future__ import annotations
 
 import dataclasses
+import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -27,9 +28,13 @@ VIEWS = ("auto", "camera", "map", "stereo")
 CODECS = ("mp4v", "MJPG")
 MODES = ("all", "inter", "minmeanmax")
 GLYPHS = ("sigma", "linear")
-LAYERS = ("robot", "path", "features", "lines", "ellipsoids", "legend", "labels", "health")
+LAYERS = ("robot", "path", "features", "lines", "ellipsoids", "legend", "labels", "health",
+          "rejected")
 
 BGR = tuple[int, int, int]
+ALL_ROBOTS = "all"  #: --robot all: every robot whose estimator is alive
+#: a host name or IP literal ([…] for IPv6), with an optional port: the Host header's form
+HOST_PATTERN = re.compile(r"^(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+)(:[0-9]{1,5})?$")
 
 
 def _colour(default: BGR, doc: str) -> Any:
@@ -71,8 +76,21 @@ class ViewSettings:
     legend: bool = field(default=True, metadata={"doc": "legend box in the top-left corner"})
     labels: bool = field(default=False, metadata={"doc": "feature ids next to the cones"})
     health: bool = field(default=True, metadata={"doc": "violations and suspects outlined"})
+    rejected: bool = field(default=True, metadata={
+        "doc": "observations the estimator's innovation gate rejected: grey crosses where "
+               "they were seen, counted in the legend"})
     selected_feature: int | None = field(default=None, metadata={
         "doc": "only the pairs containing this feature id (None: no selection)"})
+    selected_cluster: int | None = field(default=None, metadata={
+        "doc": "only the pairs inside this cluster (its stable id, as the legend shows it), "
+               "all of them whatever the glyph budget (None: no selection)"})
+    glyph_budget: int = field(default=2000, metadata={
+        "min": 0, "doc": "most glyphs a picture draws pair by pair; above it the picture is "
+                         "the min/mean/max overview per cluster (or map tile) pair, with a "
+                         "note; 0: no budget"})
+    selected_robot: str | None = field(default=None, metadata={
+        "doc": "whose map the selection is in, when several robots are shown (None: every "
+               "robot's)"})
     # colours (BGR)
     colour_robot: BGR = _colour((40, 200, 40), "robot cone")
     colour_heading: BGR = _colour((0, 230, 255), "heading arrow")
@@ -119,7 +137,8 @@ class ViewSettings:
             value: Any = raw
             if isinstance(raw, str):
                 text = raw.strip()
-                if name == "selected_feature" and text.lower() in {"", "none", "null"}:
+                if name in ("selected_feature", "selected_robot", "selected_cluster") and \
+                        text.lower() in {"", "none", "null"}:
                     value = None
                 elif text.lower() in {"on", "off"}:
                     value = text.lower() == "on"
@@ -141,7 +160,9 @@ class ViewSettings:
 class ViewerConfig:
     """``slamlens viewer``: the AR renderer and its web viewers (docs/viewer.md)."""
 
-    robot: str = setting("robot1", doc="robot whose state is shown")
+    robot: str = setting("robot1", doc="robot(s) shown: a name, names joined by commas "
+                                       "(each in its own colour), or 'all': every robot whose "
+                                       "estimator is alive, as it appears", metavar="R[,R…]")
     camera: str | None = setting(None, doc="camera to draw over; none: the map view",
                                  metavar="C")
     view: str = setting("auto", doc="auto: the camera if one is named, else the map; "
@@ -162,18 +183,84 @@ class ViewerConfig:
     map_height: int = setting(720, doc="map view height", unit="px", min=64)
     series_length: int = setting(600, doc="samples kept per plot", min=2)
     series_interval_s: float = setting(0.2, doc="plot sampling interval", unit="s", min=0.0)
-    client_ttl_s: float = setting(5.0, doc="a view keeps rendering this long after its last "
-                                           "client request", unit="s", min=0.1)
+    client_ttl_s: float = setting(5.0, doc="a view nobody streams keeps rendering this long "
+                                           "after its last request, then is dropped with its "
+                                           "picture", unit="s", min=0.1)
     late_join_timeout_s: float = setting(2.0, doc="at start, wait this long for the latest "
                                                   "state and registrations (0 = do not ask)",
                                          unit="s", min=0.0)
+    restart_note_s: float = setting(10.0, doc="how long 'map restarted' shows (page and "
+                                              "legend) after an estimator begins a new map",
+                                    unit="s", min=0.0)
+    reregister_timeout_s: float = setting(3.0, doc="how long the page's 're-register camera' "
+                                                   "waits for the registration service to "
+                                                   "answer", unit="s", min=0.1)
+    # -- the web viewer's guard (docs/security.md) ---------------------------------
+    token_file: str | None = setting(
+        None, doc="file holding the web viewer's access token (its first line); every "
+                  "request must then carry it. Without it a viewer bound beyond loopback "
+                  "makes a token and prints it in its URL; on loopback none is asked",
+        metavar="FILE")
+    allowed_hosts: tuple[str, ...] = setting(
+        (), doc="more names the web viewer may be reached by (Host header), NAME or "
+                "NAME:PORT, besides the address it is bound to (repeatable)",
+        flag="--allow-host", action="append", metavar="NAME[:PORT]")
+    allowed_origins: tuple[str, ...] = setting(
+        (), doc="more web origins allowed to call the viewer (Origin header), e.g. "
+                "https://dashboard.lab, besides its own page (repeatable)",
+        flag="--allow-origin", action="append", metavar="ORIGIN")
+    # -- bounded resources (docs/viewer.md "Limits") -------------------------------
+    max_views: int = setting(64, doc="distinct view settings kept at once besides the "
+                                     "default view (oldest idle evicted; beyond: refused)",
+                             min=1)
+    other_views_share: float = setting(
+        0.3, doc="share of the render thread the views other than the default may take "
+                 "while somebody watches the default view", min=0.05, max=1.0)
+    max_frame_pixels: int = setting(
+        16_777_216, doc="camera frames whose JPEG header claims more pixels are refused "
+                        "before decoding (also more than 4 × the camera's registered size)",
+        min=1)
+    max_recordings: int = setting(2, doc="recordings running at once", min=0)
+    max_recording_s: float = setting(600.0, doc="a recording stops after this long",
+                                     unit="s", min=1.0)
+    max_recording_mb: float = setting(1000.0, doc="a recording stops at this file size",
+                                      unit="MB", min=1.0)
+    min_free_disk_mb: float = setting(
+        1000.0, doc="no recording starts, and a running one stops, when the recordings "
+                    "folder's disk has less free space than this", unit="MB", min=0.0)
 
     def __post_init__(self) -> None:
-        check_name("robot", self.robot)
+        if self.robot != ALL_ROBOTS:
+            names = [r.strip() for r in self.robot.split(",")]
+            for name in names:
+                check_name("robot", name)
+            if len(set(names)) != len(names):
+                raise ConfigError(f"setting 'robot': {self.robot!r} names a robot twice")
         if self.camera is not None:
             check_name("camera", self.camera)
         if self.view == "camera" and self.camera is None:
             raise ConfigError("setting 'view': 'camera' needs a camera (--camera C)")
+        for host in self.allowed_hosts:
+            if not HOST_PATTERN.match(host):
+                raise ConfigError(f"setting 'allowed_hosts': {host!r} is not NAME or "
+                                  "NAME:PORT (e.g. viewer.lab or viewer.lab:8080)")
+        for origin in self.allowed_origins:
+            scheme, sep, host = origin.partition("://")
+            if scheme not in ("http", "https") or not sep or not HOST_PATTERN.match(host):
+                raise ConfigError(f"setting 'allowed_origins': {origin!r} is not an origin "
+                                  "like https://host or http://host:port")
+
+    @property
+    def robots(self) -> tuple[str, ...]:
+        """The robots named (none with 'all': they are discovered)."""
+        if self.robot == ALL_ROBOTS:
+            return ()
+        return tuple(r.strip() for r in self.robot.split(","))
+
+    @property
+    def discover(self) -> bool:
+        """Show every robot whose estimator is alive (``robot = "all"``)."""
+        return self.robot == ALL_ROBOTS
 
     @property
     def resolved_view(self) -> str:

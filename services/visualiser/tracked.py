@@ -36,6 +36,12 @@ class TrackedMatch:
         with self._lock:
             self._estimates.append((stamp, pose))
 
+    def reset(self) -> None:
+        """A new map: the old estimates and tracked pose are in another frame."""
+        with self._lock:
+            self._tracked = None
+            self._estimates.clear()
+
     def set_tracked(self, tracked: Truth) -> None:
         with self._lock:
             self._tracked = tracked

@@ -42,12 +42,39 @@ class Rendered:
 
 @dataclass(frozen=True, eq=False)
 class Eye:
-    """One camera of a view: its model (None until registered), picture and a note."""
+    """One camera of a view: its model (None until registered), picture and a note.
+
+    ``models`` (camera views) gives each robot's own model of this camera — every robot's
+    map has its own frame, so its own registration — or None and the note saying why it
+    cannot be drawn (not registered yet, or registered for an older map). Without
+    ``models`` (the map view) every robot is seen through ``camera``.
+    """
 
     name: str
-    camera: CameraModel | None
+    camera: CameraModel | None  #: the picture's camera (camera views: the first usable)
     image: np.ndarray | None  #: BGR camera picture; None draws the neutral floor
     note: str  #: shown instead of the overlay when it cannot be drawn
+    models: tuple[tuple[str, CameraModel | None, str], ...] | None = None
+
+    def model_for(self, robot: str) -> tuple[CameraModel | None, str]:
+        """(this eye's camera model for ``robot``'s map, or None and the reason)."""
+        if self.models is None:
+            return self.camera, self.note
+        for name, model, note in self.models:
+            if name == robot:
+                return model, note
+        return None, f"waiting for the registration of camera {self.name} for robot {robot}"
+
+
+@dataclass(frozen=True, eq=False)
+class CameraView:
+    """What the eyes need of one camera: its picture and, per robot, a registration that
+    places the robot's current map, or the reason there is none."""
+
+    name: str
+    image: np.ndarray | None
+    registrations: dict[str, Registration]  #: robot → usable registration
+    waiting: dict[str, str]  #: robot → why it has none ("waiting for …")
 
 
 def grow_bounds(bounds: tuple[float, float, float, float] | None,
@@ -83,15 +110,14 @@ class EyeChooser:
     """The eyes of every picture, from the configured view and the newest inputs.
 
     ``view`` is ``camera``, ``map`` or ``stereo`` (resolved from ``auto``). With every
-    named camera registered, those cameras over their frames; a camera view still waiting
-    for its registration shows the frame with a note; otherwise the map view, whose bounds
-    grow with the map (:func:`grow_bounds`) until :meth:`restart`.
+    named camera registered (for at least one robot), those cameras over their frames; a
+    camera view still waiting for a registration shows the frame with a note; otherwise the
+    map view, whose bounds grow with the maps (:func:`grow_bounds`) until :meth:`restart`.
     """
 
-    def __init__(self, view: str, *, robot: str, map_width: int, map_height: int,
+    def __init__(self, view: str, *, map_width: int, map_height: int,
                  stereo_baseline_m: float) -> None:
         self.view = view
-        self.robot = robot
         self.map_size = (map_width, map_height)
         self.stereo_baseline_m = stereo_baseline_m
         self._lock = threading.Lock()
@@ -111,31 +137,35 @@ class EyeChooser:
             return self._eyes
 
     def restart(self) -> None:
-        """A new run: the map view starts over."""
+        """A new map: the map view starts over."""
         with self._lock:
             self._bounds = None
 
-    def choose(self, state: SlamState | None,
-               cams: Sequence[tuple[str, Registration | None, np.ndarray | None]]
+    def choose(self, states: Sequence[SlamState], cams: Sequence[CameraView]
                ) -> tuple[Eye, ...]:
-        """The camera model and background picture of each eye (one, or two for stereo)."""
+        """The camera models and background picture of each eye (one, or two for stereo)."""
         eyes: list[Eye] = []
-        if cams and all(reg is not None for _, reg, _ in cams):
-            for name, reg, image in cams:
-                assert reg is not None
-                model = CameraModel.from_registration(reg)
-                if image is not None and image.shape[:2] != (reg.height, reg.width):
-                    # frames of another size than calibrated: scale the intrinsics to them
-                    model = model.resized(image.shape[1], image.shape[0])
-                eyes.append(Eye(name, model, image, ""))
+        if cams and all(c.registrations for c in cams):
+            for c in cams:
+                models: list[tuple[str, CameraModel | None, str]] = []
+                for robot, reg in c.registrations.items():
+                    model = CameraModel.from_registration(reg)
+                    if c.image is not None and c.image.shape[:2] != (reg.height, reg.width):
+                        # frames of another size than calibrated: scale the intrinsics
+                        model = model.resized(c.image.shape[1], c.image.shape[0])
+                    models.append((robot, model, ""))
+                models += [(robot, None, note) for robot, note in c.waiting.items()]
+                first = next(m for _, m, _ in models if m is not None)
+                eyes.append(Eye(c.name, first, c.image, "", tuple(models)))
         elif self.view == "camera":
-            name, _, image = cams[0]
-            eyes.append(Eye(name, None, image,
-                            f"waiting for the registration of camera {name} "
-                            f"for robot {self.robot}"))
+            c = cams[0]
+            note = next(iter(c.waiting.values()), f"waiting for the registration of camera "
+                                                  f"{c.name}")
+            eyes.append(Eye(c.name, None, c.image, note,
+                            tuple((robot, None, n) for robot, n in c.waiting.items())))
         else:
             with self._lock:
-                if state is not None:
+                for state in states:
                     self._bounds = grow_bounds(self._bounds, state)
                 bounds = self._bounds or DEFAULT_BOUNDS
             width, height = self.map_size
@@ -169,21 +199,25 @@ def placeholder(eye: Eye, text: str, settings: ViewSettings) -> np.ndarray:
     return image
 
 
-def project_features(eyes: tuple[Eye, ...], landmarks_xy: np.ndarray) -> list[Any]:
-    """Pixel position of each landmark in the composited picture (left eye first; a
-    landmark behind the camera or outside the picture is None)."""
+def project_features(eyes: tuple[Eye, ...], landmarks_xy: np.ndarray,
+                     robot: str | None = None) -> list[Any]:
+    """Pixel position of each landmark (of ``robot``'s map: its own camera model) in the
+    composited picture (left eye first; a landmark behind the camera, outside the picture
+    or of a map not registered in that eye is None)."""
     out: list[Any] = [None] * len(landmarks_xy)
     offset = 0
     for eye in eyes:
-        if eye.camera is None or len(landmarks_xy) == 0:
-            width = PLACEHOLDER_SIZE[0] if eye.image is None else eye.image.shape[1]
-            offset += eye.camera.width if eye.camera is not None else width
+        width = (eye.camera.width if eye.camera is not None else
+                 PLACEHOLDER_SIZE[0] if eye.image is None else eye.image.shape[1])
+        model = eye.camera if robot is None else eye.model_for(robot)[0]
+        if model is None or len(landmarks_xy) == 0:
+            offset += width
             continue
         points = np.c_[landmarks_xy, np.zeros(len(landmarks_xy))]
-        uv, depth = eye.camera.project(points)
+        uv, depth = model.project(points)
         for k, ((u, v), z) in enumerate(zip(uv, depth, strict=True)):
-            inside = z > 0 and 0 <= u < eye.camera.width and 0 <= v < eye.camera.height
+            inside = z > 0 and 0 <= u < model.width and 0 <= v < model.height
             if out[k] is None and inside and np.isfinite(u) and np.isfinite(v):
                 out[k] = [float(u) + offset, float(v)]
-        offset += eye.camera.width
+        offset += width
     return out

@@ -11,9 +11,13 @@ Endpoints (every ``client`` is a browser tab's random id; without one, the defau
 * ``GET /snapshot.png[?client=ID][&download=1]`` the current picture as PNG (SPEC §9);
 * ``GET/POST /api/settings?client=ID``, ``GET /api/status``, ``GET /api/features``,
   ``GET /api/health``, ``GET /api/series[?pairs=1-2,3-4]``,
-  ``POST /api/record/start|stop?client=ID``, ``GET /recordings/NAME``.
+  ``POST /api/record/start|stop?client=ID``, ``GET /recordings/NAME``,
+  ``POST /api/reregister[?robot=R]`` (asks the camera(s) to register the robot again).
 
-User input never causes a 500: bad values answer 400 with ``{"error": "..."}``.
+User input never causes a 500: bad values answer 400 with ``{"error": "..."}``, a body
+over ``MAX_BODY_BYTES`` 413, a view or recording beyond the viewer's limits 503; each
+refusal is one log line. Before any of it, :class:`~services.visualiser.web_access.
+AccessGuard` checks Host, Origin and the access token (403 / 401).
 """
 
 from __future__ import annotations
@@ -29,11 +33,14 @@ from typing import Any
 
 from aiohttp import WSMsgType, web
 
+from common.drops import DropCounter
 from common.errors import ConfigError, SlamlensError
 from services.visualiser.api import ViewerApi
-from services.visualiser.recording import NAME_PATTERN, encode_png
+from services.visualiser.clients import TooManyViews
+from services.visualiser.recording import NAME_PATTERN, RecordingRefused, encode_png
 from services.visualiser.service import ViewerService
 from services.visualiser.settings import ViewSettings
+from services.visualiser.web_access import AccessGuard, QuietServerLog
 
 log = logging.getLogger("slamlens.viewer.web")
 
@@ -42,6 +49,9 @@ CLIENT_PATTERN = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
 BOUNDARY = "slamlensframe"
 SNAPSHOT_WAIT_S = 3.0  # how long a snapshot waits for a picture of the newest inputs
 NO_STORE = {"Cache-Control": "no-store"}
+MAX_BODY_BYTES = 64 * 1024  # a settings change is a few hundred bytes
+MAX_WS_MESSAGE = 1024  # the page only ever sends "next"
+UNAVAILABLE = (TooManyViews, RecordingRefused)  # answered 503: the viewer is at a limit
 
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 
@@ -78,27 +88,73 @@ def _json(data: Any, status: int = 200) -> web.Response:
                              dumps=lambda d: json.dumps(d, allow_nan=False))
 
 
-@web.middleware
-async def _errors(request: web.Request, handler: Handler) -> web.StreamResponse:
-    try:
-        return await handler(request)
-    except SlamlensError as exc:  # BadRequest, ConfigError (a bad setting) and the rest
-        return _json({"error": str(exc)}, status=400)
-    except web.HTTPException as exc:
-        if exc.status >= 400:
-            return _json({"error": exc.reason}, status=exc.status)
-        raise
+def _errors(refusals: DropCounter) -> Callable[..., Awaitable[web.StreamResponse]]:
+    """The middleware that turns refused requests into JSON errors, one log line each."""
+
+    @web.middleware
+    async def errors(request: web.Request, handler: Handler) -> web.StreamResponse:
+        try:
+            return await handler(request)
+        except SlamlensError as exc:  # BadRequest, ConfigError (a bad setting), limits …
+            status = 503 if isinstance(exc, UNAVAILABLE) else 400
+            kind, reason = ("limit" if status == 503 else "request"), str(exc)
+        except web.HTTPException as exc:
+            if exc.status < 400:
+                raise
+            status, kind, reason = exc.status, "request", exc.reason
+        refusals.drop(f"web {kind}", f"{status} {request.method} {request.path} from "
+                      f"{request.remote}: {reason}")
+        return _json({"error": reason}, status=status)
+
+    return errors
+
+
+class _Watch:
+    """The view one stream shows, watched while the stream lasts (so it is kept), and
+    followed when the client changes its settings."""
+
+    def __init__(self, api: ViewerApi, client: str | None) -> None:
+        self._api, self._client = api, client
+        self.settings: ViewSettings | None = None
+
+    def current(self) -> ViewSettings:
+        """The client's settings now (TooManyViews if the first has no room)."""
+        settings = self._api.settings_for(self._client)
+        if settings == self.settings:
+            self._api.touch(settings)
+            return settings
+        try:
+            self._api.watch(settings, self._client)
+        except TooManyViews:
+            if self.settings is None:
+                raise
+            return self.settings  # no room for the new settings: keep showing the old
+        if self.settings is not None:
+            self._api.unwatch(self.settings, self._client)
+        self.settings = settings
+        return settings
+
+    def close(self) -> None:
+        if self.settings is not None:
+            self._api.unwatch(self.settings, self._client)
+            self.settings = None
 
 
 class WebServer:
     """Serves a :class:`ViewerService` (through its :class:`ViewerApi`) over HTTP on a
-    background thread."""
+    background thread. With a ``token`` every request must carry it; Host and Origin are
+    always checked (:class:`~services.visualiser.web_access.AccessGuard`)."""
 
     def __init__(self, service: ViewerService, *, host: str = "127.0.0.1",
-                 port: int = 8080) -> None:
+                 port: int = 8080, token: str | None = None,
+                 allowed_hosts: tuple[str, ...] = (),
+                 allowed_origins: tuple[str, ...] = ()) -> None:
         self.api: ViewerApi = service.api
         self.host = host
         self.port = port
+        self.refusals = DropCounter(log)  #: refused requests, by kind ("web host", …)
+        self.guard = AccessGuard(token=token, bound_host=host, allowed_hosts=allowed_hosts,
+                                 allowed_origins=allowed_origins, refusals=self.refusals)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._runner: web.AppRunner | None = None
         self._thread: threading.Thread | None = None
@@ -110,6 +166,12 @@ class WebServer:
     def url(self) -> str:
         host = f"[{self.host}]" if ":" in self.host else self.host
         return f"http://{host}:{self.port}"
+
+    @property
+    def url_with_token(self) -> str:
+        """The URL to open in a browser (with ``?token=`` when the viewer has one)."""
+        token = self.guard.token
+        return self.url + (f"/?token={token}" if token else "")
 
     def start(self) -> str:
         """Bind and serve; returns the URL (``port=0`` picks a free port)."""
@@ -147,13 +209,15 @@ class WebServer:
         self._frames = asyncio.Event()
         app = self.make_app()
         # streams end on their own at shutdown (they watch _closing): wait 2 s at most
-        self._runner = web.AppRunner(app, access_log=None, shutdown_timeout=2.0)
+        self._runner = web.AppRunner(app, access_log=None, shutdown_timeout=2.0,
+                                     logger=QuietServerLog(log, self.refusals))
         await self._runner.setup()
         site = web.TCPSite(self._runner, self.host, self.port)
         await site.start()
         server = getattr(site, "_server", None)
         if server is not None and server.sockets:
             self.port = server.sockets[0].getsockname()[1]
+        self.guard.port = self.port
 
     async def _shutdown(self) -> None:
         self._closing = True
@@ -191,7 +255,8 @@ class WebServer:
 
     # -- the app ------------------------------------------------------------------
     def make_app(self) -> web.Application:
-        app = web.Application(middlewares=[_errors])
+        app = web.Application(middlewares=[self.guard.middleware, _errors(self.refusals)],
+                              client_max_size=MAX_BODY_BYTES)
         r = app.router
         r.add_get("/", self.index)
         r.add_static("/static", STATIC_DIR)
@@ -204,6 +269,7 @@ class WebServer:
         r.add_get("/api/features", self.features)
         r.add_get("/api/health", self.health)
         r.add_get("/api/series", self.series)
+        r.add_post("/api/reregister", self.reregister)
         r.add_post("/api/record/start", self.record_start)
         r.add_post("/api/record/stop", self.record_stop)
         r.add_get("/recordings/{name}", self.recording)
@@ -229,17 +295,19 @@ class WebServer:
         return web.FileResponse(STATIC_DIR / "index.html", headers=NO_STORE)
 
     async def mjpeg(self, request: web.Request) -> web.StreamResponse:
-        client = self._client(request)
+        watch = _Watch(self.api, self._client(request))
+        watch.current()  # no room for its view: 503 before the stream starts
         response = web.StreamResponse(headers={
             "Content-Type": f"multipart/x-mixed-replace; boundary={BOUNDARY}",
             "Cache-Control": "no-cache, no-store, must-revalidate", "Pragma": "no-cache"})
-        await response.prepare(request)
         last = None
         try:
+            await response.prepare(request)
             while not self._closing:
-                settings = self.api.settings_for(client)
-                self.api.touch(settings)
-                rendered = self.api.latest(settings)
+                transport = request.transport
+                if transport is None or transport.is_closing():
+                    break  # the client went away while no picture was written
+                rendered = self.api.latest(watch.current())
                 if rendered is None or rendered is last:
                     await self._next_frames(1.0)
                     continue
@@ -252,12 +320,19 @@ class WebServer:
                 await response.write(head.encode() + rendered.jpeg + b"\r\n")
         except (ConnectionResetError, asyncio.CancelledError):
             pass  # the viewer went away
+        finally:
+            watch.close()
         return response
 
     async def websocket(self, request: web.Request) -> web.StreamResponse:
-        client = self._client(request)
-        ws = web.WebSocketResponse(heartbeat=20.0)
-        await ws.prepare(request)
+        watch = _Watch(self.api, self._client(request))
+        watch.current()  # no room for its view: 503 instead of the upgrade
+        ws = web.WebSocketResponse(heartbeat=20.0, max_msg_size=MAX_WS_MESSAGE)
+        try:
+            await ws.prepare(request)
+        except BaseException:
+            watch.close()
+            raise
         wanted = asyncio.Event()
         wanted.set()
 
@@ -265,16 +340,16 @@ class WebServer:
             async for msg in ws:
                 if msg.type == WSMsgType.TEXT and msg.data == "next":
                     wanted.set()
-                elif msg.type == WSMsgType.ERROR:
+                elif msg.type == WSMsgType.ERROR:  # e.g. a message over MAX_WS_MESSAGE
+                    self.refusals.drop("web websocket", f"closed the websocket of "
+                                       f"{request.remote}: {ws.exception()}")
                     break
 
         reader = asyncio.create_task(read())
         last = None
         try:
             while not self._closing and not ws.closed and not reader.done():
-                settings = self.api.settings_for(client)
-                self.api.touch(settings)
-                rendered = self.api.latest(settings)
+                rendered = self.api.latest(watch.current())
                 if not wanted.is_set():  # the page has not drawn the previous frame yet
                     try:
                         await asyncio.wait_for(wanted.wait(), 1.0)
@@ -294,6 +369,7 @@ class WebServer:
         except (ConnectionResetError, asyncio.CancelledError):
             pass
         finally:
+            watch.close()
             reader.cancel()
             await ws.close()
         return ws
@@ -326,38 +402,53 @@ class WebServer:
         client = self._client(request, required=True)
         assert client is not None
         if request.can_read_body:
-            try:
+            try:  # the body's size is bounded by the app (client_max_size: 413 beyond)
                 changes = await request.json()
-            except (json.JSONDecodeError, UnicodeDecodeError):
+            except (ValueError, UnicodeDecodeError):  # JSONDecodeError is a ValueError
                 raise BadRequest("the body must be a JSON object of settings") from None
+            except RecursionError:  # nested deeper than the JSON parser will go
+                raise BadRequest("the body must be a JSON object of settings (not nested "
+                                 "this deep)") from None
         else:
-            changes = {k: v for k, v in request.query.items() if k != "client"}
+            changes = {k: v for k, v in request.query.items()
+                       if k not in ("client", "token")}
         if not isinstance(changes, dict):
             raise BadRequest("the body must be a JSON object of settings")
         if changes.get("reset"):
             changes = {k: v for k, v in self.api.default_settings.to_dict().items()}
         for key, value in changes.items():
-            if isinstance(value, list):  # colours
-                changes[key] = ",".join(str(v) for v in value)
+            if isinstance(value, list) and all(
+                    isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
+                changes[key] = ",".join(str(v) for v in value)  # colours
             elif value is not None and not isinstance(value, (str, int, float, bool)):
-                raise BadRequest(f"setting {key!r}: expected a string, number or boolean")
+                raise BadRequest(f"setting {str(key)[:40]!r}: expected a string, number, "
+                                 "boolean or a list of numbers")
         settings = self.api.update_settings(client, changes)
         return _json({"client": client, "settings": settings.to_dict()})
 
     async def status(self, request: web.Request) -> web.StreamResponse:
-        return _json(self.api.status())
+        return _json({**self.api.status(), "refused": dict(self.refusals.counts)})
 
     async def features(self, request: web.Request) -> web.StreamResponse:
         return _json(self.api.features(self._settings(request)))
 
     async def health(self, request: web.Request) -> web.StreamResponse:
-        return _json(self.api.health())
+        return _json(self.api.health(request.query.get("robot")))
 
     async def series(self, request: web.Request) -> web.StreamResponse:
         pairs = parse_pairs(request.query.get("pairs", ""))
         settings = self._settings(request)
         loop = asyncio.get_running_loop()
-        data = await loop.run_in_executor(None, self.api.series, settings, pairs)
+        data = await loop.run_in_executor(None, self.api.series, settings, pairs,
+                                          request.query.get("robot"))
+        return _json(data)
+
+    async def reregister(self, request: web.Request) -> web.StreamResponse:
+        """Ask the camera(s) to register a robot again (a query to the registration
+        service: docs/protocol.md); answers what the service(s) said."""
+        robot = request.query.get("robot")
+        data = await asyncio.get_running_loop().run_in_executor(
+            None, self.api.reregister, robot)
         return _json(data)
 
     async def record_start(self, request: web.Request) -> web.StreamResponse:

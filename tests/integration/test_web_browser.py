@@ -21,7 +21,8 @@ import numpy as np
 import pytest
 
 from common.keys import Keys
-from common.messages import SlamState
+from common.messages import Health, SlamState, Violation
+from common.verdict import summary_text, violation_text
 from services.visualiser.service import ViewerService
 from services.visualiser.settings import ViewerConfig
 from services.visualiser.web import WebServer
@@ -38,6 +39,21 @@ LANDMARKS = np.array([[0.5, 0.5], [0.9, 0.5], [0.7, 0.85],
 IDS = np.arange(20, 26)
 
 
+def health(seq: int) -> Health:
+    """A monitor's verdict: an estimator fault standing since seq 3, NEES every state (with
+    its band and running average), NIS on every other state (updates only)."""
+    stats = {"nees_pose": 2.0 + math.sin(seq), "nees_pose_lo": 0.2, "nees_pose_hi": 9.0,
+             "nees_pose_window_mean": 3.0, "nees_pose_window_lo": 2.2,
+             "nees_pose_window_hi": 3.9}
+    if seq % 2 == 0:
+        stats.update({"nis": 1.5 + 0.5 * math.cos(seq), "nis_lo": 0.05, "nis_hi": 7.4})
+    standing = (Violation("pair", (25, 21), seq, 2e-3, first_step=3, count=max(1, seq - 2)),
+                Violation("feature", (21,), seq, 1e-3, first_step=4, count=max(1, seq - 3)))
+    return Health(robot=ROBOT, seq=seq, stamp=0.1 * seq, ok=False, suspects=np.array([21]),
+                  violations=standing, statistics=stats, verdict="fault", verdict_since=3,
+                  standing=standing)
+
+
 def state(seq: int) -> SlamState:
     n = len(LANDMARKS)
     P = np.eye(3 + 2 * n) * 0.05 ** 2
@@ -47,15 +63,30 @@ def state(seq: int) -> SlamState:
                      landmark_ids=IDS, landmarks=LANDMARKS, covariance=P)
 
 
+TOKEN = "browser-token-0123456789abcdef"
+
+
 @pytest.fixture
 def live_viewer(make_client, tmp_path: Path) -> Iterator[str]:
     """A viewer (map view) at a URL, fed 10 states a second until the test ends."""
+    yield from _live_viewer(make_client, tmp_path, token=None)
+
+
+@pytest.fixture
+def live_viewer_with_token(make_client, tmp_path: Path) -> Iterator[str]:
+    """The same, asking every request for TOKEN (as a viewer bound beyond loopback)."""
+    yield from _live_viewer(make_client, tmp_path, token=TOKEN)
+
+
+def _live_viewer(make_client, tmp_path: Path, *, token: str | None) -> Iterator[str]:
     service = ViewerService(make_client(), keys=KEYS, config=ViewerConfig(
         robot=ROBOT, recordings_dir=str(tmp_path)))
     service.start()
-    web = WebServer(service, host="127.0.0.1", port=0)
+    web = WebServer(service, host="127.0.0.1", port=0, token=token)
     url = web.start()
-    publisher = make_client().publisher(KEYS.state(ROBOT))
+    bus = make_client()
+    publisher = bus.publisher(KEYS.state(ROBOT))
+    monitor = bus.publisher(KEYS.health(ROBOT))
     time.sleep(0.3)
     stop = threading.Event()
 
@@ -63,6 +94,7 @@ def live_viewer(make_client, tmp_path: Path) -> Iterator[str]:
         seq = 1
         while not stop.is_set():
             publisher.put(state(seq).to_bytes())
+            monitor.put(health(seq).to_bytes())
             seq += 1
             stop.wait(0.1)
 
@@ -95,10 +127,10 @@ def browser() -> Iterator:
             browser.close()
 
 
-def open_page(browser, url: str, errors: list[str]):
+def open_page(browser, url: str, errors: list[str], *, path: str = "/"):
     page = browser.new_context(viewport={"width": 1600, "height": 1000}).new_page()
     page.on("pageerror", lambda exc: errors.append(str(exc)))
-    page.goto(url + "/")
+    page.goto(url + path)
     page.wait_for_function("window.slamlens && window.slamlens.frames >= 2", timeout=15000)
     return page
 
@@ -199,3 +231,94 @@ def test_the_page_shows_a_live_view_with_per_tab_settings(live_viewer, browser) 
     assert "cluster_threshold_m" in page.text_content("#error")
     assert settings_of(url, client_a)["cluster_threshold_m"] == 0.6
     assert errors == []
+
+
+def test_the_plots_are_real_charts_and_the_verdict_is_the_monitors(live_viewer, browser) -> None:
+    """uPlot charts with axes and every series drawn (NIS, on every other state only, as
+    one line); the NEES/NIS plots show their band and running average; the top bar and the
+    panel say the monitor's verdict in its words, listing the standing violations once."""
+    url = live_viewer
+    errors: list[str] = []
+    page = open_page(browser, url, errors)
+    page.wait_for_function("""() => { const c = window.slamlens.charts;
+        return c && ['plot-pairs', 'plot-clusters', 'plot-nees', 'plot-nis'].every(
+            (id) => c[id] && c[id].data[0].length >= 6); }""", timeout=20000)
+    charts = page.evaluate("""() => Object.fromEntries(Object.entries(window.slamlens.charts)
+        .map(([id, c]) => [id, {labels: c.series.map((s) => s.label), bands: c.bands.length,
+                                width: c.width, points: c.data[0].length,
+                                ticks: c.axes[1]._splits ? c.axes[1]._splits.length : 0}]))""")
+    nees, nis = charts["plot-nees"], charts["plot-nis"]
+    assert "nees_pose_window_mean (running average)" in nees["labels"]
+    assert {"nees_pose_lo", "nees_pose_hi"} <= set(nees["labels"]) and nees["bands"] == 2
+    assert "nis" in nis["labels"] and nis["bands"] == 1
+    for chart in charts.values():
+        assert chart["ticks"] >= 3  # a real axis: ticks between the ends
+    # the plots fill their panel (two per row on this 1600 px page)
+    panel = page.locator(".plots").bounding_box()
+    assert 2 * charts["plot-nees"]["width"] > 0.8 * panel["width"]
+
+    # every series is visible: pixels of the NIS line's colour where its points are
+    def stroke_pixels(chart_id: str, series: int) -> int:
+        return page.evaluate("""([id, k]) => {
+            const u = window.slamlens.charts[id];
+            const ctx = u.ctx, dpr = window.devicePixelRatio || 1;
+            const colour = u.series[k].stroke();
+            const probe = document.createElement('canvas').getContext('2d');
+            probe.fillStyle = colour; probe.fillRect(0, 0, 1, 1);
+            const [r, g, b] = probe.getImageData(0, 0, 1, 1).data;
+            let hits = 0;
+            const xs = u.data[0], ys = u.data[k];
+            for (let i = 0; i < xs.length; i++) {
+                if (ys[i] === null) continue;
+                const x = Math.round(u.valToPos(xs[i], 'x', true));
+                const y = Math.round(u.valToPos(ys[i], 'y', true));
+                const d = ctx.getImageData(x - 2, y - 2, 5, 5).data;
+                for (let j = 0; j < d.length; j += 4)
+                    if (Math.abs(d[j] - r) + Math.abs(d[j + 1] - g) + Math.abs(d[j + 2] - b) < 60) {
+                        hits++; break; }
+            }
+            return hits;
+        }""", [chart_id, series])
+
+    nis_index = charts["plot-nis"]["labels"].index("nis")
+    points = page.evaluate(f"window.slamlens.charts['plot-nis'].data[{nis_index}]"
+                           ".filter((v) => v !== null).length")
+    assert points >= 3 and stroke_pixels("plot-nis", nis_index) >= points - 1
+    assert stroke_pixels("plot-nees", charts["plot-nees"]["labels"].index("nees_pose")) >= 5
+
+    # the verdict: the same words in the top bar and the panel, the standing list once each
+    expected = summary_text(health(10))
+    page.wait_for_function("document.getElementById('verdict').dataset.verdict === 'fault'",
+                           timeout=10000)
+    assert page.text_content("#verdict") == expected
+    assert f"{ROBOT}: {expected}" in page.text_content("#verdicts")
+    standing = page.locator("#standing li").all_text_contents()
+    assert len(standing) == 2 and standing[0].startswith("pair 21–25: growth 0.002 (since seq 3")
+    assert standing[1].startswith("feature 21: growth 0.001 (since seq 4")
+    assert all("feature features" not in t and "np." not in t for t in standing)
+    assert violation_text(health(10).standing[0]).split(" (since")[0] in standing[0]
+    assert errors == []
+
+
+def test_the_page_works_from_the_url_with_the_token(live_viewer_with_token, browser) -> None:
+    """The URL a viewer bound beyond loopback prints: the page keeps the token in a cookie,
+    so its own requests and its websocket carry it; the address bar loses it."""
+    url = live_viewer_with_token
+    errors: list[str] = []
+    page = open_page(browser, url, errors, path=f"/?token={TOKEN}")
+    assert page.url == url + "/"  # redirected: the token is out of the address bar
+    wait_for_frames(page, 3)  # the websocket carries the cookie
+    page.select_option("select[name=mode]", "inter")  # and so do the page's fetches
+    page.wait_for_function("window.slamlens.settings.mode === 'inter'", timeout=10000)
+    client = page.evaluate("window.slamlens.client")
+    request = urllib.request.Request(f"{url}/api/settings?client={client}",
+                                     headers={"Authorization": f"Bearer {TOKEN}"})
+    with urllib.request.urlopen(request, timeout=10) as r:
+        assert json.loads(r.read())["settings"]["mode"] == "inter"
+    assert errors == []
+
+    # a browser without the token gets nothing but the reason
+    stranger = browser.new_context().new_page()
+    response = stranger.goto(url + "/")
+    assert response is not None and response.status == 401
+    assert "token" in stranger.content()

@@ -30,13 +30,14 @@ def test_demo_runs_everything_and_serves_the_picture(tmp_path) -> None:
             if m:
                 url = m.group(1)
         assert url, "".join(lines)
-        # once the robot moves, the picture is served and the monitor names the fault
+        # once the robot moves, the picture is served and the monitor names the fault, in
+        # the words the page and the picture's legend use (common/verdict.py)
         png = None
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline:
             line = proc.stdout.readline()
             lines.append(line)
-            if "suspects [3, 12]" in line:
+            if "| estimator fault since seq " in line and "suspects 3, 12" in line:
                 with urllib.request.urlopen(url + "snapshot.png", timeout=10) as reply:
                     png = reply.read()
                 break

@@ -100,3 +100,86 @@ def test_cluster_colours_are_stable_and_distinct() -> None:
     assert len(set(colours)) == 10
     for c in colours:
         assert len(c) == 3 and all(0 <= v <= 255 for v in c)
+
+
+class _OracleTracker:
+    """The textbook matching: one Hungarian assignment over all new × old clusters on
+    their overlap counts (Jaccard tie-break), set operations per cluster pair."""
+
+    def __init__(self) -> None:
+        self.members: dict[int, frozenset[int]] = {}
+        self.next_id = 0
+
+    def update(self, ids: np.ndarray, labels: np.ndarray) -> np.ndarray:
+        from scipy.optimize import linear_sum_assignment
+
+        new_labels = np.unique(labels)
+        new = [frozenset(ids[labels == lab].tolist()) for lab in new_labels]
+        old = list(self.members)
+        assigned: dict[int, int] = {}
+        self.tied = False  # two candidates scored alike: either match is right
+        self.split_or_merge = False  # a cluster overlapping several of the other frame
+        if old and new:
+            ov = np.array([[len(m & self.members[o]) for o in old] for m in new], float)
+            un = np.array([[len(m | self.members[o]) for o in old] for m in new], float)
+            score = ov + 1e-3 * ov / np.maximum(un, 1.0)
+            for matrix in (score, score.T):
+                for line in matrix:
+                    top = np.sort(line[line > 0])[::-1]
+                    self.tied |= len(top) > 1 and top[0] - top[1] < 1e-12
+                    self.split_or_merge |= len(top) > 1
+            rows, cols = linear_sum_assignment(score, maximize=True)
+            for r, c in zip(rows, cols, strict=True):
+                if ov[r, c] > 0:
+                    assigned[int(r)] = old[int(c)]
+        members = {}
+        for k, m in enumerate(new):
+            if k not in assigned:
+                assigned[k] = self.next_id
+                self.next_id += 1
+            members[assigned[k]] = m
+        self.members = members
+        lut = np.array([assigned[k] for k in range(len(new_labels))])
+        return lut[np.searchsorted(new_labels, labels)]
+
+
+def test_the_fast_tracker_matches_one_assignment_over_all_clusters() -> None:
+    """Random maps that grow, drift, split and merge: the same stable ids as the oracle."""
+    rng = np.random.default_rng(5)
+    compared = involved = 0
+    for trial in range(80):
+        fast, oracle = ClusterTracker(), _OracleTracker()
+        xy = rng.uniform(0, 6, (30, 2))
+        ids = rng.permutation(1000)[:30]
+        for step in range(12):
+            if step % 3 == 2:  # the map grows
+                xy = np.vstack([xy, rng.uniform(0, 6, (10, 2))])
+                ids = np.append(ids, 2000 + 10 * step + trial * 1000 + np.arange(10))
+            xy = xy + rng.normal(0, 0.08, xy.shape)  # drift: clusters split and merge
+            order = rng.permutation(len(ids))
+            labels = cluster_labels(xy[order], threshold_m=0.7)
+            ours, theirs = fast.update(ids[order], labels), oracle.update(ids[order], labels)
+            if oracle.tied:  # an even split: both answers are right, the runs part ways
+                break
+            np.testing.assert_array_equal(ours, theirs)
+            compared += 1
+            involved += oracle.split_or_merge
+    assert compared >= 150 and involved >= 20
+
+
+def test_identities_stay_stable_as_a_1000_feature_map_grows() -> None:
+    """A map of 40 well-separated clusters filled in 25 steps up to 1000 features: every
+    cluster keeps the id it got when it was first seen."""
+    rng = np.random.default_rng(2)
+    centres = np.stack(np.meshgrid(np.arange(8), np.arange(5)), -1).reshape(-1, 2) * 4.0
+    xy = np.repeat(centres, 25, axis=0) + rng.normal(0, 0.25, (1000, 2))
+    ids = np.arange(1000)
+    seen = rng.permutation(1000)
+    tracker = ClusterTracker()
+    first_id: dict[int, int] = {}
+    for k in range(40, 1001, 40):
+        idx = np.sort(seen[:k])
+        stable = tracker.update(ids[idx], cluster_labels(xy[idx], threshold_m=1.5))
+        for centre, cid in zip((idx // 25).tolist(), stable.tolist(), strict=True):
+            assert first_id.setdefault(centre, cid) == cid
+    assert len(set(first_id.values())) == 40

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -299,17 +300,74 @@ def test_reference_pose_is_a_white_ring_joined_to_the_estimate() -> None:
     assert not ((hidden.min(axis=2) > 180) & (plain.min(axis=2) <= 180)).any()
 
 
-def test_legend_keeps_naming_suspects_on_a_state_without_violations() -> None:
-    """Health is per state: a predict step may break nothing while suspects stand."""
+def test_legend_shows_the_standing_verdict_on_a_state_without_violations() -> None:
+    """Health.ok is per state: a predict step may break nothing while a fault stands; the
+    legend shows the robot's verdict (Health.verdict, kept up by Health.standing)."""
     camera = top_down()
     state = paper_state()
     settings = ViewSettings(ellipsoids=False, lines=False)
     ok = Health(robot="robot1", seq=state.seq, stamp=state.stamp, ok=True,
                 suspects=np.zeros(0, np.int64))
-    blamed = Health(robot="robot1", seq=state.seq, stamp=state.stamp, ok=True,
-                    suspects=np.array([3]))
+    standing = Violation(kind="feature", ids=(3,), step=8, value=2e-3, first_step=5, count=4)
+    fault = Health(robot="robot1", seq=state.seq, stamp=state.stamp, ok=True,
+                   suspects=np.array([3]), verdict="fault", verdict_since=5,
+                   standing=(standing,))
+    tuning = dataclasses.replace(ok, verdict="tuning", verdict_since=2, standing=(
+        Violation(kind="nees", ids=(), step=9, value=40.0, first_step=2, count=7),))
     clean = Renderer().render(None, state=state, camera=camera, settings=settings, health=ok)
     flagged = Renderer().render(None, state=state, camera=camera, settings=settings,
-                                health=blamed)
+                                health=fault)
+    tuned = Renderer().render(None, state=state, camera=camera, settings=settings,
+                              health=tuning)
     legend = (slice(0, 160), slice(0, 640))
     assert is_magenta(flagged[legend]).sum() > is_magenta(clean[legend]).sum() + 20
+    orange = (tuned[legend][..., 2] > 200) & (tuned[legend][..., 1] > 120) & (
+        tuned[legend][..., 1] < 200) & (tuned[legend][..., 0] < 60)
+    assert orange.sum() > 20 and is_magenta(tuned[legend]).sum() == is_magenta(
+        clean[legend]).sum()
+
+
+def with_gated(state: SlamState, ids: list[int], observations: np.ndarray,
+               total: int) -> SlamState:
+    """``state`` carrying rejected (gated) observations, as the estimator's gate publishes
+    them (SlamState.gated_ids / gated_observations / diagnostics; set directly if this
+    SlamState does not declare them yet)."""
+    fields = {"gated_ids": np.asarray(ids, np.int64),
+              "gated_observations": np.asarray(observations, float),
+              "diagnostics": {"gated": float(total)}}
+    names = {f.name for f in dataclasses.fields(SlamState)}
+    if set(fields) <= names:
+        return dataclasses.replace(state, **fields)
+    for name, value in fields.items():
+        object.__setattr__(state, name, value)
+    return state
+
+
+def test_rejected_observations_are_grey_crosses_where_they_were_seen() -> None:
+    camera = top_down()
+    state = paper_state(pose=(0.5, 0.2, 0.0))
+    quiet = ViewSettings(**QUIET, ellipsoids=False, lines=False)
+    # two observations the gate refused: 1 m ahead, and 0.8 m at 90° to the left
+    gated = with_gated(paper_state(pose=(0.5, 0.2, 0.0)), [3, 12],
+                       np.array([[1.0, 0.0], [0.8, math.pi / 2]]), total=17)
+    plain = Renderer().render(None, state=state, camera=camera, settings=quiet)
+    crossed = Renderer().render(None, state=gated, camera=camera, settings=quiet)
+    uv = camera.project(np.array([[1.5, 0.2, 0.0], [0.5, 1.0, 0.0]]))[0]
+    for u, v in uv:
+        patch = (slice(int(v) - 6, int(v) + 7), slice(int(u) - 6, int(u) + 7))
+        grey = (np.abs(crossed[patch].astype(int) - 170).max(axis=2) <= 25)
+        assert grey.sum() >= 8 and not np.array_equal(crossed[patch], plain[patch])
+    changed = np.any(crossed != plain, axis=2)
+    assert changed.sum() < 400  # two small crosses, nothing else
+    # the legend counts them; without the layer nothing is drawn
+    legend = (slice(0, 200), slice(0, 700))
+    with_legend = Renderer().render(None, state=gated, camera=camera, settings=ViewSettings())
+    without = Renderer().render(None, state=state, camera=camera, settings=ViewSettings())
+    assert not np.array_equal(with_legend[legend], without[legend])
+    off = Renderer().render(None, state=gated, camera=camera,
+                            settings=quiet.replace(rejected=False))
+    assert np.array_equal(off, plain)
+    from services.visualiser.render import rejected_legend
+    assert rejected_legend(gated, ViewSettings()) == [[(
+        "rejected observations (gate): 2 in this update, 17 in all", (170, 170, 170))]]
+    assert rejected_legend(state, ViewSettings()) == []  # a state without the gate

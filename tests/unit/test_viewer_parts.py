@@ -3,6 +3,7 @@ map bounds, plots' series, parsing, video."""
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from pathlib import Path
 
@@ -11,16 +12,30 @@ import numpy as np
 import pytest
 
 from common.errors import ConfigError, SlamlensError
-from common.messages import Health, SlamState, Truth
+from common.messages import Health, Registration, SlamState, Truth
 from services.visualiser.camera_model import CameraModel
-from services.visualiser.clients import ClientRegistry
-from services.visualiser.intake import Queue, RateMeter
-from services.visualiser.recording import Recorder, encode_png, recording_name
+from services.visualiser.clients import ClientRegistry, RenderBudget, TooManyViews
+from services.visualiser.compose import camera_views
+from services.visualiser.intake import (
+    CameraInputs,
+    Inputs,
+    Queue,
+    RateMeter,
+    RobotInputs,
+    is_new_map,
+)
+from services.visualiser.recording import (
+    Recorder,
+    RecordingRefused,
+    encode_png,
+    recording_name,
+)
 from services.visualiser.series import SeriesStore, pair_index
 from services.visualiser.settings import ViewSettings
 from services.visualiser.tracked import TrackedMatch
 from services.visualiser.views import (
     DEFAULT_BOUNDS,
+    CameraView,
     Eye,
     EyeChooser,
     Rendered,
@@ -101,32 +116,85 @@ def test_a_view_is_active_for_its_ttl_and_current_only_for_its_inputs() -> None:
 
 # -- eyes ---------------------------------------------------------------------------------
 def test_eyes_follow_the_view_choice_and_the_map_bounds_restart() -> None:
-    map_eyes = EyeChooser("map", robot="r", map_width=640, map_height=360,
-                          stereo_baseline_m=0.1)
-    (eye,) = map_eyes.choose(None, [])
+    map_eyes = EyeChooser("map", map_width=640, map_height=360, stereo_baseline_m=0.1)
+    (eye,) = map_eyes.choose([], [])
     assert eye.name == "map" and map_eyes.bounds is None  # before any state: default floor
     assert eye.camera is not None and (eye.camera.width, eye.camera.height) == (640, 360)
     default = CameraModel.top_down(bounds_xy=DEFAULT_BOUNDS, width=640, height=360)
     np.testing.assert_array_equal(eye.camera.T_camera_from_map, default.T_camera_from_map)
     wide = random_state(2, landmarks=[[0.1, 0.2], [5.2, 0.4]])
     narrow = random_state(2, landmarks=[[0.1, 0.2], [2.2, 0.4]])
-    map_eyes.choose(wide, [])
+    map_eyes.choose([wide], [])
     assert map_eyes.bounds == grow_bounds(None, wide)
-    map_eyes.choose(narrow, [])
+    map_eyes.choose([narrow], [])
     assert map_eyes.bounds == grow_bounds(None, wide)  # grows only …
     map_eyes.restart()
-    map_eyes.choose(narrow, [])
+    map_eyes.choose([narrow], [])
     assert map_eyes.bounds == grow_bounds(None, narrow) != grow_bounds(None, wide)  # … a new run
-    stereo = EyeChooser("stereo", robot="r", map_width=640, map_height=360,
-                        stereo_baseline_m=0.1)
-    assert [e.name for e in stereo.choose(None, [])] == ["map-left", "map-right"]
+    # several robots: the bounds hold every map
+    map_eyes.restart()
+    far = random_state(2, landmarks=[[-4.0, -3.0], [-3.5, -3.0]])
+    map_eyes.choose([narrow, far], [])
+    bounds = map_eyes.bounds
+    assert bounds is not None and bounds[0] <= -4.0 and bounds[2] >= 2.2
+    stereo = EyeChooser("stereo", map_width=640, map_height=360, stereo_baseline_m=0.1)
+    assert [e.name for e in stereo.choose([], [])] == ["map-left", "map-right"]
     frame = np.zeros((360, 640, 3), np.uint8)
-    camera = EyeChooser("camera", robot="r7", map_width=640, map_height=360,
-                        stereo_baseline_m=0.1)
-    (waiting,) = camera.choose(None, [("top", None, frame)])
-    assert waiting.camera is None and waiting.image is frame
-    assert waiting.note == "waiting for the registration of camera top for robot r7"
+    camera = EyeChooser("camera", map_width=640, map_height=360, stereo_baseline_m=0.1)
+    note = "waiting for the registration of camera top for robot r7"
+    (waiting,) = camera.choose([], [CameraView("top", frame, {}, {"r7": note})])
+    assert waiting.camera is None and waiting.image is frame and waiting.note == note
+    assert waiting.model_for("r7") == (None, note)
     assert camera.current == (waiting,)
+
+
+def registration_for(robot: str, *, epoch: int | None = None) -> Registration:
+    K = np.array([[500.0, 0, 320], [0, 500.0, 180], [0, 0, 1]])
+    T = np.eye(4)
+    T[:3, :3], T[2, 3] = np.diag([1.0, -1.0, -1.0]), 3.0
+    return Registration(camera="top", robot=robot, stamp=0.0, K=K, dist=np.zeros(5),
+                        width=640, height=360, T_camera_from_map=T,
+                        reprojection_error_px=0.2, epoch=epoch)
+
+
+def robot_inputs(name: str, state: SlamState | None, *, epoch_started: float = -np.inf
+                 ) -> RobotInputs:
+    return RobotInputs(name, 0, state, 0.0, None, epoch_started, None, 0, RateMeter())
+
+
+def test_a_registration_places_only_its_own_map() -> None:
+    """A registration with another epoch, or without one and received before the state
+    that began the current map, is stale: never drawn with the new map."""
+    old_map = dataclasses.replace(random_state(2), epoch=111)
+    new_map = dataclasses.replace(random_state(2), epoch=222)
+    r = robot_inputs("r", new_map, epoch_started=50.0)
+    assert r.registration_usable(registration_for("r", epoch=222), received=10.0)
+    assert not r.registration_usable(registration_for("r", epoch=111), received=60.0)
+    assert not r.registration_usable(registration_for("r"), received=49.0)  # before the map
+    assert r.registration_usable(registration_for("r"), received=51.0)
+    first = robot_inputs("r", old_map)  # the first map the viewer sees: any epoch-less one
+    assert first.registration_usable(registration_for("r"), received=-1e9)
+    assert is_new_map(old_map, new_map) and not is_new_map(new_map, new_map)
+    resumed = dataclasses.replace(new_map, seq=new_map.seq - 1)  # same epoch, seq back
+    assert not is_new_map(new_map, resumed)
+    unknown = dataclasses.replace(random_state(2, seq=5), epoch=0)
+    assert is_new_map(unknown, dataclasses.replace(unknown, seq=4))  # epoch 0: seq back
+
+    # a camera that places one robot's map and not the other's (stale): per-robot models
+    inputs = Inputs(robots=(robot_inputs("a", new_map, epoch_started=50.0),
+                            robot_inputs("b", new_map, epoch_started=50.0)),
+                    cameras=(CameraInputs("top", None, None, None, {
+                        "a": (registration_for("a", epoch=222), 10.0),
+                        "b": (registration_for("b", epoch=111), 60.0)}, RateMeter()),),
+                    versions=())
+    (view,) = camera_views(inputs)
+    assert list(view.registrations) == ["a"]
+    assert "new map of robot b" in view.waiting["b"]
+    chooser = EyeChooser("camera", map_width=640, map_height=360, stereo_baseline_m=0.1)
+    (eye,) = chooser.choose([new_map], [view])
+    assert eye.model_for("a")[0] is not None
+    model, why = eye.model_for("b")
+    assert model is None and "register the new map of robot b" in why
 
 
 # -- the tracked pose ---------------------------------------------------------------------
@@ -232,6 +300,20 @@ def test_series_decimates_in_time_and_restarts_with_a_new_run() -> None:
                     statistics={"nis": 1.5})
     assert store.add_health(health, now=11.0)
     assert store.to_json([])["health"]["stats"] == {"nis": [1.5]}
+    # a statistic only some verdicts carry (NIS: updates) survives the decimation
+    predict = dataclasses.replace(health, statistics={"nees_pose": 3.0})
+    update = dataclasses.replace(health, statistics={"nees_pose": 2.0, "nis": 0.7})
+    assert not store.add_health(update, now=11.1)
+    assert store.add_health(predict, now=11.25)
+    assert store.to_json([])["health"]["stats"] == {"nis": [1.5, 0.7],
+                                                    "nees_pose": [None, 3.0]}
+    # epochs: the same epoch with a lower seq is the same map (a resumed estimator)
+    epoch = SeriesStore(min_interval_s=0.0)
+    for seq in (4, 5, 3):
+        epoch.add_state(dataclasses.replace(random_state(3, seq=seq), epoch=9), now=seq)
+    assert epoch.to_json([])["state"]["seq"] == [4, 5]
+    epoch.add_state(dataclasses.replace(random_state(3, seq=8), epoch=10), now=9)
+    assert epoch.to_json([])["state"]["seq"] == [8]  # another epoch: a new map
 
 
 def test_series_marks_missing_pairs_as_null_and_picks_default_pairs() -> None:
@@ -314,6 +396,104 @@ def test_recorder_writes_real_time_video(tmp_path: Path, codec: str) -> None:
         read += 1
     capture.release()
     assert read == info["frames"]
+
+
+def test_a_recording_is_refused_without_disk_space_and_stops_itself_at_its_limits(
+        tmp_path: Path) -> None:
+    # noise: ~100 kB a frame in MJPG, so the file grows on disk (the writer buffers)
+    picture = np.random.default_rng(1).integers(0, 255, (240, 320, 3), dtype=np.uint8)
+
+    def recorder(name: str, free: list[int], **limits: float) -> Recorder:
+        space = iter(free)
+        return Recorder(directory=tmp_path, name=name, fps=20.0, codec="MJPG",
+                        source=lambda: picture, settings=lambda: None,
+                        free=lambda _dir: next(space, free[-1]), **limits)
+
+    def stopped_by_itself(r: Recorder) -> dict:
+        deadline = time.monotonic() + 20
+        while r.running and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert not r.running
+        return r.info()
+
+    short = recorder("a.avi", [10 ** 12], min_free_bytes=10 ** 13)
+    with pytest.raises(RecordingRefused, match="min_free_disk_mb 10000000"):
+        short.start()
+    assert not (tmp_path / "a.avi").exists()
+
+    timed = recorder("b.avi", [10 ** 12], max_seconds=0.5)
+    timed.start()
+    info = stopped_by_itself(timed)
+    assert "max_recording_s 0.5" in info["limit"] and info["frames"] >= 1
+    assert cv2.VideoCapture(str(tmp_path / "b.avi")).read()[0]  # a file a player reads
+
+    sized = recorder("c.avi", [10 ** 12], max_bytes=200_000)
+    sized.start()
+    assert "max_recording_mb" in stopped_by_itself(sized)["limit"]
+
+    filling = recorder("d.avi", [10 ** 12, 10 ** 5], min_free_bytes=10 ** 6)  # the disk fills
+    filling.start()
+    info = stopped_by_itself(filling)
+    assert "0 MB free on the disk" in info["limit"] and not info["recording"]
+
+
+def test_render_budget_holds_other_views_to_their_share() -> None:
+    budget = RenderBudget(0.25, bank_s=0.02)
+    budget.refill(100.0)
+    assert budget.allows and budget.wait_s() == 0.0
+    budget.spend(0.03)  # one slow render of another view: 10 ms over
+    assert not budget.allows and budget.wait_s() == pytest.approx(0.04)  # 10 ms at 25 %
+    budget.refill(100.03)
+    assert not budget.allows  # 7.5 ms of the 10 ms back
+    budget.refill(100.05)
+    assert budget.allows
+    budget.refill(200.0)  # a long pause banks at most bank_s
+    budget.spend(0.02)
+    assert not budget.allows
+    # over a long run, others get share × elapsed time whatever they ask
+    budget, spent, now = RenderBudget(0.3, bank_s=0.02), 0.0, 0.0
+    while now < 10.0:
+        budget.refill(now)
+        if budget.allows:
+            budget.spend(0.015)
+            spent += 0.015
+        now += 0.001
+    assert spent == pytest.approx(0.3 * 10.0, abs=0.05)
+
+
+def test_the_default_view_renders_first_then_the_one_drawn_longest_ago() -> None:
+    clients = ClientRegistry(ViewSettings(), ttl_s=60.0, on_new_view=lambda: None,
+                             new_recorder=no_recorder, max_views=3)
+    others = [ViewSettings(scale=s) for s in (2.0, 3.0, 4.0)]
+    for settings in others:
+        clients.touch(settings)
+    clients.touch(ViewSettings())
+    views = {v.settings: v for v in clients.active()}
+    for settings, drawn in zip(others, (5.0, 1.0, 3.0), strict=True):
+        views[settings].drawn_at = drawn
+    views[ViewSettings()].drawn_at = 9.0
+    order = [v.settings for v in clients.render_order(list(views.values()))]
+    assert order == [ViewSettings(), others[1], others[2], others[0]]
+
+
+def test_views_are_capped_and_a_client_leaving_its_streamed_view_makes_room() -> None:
+    clients = ClientRegistry(ViewSettings(), ttl_s=60.0, on_new_view=lambda: None,
+                             new_recorder=no_recorder, max_views=2)
+    a = clients.update_settings("a", {"scale": 2})
+    clients.watch(a, "a")
+    b = clients.update_settings("b", {"scale": 3})
+    clients.watch(b, "b")
+    with pytest.raises(TooManyViews, match="max_views 2"):
+        clients.update_settings("c", {"scale": 4})
+    assert clients.settings_for("c") == ViewSettings()  # unchanged
+    clients.watch(ViewSettings(), None)  # the default view never counts
+    moved = clients.update_settings("a", {"scale": 5})  # a's stream follows a: room
+    assert moved.scale == 5 and clients.memory()["evicted"] == 1
+    assert {v.settings for v in clients.active()} == {b, moved, ViewSettings()}
+    clients.unwatch(b, "b")
+    assert clients.update_settings("c", {"scale": 4}).scale == 4  # b is idle now: evicted
+    assert clients.memory() | {"picture_bytes": 0} == {
+        "kept": 3, "streamed": 1, "max": 2, "evicted": 2, "refused": 1, "picture_bytes": 0}
 
 
 def test_png_snapshot_round_trips() -> None:

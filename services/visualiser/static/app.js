@@ -2,7 +2,8 @@
 // Plain script, no build step and no network beyond this server.
 "use strict";
 
-const LAYERS = ["robot", "path", "features", "lines", "ellipsoids", "legend", "labels", "health"];
+const LAYERS = ["robot", "path", "features", "lines", "ellipsoids", "legend", "labels", "health",
+                "rejected"];
 const PLOT_COLOURS = ["#4fc3f7", "#ffb74d", "#81c784", "#e57373", "#ba68c8", "#fff176",
                       "#4db6ac", "#f06292"];
 
@@ -134,6 +135,11 @@ async function change(changes) {
 form.addEventListener("change", (event) => {
   const element = event.target;
   if (!element.name) return;
+  if ((element.id === "feature" || element.id === "cluster") && element.value.includes("|")) {
+    const [robot, id] = element.value.split("|");  // several robots: R|id
+    change({selected_robot: robot, [element.name]: id});
+    return;
+  }
   let value;
   if (element.type === "checkbox") value = element.checked;
   else if (element.dataset.log) value = Math.pow(10, Number(element.value));
@@ -150,16 +156,23 @@ canvas.addEventListener("click", (event) => {
   const rect = canvas.getBoundingClientRect();
   const u = (event.clientX - rect.left) * canvas.width / rect.width;
   const v = (event.clientY - rect.top) * canvas.height / rect.height;
-  let best = null;
+  let best = null, bestRobot = null;
   let bestDistance = 30 * canvas.width / rect.width;  // 30 screen pixels
   features.uv.forEach((uv, i) => {
     if (!uv) return;
     const d = Math.hypot(uv[0] - u, uv[1] - v);
-    if (d < bestDistance) { best = features.ids[i]; bestDistance = d; }
+    if (d < bestDistance) { best = features.ids[i]; bestRobot = features.robot[i]; bestDistance = d; }
   });
   if (best === null) return;
-  const selected = app.settings && app.settings.selected_feature === best ? null : best;
-  change({selected_feature: selected});
+  const several = new Set(features.robot).size > 1;
+  const same = app.settings && app.settings.selected_feature === best &&
+    (!several || app.settings.selected_robot === bestRobot);
+  if (several) {
+    change(same ? {selected_feature: null, selected_robot: null}
+                : {selected_feature: best, selected_robot: bestRobot});
+  } else {
+    change({selected_feature: same ? null : best});
+  }
 });
 
 async function refreshFeatures() {
@@ -167,13 +180,37 @@ async function refreshFeatures() {
     const features = await api("/api/features");
     app.features = features;
     const select = $("feature");
-    const wanted = ["", ...features.ids.map(String)];
+    const several = new Set(features.robot).size > 1;
+    const value = (i) => (several ? `${features.robot[i]}|${features.ids[i]}` : String(features.ids[i]));
+    const wanted = ["", ...features.ids.map((_, i) => value(i))];
     const have = Array.from(select.options, (o) => o.value);
     if (wanted.join(",") !== have.join(",")) {
-      select.innerHTML = '<option value="">none (all)</option>' +
-        features.ids.map((id) => `<option value="${id}">feature ${id}</option>`).join("");
+      select.innerHTML = '<option value="">none (all)</option>' + features.ids.map((id, i) =>
+        `<option value="${esc(value(i))}">${several ? esc(features.robot[i]) + ": " : ""}` +
+        `feature ${id}</option>`).join("");
     }
-    select.value = features.selected === null ? "" : String(features.selected);
+    select.value = features.selected === null ? ""
+      : several ? `${features.selected_robot}|${features.selected}` : String(features.selected);
+    // clusters of the view's clustering, per robot (known once a picture was clustered)
+    const clusters = $("cluster");
+    const options = [];
+    for (const [robot, ids] of Object.entries(features.clusters || {})) {
+      for (const id of [...new Set(ids.filter((c) => c !== null))].sort((a, b) => a - b)) {
+        options.push([several ? `${robot}|${id}` : String(id),
+                      `${several ? robot + ": " : ""}cluster ${id}`]);
+      }
+    }
+    const wantedClusters = ["", ...options.map(([v]) => v)];
+    if (wantedClusters.join(",") !== Array.from(clusters.options, (o) => o.value).join(",")) {
+      clusters.innerHTML = '<option value="">none</option>' + options.map(([v, label]) =>
+        `<option value="${esc(v)}">${esc(label)}</option>`).join("");
+    }
+    const chosen = features.selected_cluster;
+    clusters.value = chosen === null ? ""
+      : several ? `${features.selected_robot}|${chosen}` : String(chosen);
+    // above the glyph budget the picture is an overview: say so beside the picture
+    $("overview").textContent = Object.entries(features.overview || {}).map(([robot, note]) =>
+      (several ? `${robot}: ` : "") + note).join(" · ");
   } catch (e) { /* the next poll will try again */ }
 }
 
@@ -204,143 +241,207 @@ function age(seconds) {
   return seconds === null || seconds === undefined ? "–" : `${seconds.toFixed(2)} s`;
 }
 
+function esc(text) {
+  return String(text).replace(/[&<>"]/g, (c) => ({"&": "&amp;", "<": "&lt;", ">": "&gt;",
+                                                    '"': "&quot;"}[c]));
+}
+
+// The robot whose verdict and plots the bottom panels show (the first one by default).
+function chosenRobot() {
+  const select = $("robot");
+  return select.value || (app.status && app.status.robot) || "";
+}
+
+function showRobots(s) {
+  const select = $("robot");
+  const names = s.robots.map((r) => r.name);
+  const have = Array.from(select.options, (o) => o.value);
+  if (names.join(",") !== have.join(",")) {
+    const keep = select.value;
+    select.innerHTML = names.map((n) => `<option value="${esc(n)}">robot ${esc(n)}</option>`)
+      .join("");
+    if (names.includes(keep)) select.value = keep;
+  }
+  select.hidden = names.length < 2;
+  // the top bar: one verdict per robot, in the monitor's words (the same as the legend's)
+  $("verdicts").innerHTML = s.robots.map((r) => {
+    const h = r.health;
+    const words = h ? h.verdict_text : "no verdict yet";
+    const cls = h ? `v-${h.verdict}` : "";
+    const restarted = r.map_restarted ? ' <span class="restarted">map restarted</span>' : "";
+    return `<span data-robot="${esc(r.name)}"><span class="sw" style="background:${r.colour}">` +
+           `</span>${esc(r.name)}: <span class="${cls}">${esc(words)}</span>${restarted}</span>`;
+  }).join("");
+  $("robotlegend").innerHTML = s.robots.length < 2 ? "" : s.robots.map((r) =>
+    `<li><span class="sw" style="background:${r.colour}"></span>robot ${esc(r.name)}: cone, ` +
+    "path and (lighter) feature cones</li>").join("");
+  const notes = [];
+  for (const r of s.robots) {
+    if (r.map_restarted) {
+      notes.push(`map restarted: the estimator of robot ${r.name} began a new map ` +
+                 "(the old map's path and plots were dropped)");
+    }
+    for (const [camera, reg] of Object.entries(r.registration || {})) {
+      if (reg === "stale") notes.push(`waiting for camera ${camera} to register the new map ` +
+                                      `of robot ${r.name}`);
+    }
+  }
+  $("notes").textContent = notes.join(" · ");
+  $("reregister").hidden = !s.cameras.length;
+}
+
 async function refreshStatus() {
   try {
     const s = await api("/api/status");
-    const parts = [`robot ${s.robot}`, `${s.view} view`];
+    app.status = s;
+    showRobots(s);
+    const parts = [s.discover ? "robots: every live estimator" : `robot ${s.robot}`,
+                   `${s.view} view`];
     for (const c of s.cameras) {
       const f = c.frame;
       parts.push(`camera ${c.name}: ` + (f ? `frame age ${age(f.age_s)}, ${f.rate_hz.toFixed(1)} Hz`
                                            : "no frames") +
                  (c.registration ? `, ${c.registration.status}` : ", not registered"));
     }
-    if (s.state) {
-      parts.push(`state seq ${s.state.seq} (${s.state.step}), age ${age(s.state.age_s)}, ` +
-                 `n = ${s.state.n}`);
-    } else {
-      parts.push("no state yet");
+    for (const r of s.robots) {
+      const st = r.state;
+      parts.push(st ? `${s.robots.length > 1 ? r.name + ": " : ""}state seq ${st.seq} ` +
+                      `(${st.step}), age ${age(st.age_s)}, n = ${st.n}`
+                    : `${r.name}: no state yet`);
     }
+    if (!s.robots.length) parts.push("no state yet");
     parts.push(`${s.fps.toFixed(1)} fps`);
-    if (s.health) {
-      parts.push(s.health.ok ? "health ok"
-                             : `<span class="bad">${s.health.violations} violation(s)</span>`);
-    }
     const bad = Object.entries(s.bad_messages).map(([k, n]) => `${k} ${n}`).join(", ");
-    if (bad) parts.push(`<span class="bad">bad messages: ${bad}</span>`);
+    if (bad) parts.push(`<span class="bad">bad messages: ${esc(bad)}</span>`);
     $("status").innerHTML = parts.join(" · ");
   } catch (e) {
     $("status").textContent = "viewer unreachable";
   }
 }
 
-function describe(v) {
-  const value = v.growth !== undefined ? `growth ${v.growth.toExponential(2)}`
-                                       : `statistic ${Number(v.statistic).toFixed(2)}`;
-  const bound = v.bound !== undefined ? ` (bound ${Number(v.bound).toPrecision(3)})` : "";
-  const ids = v.ids && v.ids.length ? ` features ${v.ids.join("–")}` : "";
-  return `seq ${v.seq ?? v.step}: ${v.kind}${ids}, ${value}${bound}` +
-         (v.detail ? ` — ${v.detail}` : "");
-}
-
 async function refreshHealth() {
   try {
-    const h = await api("/api/health");
-    const list = $("violations");
-    const ok = $("healthok");
-    if (!h.latest) { ok.textContent = ""; return; }
-    ok.className = h.latest.ok ? "ok" : "notok";
-    ok.textContent = h.latest.ok ? `(ok at seq ${h.latest.seq})`
-      : `(seq ${h.latest.seq}: suspects ${h.latest.suspects.join(", ") || "none"})`;
-    const items = h.recent.slice(0, 60).map((v) => `<li>${describe(v)}</li>`);
-    list.innerHTML = items.length ? items.join("") : "<li>none so far</li>";
+    const robot = chosenRobot();
+    const h = await api("/api/health", undefined, robot ? {robot} : undefined);
+    app.health = h;
+    const verdict = $("verdict");
+    if (!h.latest) {
+      verdict.className = "verdict";
+      verdict.textContent = "no verdict yet";
+      $("standing").innerHTML = "<li>none</li>";
+      return;
+    }
+    verdict.className = `verdict v-${h.latest.verdict}`;
+    verdict.textContent = h.latest.verdict_text;
+    verdict.dataset.verdict = h.latest.verdict;
+    const standing = h.latest.standing.map((v) => `<li>${esc(v.text)}</li>`);
+    $("standing").innerHTML = standing.length ? standing.join("") : "<li>none</li>";
+    const items = h.recent.slice(0, 60).map((v) => `<li>seq ${v.seq ?? v.step}: ${esc(v.text)}</li>`);
+    $("violations").innerHTML = items.length ? items.join("") : "<li>none so far</li>";
   } catch (e) { /* next poll */ }
 }
 
-// ---------------------------------------------------------------- plots
-function plot(canvasElement, title, xs, lines, bands, options) {
-  const log = Boolean(options && options.log);  // log10 y axis (χ² statistics span decades)
-  const ty = (y) => (y === null || y === undefined ? null
-                     : log ? Math.log10(Math.max(y, 1e-4)) : y);
-  lines = lines.map((line) => ({...line, values: line.values.map(ty)}));
-  bands = (bands || []).map((band) => ({...band, lo: band.lo.map(ty), hi: band.hi.map(ty)}));
-  const g = canvasElement.getContext("2d");
-  const W = canvasElement.width, H = canvasElement.height;
-  const L = 56, R = 8, T = 20, B = 20;
-  g.clearRect(0, 0, W, H);
-  g.fillStyle = "#ccc";
-  g.font = "12px sans-serif";
-  g.fillText(title, L, 13);
-  const values = [];
-  for (const line of lines) for (const y of line.values) if (y !== null) values.push(y);
-  for (const band of bands || []) for (const y of [...band.lo, ...band.hi]) if (y !== null) values.push(y);
-  const finiteX = xs.filter((x) => x !== null);
-  if (!values.length || finiteX.length < 1) {
-    g.fillText("no data yet", L, H / 2);
-    return;
-  }
-  let y0 = Math.min(...values), y1 = Math.max(...values);
-  if (y1 - y0 < 1e-12) { y0 -= Math.abs(y0) * 0.1 + 1e-9; y1 += Math.abs(y1) * 0.1 + 1e-9; }
-  const x0 = Math.min(...finiteX), x1 = Math.max(...finiteX, x0 + 1e-9);
-  const px = (x) => L + (x - x0) / (x1 - x0) * (W - L - R);
-  const py = (y) => T + (1 - (y - y0) / (y1 - y0)) * (H - T - B);
-  g.strokeStyle = "#555";
-  g.strokeRect(L, T, W - L - R, H - T - B);
-  g.fillStyle = "#999";
-  const label = (y) => (log ? Math.pow(10, y) : y).toPrecision(3);
-  g.fillText(label(y1), 2, T + 10);
-  g.fillText(label(y0), 2, H - B);
-  g.fillText(`t ${x0.toFixed(1)} … ${x1.toFixed(1)} s`, L, H - 5);
-  for (const band of bands || []) {
-    g.fillStyle = band.colour;
-    g.globalAlpha = 0.25;
-    g.beginPath();
-    let started = false;
-    xs.forEach((x, i) => {
-      if (band.hi[i] === null) return;
-      if (!started) { g.moveTo(px(x), py(band.hi[i])); started = true; } else g.lineTo(px(x), py(band.hi[i]));
-    });
-    for (let i = xs.length - 1; i >= 0; i--) if (band.lo[i] !== null) g.lineTo(px(xs[i]), py(band.lo[i]));
-    g.closePath();
-    g.fill();
-    g.globalAlpha = 1;
-  }
-  let legendX = L + 4;
-  for (const line of lines) {
-    g.strokeStyle = line.colour;
-    g.setLineDash(line.dash ? [5, 4] : []);
-    g.lineWidth = 1.5;
-    g.beginPath();
-    let pen = false;
-    xs.forEach((x, i) => {
-      const y = line.values[i];
-      if (y === null || y === undefined) { pen = false; return; }
-      if (!pen) { g.moveTo(px(x), py(y)); pen = true; } else g.lineTo(px(x), py(y));
-    });
-    g.stroke();
-    g.setLineDash([]);
-    if (line.label) {
-      g.fillStyle = line.colour;
-      g.fillText(line.label, legendX, T + 12);
-      legendX += g.measureText(line.label).width + 12;
-    }
-  }
+$("robot").addEventListener("change", () => { refreshHealth(); refreshSeries(); });
+
+$("reregister").addEventListener("click", async () => {
+  const info = $("reregisterinfo");
+  const robot = chosenRobot();
+  info.textContent = "asking…";
+  try {
+    const body = await api("/api/reregister", {method: "POST"}, robot ? {robot} : undefined);
+    app.reregister = body;
+    info.textContent = body.cameras.map((c) => `${c.camera}: ${c.detail}`).join("; ");
+    info.className = body.answered ? "" : "bad";
+    showError("");
+  } catch (e) { info.textContent = ""; showError(e.message); }
+});
+
+// ---------------------------------------------------------------- plots (uPlot)
+// Each plot is a uPlot chart (static/vendor/uplot): real axes with ticks, a cursor
+// read-out in the legend, drag to zoom (double-click resets), every series drawn with its
+// gaps bridged (NIS exists only on update states). Charts are rebuilt when their series
+// change, else given new data (keeping a zoom the user made).
+const charts = app.charts = {};
+const AXIS = {stroke: "#aaa", grid: {stroke: "#34393b", width: 1}, ticks: {stroke: "#555"}};
+
+function fill(colour, alpha) {
+  const hex = colour.replace("#", "");
+  const [r, g, b] = [0, 2, 4].map((k) => parseInt(hex.slice(k, k + 2), 16));
+  return `rgba(${r},${g},${b},${alpha})`;
 }
 
-// The monitor's statistics named PREFIX…, each with its bounds: X_lo / X_hi, or for a
-// window mean "X_window_mean" the bounds "X_window_lo" / "X_window_hi".
-function statLines(stats, prefix) {
-  const lines = [];
+// spec: {title, ylabel, log, xs, series: [{label, values, colour, width, dash}],
+//        bands: [[hiIndex, loIndex, colour]]}  (indices into spec.series)
+function drawChart(id, spec) {
+  const box = $(id);
+  const xs = spec.xs;
+  const finite = spec.series.some((s) => s.values.some((v) => v !== null && v !== undefined));
+  if (!xs.length || !finite) {
+    if (charts[id]) { charts[id].destroy(); delete charts[id]; }
+    box.innerHTML = `<div class="empty">${esc(spec.title)}: no data yet</div>`;
+    return;
+  }
+  const clean = (v) => (v === null || v === undefined || !isFinite(v) ||
+                        (spec.log && v <= 0) ? null : v);
+  const data = [xs, ...spec.series.map((s) => s.values.map(clean))];
+  const key = JSON.stringify([spec.title, spec.log, spec.series.map((s) => s.label),
+                              spec.bands || []]);
+  const width = Math.max(300, box.clientWidth - 8);
+  let chart = charts[id];
+  if (chart && chart.slamlensKey === key) {
+    chart.setData(data, !chart.slamlensZoomed);
+    if (Math.abs(chart.width - width) > 4) chart.setSize({width, height: chart.height});
+    return;
+  }
+  if (chart) chart.destroy();
+  box.innerHTML = "";
+  const opts = {
+    title: spec.title, width, height: 240,
+    scales: {x: {time: false}, y: spec.log ? {distr: 3, log: 10} : {}},
+    axes: [{...AXIS, label: "t (s)", labelSize: 18},
+           {...AXIS, label: spec.ylabel, labelSize: 18, size: 64}],
+    series: [{label: "t (s)", value: (u, v) => (v === null ? "–" : v.toFixed(2))},
+             ...spec.series.map((s) => ({
+               label: s.label, stroke: s.colour, width: s.width || 1.5, dash: s.dash,
+               spanGaps: true, points: {show: false},
+               value: (u, v) => (v === null || v === undefined ? "–" : Number(v).toPrecision(3)),
+             }))],
+    bands: (spec.bands || []).map(([hi, lo, colour]) => ({series: [hi + 1, lo + 1],
+                                                          fill: fill(colour, 0.18)})),
+    cursor: {drag: {x: true, y: false}},
+    legend: {live: true},
+    hooks: {setSelect: [(u) => { if (u.select.width > 0) u.slamlensZoomed = true; }]},
+  };
+  chart = new uPlot(opts, data, box);
+  chart.slamlensKey = key;
+  chart.slamlensZoomed = false;
+  chart.over.addEventListener("dblclick", () => { chart.slamlensZoomed = false; });
+  charts[id] = chart;
+}
+
+// The monitor's statistics named PREFIX…: a line each; a statistic X with bounds X_lo /
+// X_hi (for a window mean "X_window_mean": X_window_lo / _hi) gets its band filled
+// between them (the 95 % χ² band) and its bounds dashed; the window mean — the running
+// average — is drawn thicker.
+function statSpec(stats, prefix) {
+  const series = [], bands = [];
   let k = 0;
-  for (const name of Object.keys(stats)) {
+  for (const name of Object.keys(stats).sort()) {
     if (!name.startsWith(prefix) || name.endsWith("_lo") || name.endsWith("_hi")) continue;
     const colour = PLOT_COLOURS[k++ % PLOT_COLOURS.length];
-    lines.push({label: name, values: stats[name], colour});
+    const running = name.endsWith("_window_mean");
+    const label = running ? `${name} (running average)` : name;
+    series.push({label, values: stats[name], colour, width: running ? 2.5 : 1.2});
     const stem = stats[name + "_lo"] ? name : name.replace(/_mean$/, "");
-    for (const suffix of ["_lo", "_hi"]) {
-      if (stats[stem + suffix]) lines.push({values: stats[stem + suffix], colour, dash: true});
+    if (stats[stem + "_lo"] && stats[stem + "_hi"]) {
+      const hi = series.push({label: `${stem}_hi`, values: stats[stem + "_hi"], colour,
+                              width: 1, dash: [5, 4]}) - 1;
+      const lo = series.push({label: `${stem}_lo`, values: stats[stem + "_lo"], colour,
+                              width: 1, dash: [5, 4]}) - 1;
+      bands.push([hi, lo, colour]);
     }
   }
-  return lines;
+  return {series, bands};
 }
 
 // Statistics that are not NEES or NIS (counts, largest growth…): their latest values.
@@ -357,30 +458,39 @@ function showStats(stats) {
 async function refreshSeries() {
   try {
     const text = $("pairs").value.trim();
-    const data = await api("/api/series", undefined, text ? {pairs: text} : undefined);
+    const robot = chosenRobot();
+    const extra = {...(text ? {pairs: text} : {}), ...(robot ? {robot} : {})};
+    const data = await api("/api/series", undefined, extra);
     app.series = data;
     const t = data.state.t;
-    plot($("plot-pairs"), `P_d size per pair — ${data.size}`, t,
-         data.pairs.map((p, i) => ({label: p.label, values: p.values,
-                                     colour: PLOT_COLOURS[i % PLOT_COLOURS.length]})));
-    const lines = [], bands = [];
+    drawChart("plot-pairs", {
+      title: "P_d size per pair", ylabel: "√λmax of P_d (m)", xs: t,
+      series: data.pairs.map((p, i) => ({label: `pair ${p.label}`, values: p.values,
+                                         colour: PLOT_COLOURS[i % PLOT_COLOURS.length]}))});
+    const series = [], bands = [];
     data.clusters.forEach((c, i) => {
       const colour = PLOT_COLOURS[i % PLOT_COLOURS.length];
-      lines.push({label: `clusters ${c.label}`, values: c.mean, colour});
-      bands.push({lo: c.min, hi: c.max, colour});
+      series.push({label: `clusters ${c.label} mean`, values: c.mean, colour, width: 2});
+      const hi = series.push({label: `${c.label} max`, values: c.max, colour, width: 0.8}) - 1;
+      const lo = series.push({label: `${c.label} min`, values: c.min, colour, width: 0.8}) - 1;
+      bands.push([hi, lo, colour]);
     });
-    plot($("plot-clusters"), "min / mean / max P_d size per cluster pair", t, lines, bands);
+    drawChart("plot-clusters", {title: "min / mean / max P_d size per cluster pair",
+                                ylabel: "√λmax of P_d (m)", xs: t, series, bands});
     const stats = data.health.stats;
     for (const [prefix, id, title] of [
-      ["nees", "plot-nees", "NEES (with truth) and χ² bounds (dashed), log scale"],
-      ["nis", "plot-nis", "NIS and χ² bounds (dashed), log scale"]]) {
-      plot($(id), title, data.health.t, statLines(stats, prefix), [], {log: true});
+      ["nees", "plot-nees", "NEES (with truth): 95 % band, running average"],
+      ["nis", "plot-nis", "NIS: 95 % band, running average"]]) {
+      drawChart(id, {title, ylabel: prefix.toUpperCase() + " (log)", log: true,
+                     xs: data.health.t, ...statSpec(stats, prefix)});
     }
-    showStats(stats);  } catch (e) { /* next poll */ }
+    showStats(stats);
+  } catch (e) { /* next poll */ }
 }
 
 // ---------------------------------------------------------------- start
 async function start() {
+  if (typeof uPlot === "undefined") showError("the plotting library did not load");
   buildLayers();
   try {
     const body = await api("/api/settings");
@@ -395,6 +505,11 @@ async function start() {
   setInterval(refreshFeatures, 1000);
   setInterval(refreshHealth, 1000);
   setInterval(refreshSeries, 2000);
+  window.addEventListener("resize", () => {
+    for (const [id, chart] of Object.entries(charts)) {
+      chart.setSize({width: Math.max(300, $(id).clientWidth - 8), height: chart.height});
+    }
+  });
 }
 
 $("pairs").addEventListener("change", refreshSeries);
