@@ -230,8 +230,11 @@ class ViewerApi:
                 "registration": None if c.registration is None else {
                     "status": c.registration.status, "stamp": c.registration.stamp,
                     "epoch": c.registration.epoch,
-                    "reprojection_error_px": c.registration.reprojection_error_px},
+                    "reprojection_error_px": c.registration.reprojection_error_px,
+                    "reason": c.registration.reason, "moved_m": c.registration.moved_m,
+                    "moved_deg": c.registration.moved_deg},
             } for c in inputs.cameras],
+            "registrations": self._intake.registration_events(),
             "health": health_of(first),
             "fps": max((v.rate.rate(now) for v in active), default=0.0),
             "render_ms_median": float(np.median(render_ms)) if render_ms else None,

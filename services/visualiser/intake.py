@@ -59,6 +59,10 @@ class Raw:
     received: float  #: time.monotonic() at receipt, s
 
 
+#: registration events kept for the page (start, new map, requested, refused)
+REGISTRATION_EVENTS = 20
+
+
 def _store(slot: Latest[Raw]) -> Callable[[str, bytes], None]:
     """A bus callback that only stores the payload (no decoding on Zenoh's thread)."""
 
@@ -302,6 +306,9 @@ class Intake:
         self._robots: dict[str, _Robot] = {}
         self._added: list[str] = []
         self._cameras = {c: _Camera(c, Latest(on_put=self._decode_wake.set)) for c in cameras}
+        #: every registration made (start, new map, requested, refused), newest last
+        self._reg_events: deque[dict[str, Any]] = deque(maxlen=REGISTRATION_EVENTS)
+        self._reg_last: dict[tuple[str, str], tuple[Any, ...]] = {}
 
     @property
     def robot(self) -> str:
@@ -522,7 +529,28 @@ class Intake:
                     with self._lock:
                         reg_input.registration, reg_input.received = reg, raw_reg.received
                         reg_input.version += 1
+                        self._note_registration(cam.name, reg)
         return Arrivals(robots=tuple(out), added=added)
+
+    def _note_registration(self, camera: str, reg: Registration) -> None:
+        """Keep one event per registration made (its reason, epoch and stamp tell them
+        apart; the same one published again is not a new event). Under ``_lock``."""
+        if reg.reason is None:
+            return  # a registration service that does not say why: nothing to tell
+        ident = (reg.epoch, reg.stamp, reg.reason, reg.moved_m, reg.moved_deg)
+        if self._reg_last.get((camera, reg.robot)) == ident:
+            return
+        self._reg_last[(camera, reg.robot)] = ident
+        self._reg_events.append({
+            "camera": camera, "robot": reg.robot, "epoch": reg.epoch, "stamp": reg.stamp,
+            "reason": reg.reason, "moved_m": reg.moved_m, "moved_deg": reg.moved_deg,
+            "status": reg.status, "refused": reg.reason.startswith("refused"),
+            "at": time.time()})
+
+    def registration_events(self) -> list[dict[str, Any]]:
+        """The registrations seen (newest first): who asked, how far the frame moved."""
+        with self._lock:
+            return [dict(e) for e in reversed(self._reg_events)]
 
     def _ingest_state(self, r: _Robot) -> tuple[SlamState | None, bool]:
         raw = r.state_slot.take()

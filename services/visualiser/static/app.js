@@ -290,6 +290,17 @@ function showRobots(s) {
   $("reregister").hidden = !s.cameras.length;
 }
 
+// Every registration made (newest first, five shown): why, who asked, how far it moved.
+function showRegistrations(events) {
+  $("registrations").innerHTML = events.slice(0, 5).map((e) => {
+    const moved = e.moved_m === null || e.moved_m === undefined ? "" :
+      `: the map frame moved ${e.moved_m.toFixed(3)} m / ${(e.moved_deg || 0).toFixed(1)}°`;
+    const when = new Date(e.at * 1000).toLocaleTimeString();
+    return `<li class="${e.refused ? "bad" : ""}">${esc(when)} camera ${esc(e.camera)}, ` +
+           `robot ${esc(e.robot)}: ${esc(e.reason)}${esc(moved)}</li>`;
+  }).join("");
+}
+
 async function refreshStatus() {
   try {
     const s = await api("/api/status");
@@ -314,6 +325,7 @@ async function refreshStatus() {
     const bad = Object.entries(s.bad_messages).map(([k, n]) => `${k} ${n}`).join(", ");
     if (bad) parts.push(`<span class="bad">bad messages: ${esc(bad)}</span>`);
     $("status").innerHTML = parts.join(" · ");
+    showRegistrations(s.registrations || []);
   } catch (e) {
     $("status").textContent = "viewer unreachable";
   }
