@@ -194,7 +194,7 @@ def recovery() -> float:
         est = spawn("estimator", "--robot", ROBOT, "--connect", ep, "--checkpoint", tmp)
         est.wait_for_line("estimator ready")
         rec = Recorder(ep)
-        sim = spawn("sim", "--robot", ROBOT, "--rate", "4", "--loops", "2", "--seed", "1",
+        sim = spawn("sim", "--robot", ROBOT, "--rate", "4", "--loops", "6", "--seed", "1",
                     "--connect", ep)
         try:
             while rec.last < 200 or not any(Path(tmp).iterdir()):

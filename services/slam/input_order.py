@@ -9,8 +9,10 @@ module releases them strictly in that order:
 
 * the next number of a source is released at once (the common case: no added latency);
 * a later number is held until the missing ones arrive (recovered from the cache), or
-  until ``gap_wait_s`` has passed — then the missing numbers are counted as lost and the
-  held inputs are released in order;
+  until it has waited ``gap_wait_s`` — then the missing numbers before it are counted as
+  lost and it is released (with whatever follows it in order); each held input waits at
+  most ``gap_wait_s`` in all, however many gaps are in front of it (a recovery that missed
+  every observation but no odometry costs 2 s, not 2 s per observation);
 * a number already released (a duplicate: a recovered copy, a cache replayed after an
   estimator restart) is discarded.
 
@@ -69,7 +71,8 @@ class _Source:
     started: bool = False  #: released anything yet
     last_time: int | None = None  #: publication time of the newest input released
     held: dict[int, Input] = field(default_factory=dict)
-    held_since: float | None = None  #: when the current gap began (monotonic s)
+    held_at: dict[int, float] = field(default_factory=dict)  #: when each held one arrived
+    held_since: float | None = None  #: when the first input after the gap arrived
     # unnumbered inputs: waiting in timestamp order, the newest time seen per key, and
     # the times already released (duplicates are told by their exact timestamp)
     waiting: list[tuple[int, float, int, Input]] = field(default_factory=list)
@@ -147,9 +150,10 @@ class InputOrder:
             return []
         if seq > src.next_seq:
             src.held[seq] = item
+            src.held_at[seq] = self._clock()
             self.stats.reordered += 1
             if src.held_since is None:
-                src.held_since = self._clock()
+                src.held_since = src.held_at[seq]
             return []
         out = [item]
         self._advance(src, item)
@@ -218,7 +222,10 @@ class InputOrder:
 
     def _drain(self, src: _Source, out: list[Input]) -> None:
         while src.next_seq in src.held:
+            del src.held_at[src.next_seq]
             item = src.held.pop(src.next_seq)
             self._advance(src, item)
             out.append(item)
-        src.held_since = self._clock() if src.held else None
+        # the next gap's clock started when the input just after it arrived: inputs held
+        # behind several gaps wait gap_wait_s once, not once per gap
+        src.held_since = src.held_at[min(src.held)] if src.held else None

@@ -69,6 +69,34 @@ def test_a_gap_that_never_fills_is_counted_lost_after_the_wait() -> None:
     assert seqs(order.offer(odo(3))) == []  # too late: already given up on
 
 
+def test_inputs_behind_many_gaps_wait_once_not_once_per_gap() -> None:
+    """A recovery that brought every odometry but no observation: the odometry behind the
+    alternating gaps is released after one wait, not one wait per missing batch."""
+    clock = Clock()
+    order = InputOrder(gap_wait_s=2.0, clock=clock)
+    order.offer(odo(1))
+    for seq in range(3, 21, 2):  # 2, 4, … (observations) never come
+        assert order.offer(odo(seq)) == []
+    clock.t = 1.9
+    assert order.expire() == []
+    clock.t = 2.0
+    assert seqs(order.expire()) == list(range(3, 21, 2))
+    assert order.stats.lost == 9 and order.held == 0 and order.next_deadline() is None
+
+
+def test_a_later_gap_keeps_the_clock_of_the_input_behind_it() -> None:
+    clock = Clock()
+    order = InputOrder(gap_wait_s=2.0, clock=clock)
+    order.offer(odo(1))
+    order.offer(odo(3))  # held at t = 0
+    clock.t = 1.5
+    order.offer(odo(5))  # held at t = 1.5
+    assert seqs(order.offer(odo(2))) == [2, 3]  # the first gap filled in time
+    assert order.next_deadline() == 3.5  # 5 has waited since 1.5, not since now
+    clock.t = 3.5
+    assert seqs(order.expire()) == [5] and order.stats.lost == 1
+
+
 def test_a_checkpoint_position_makes_everything_before_it_a_duplicate() -> None:
     first = InputOrder()
     for x in (odo(1), obs(2), odo(3)):
