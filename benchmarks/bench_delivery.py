@@ -155,17 +155,21 @@ def _dataset_span() -> tuple[float, float]:
     return _SPAN
 
 
-def stalled(*, with_load: bool, loops: int) -> float:
-    """States per second of a paced full-speed paper run."""
+def stalled(*, with_load: bool, loops: int, stalled: bool = True, extra_subs: int = 10
+            ) -> float:
+    """States per second of a paced full-speed paper run (with the load: a subscriber
+    whose callback sleeps 1 s per sample if ``stalled``, and ``extra_subs`` ordinary ones,
+    each its own session in this process)."""
     router, ep = _router()
     est = spawn("estimator", "--robot", ROBOT, "--connect", ep)
     est.wait_for_line("estimator ready")
     extra = []
     if with_load:
-        slow = open_bus(BusSettings(connect=(ep,)))
-        slow.subscribe(KEYS.state(ROBOT), lambda k, p: time.sleep(1.0))
-        extra.append(slow)
-        for _ in range(10):
+        if stalled:
+            slow = open_bus(BusSettings(connect=(ep,)))
+            slow.subscribe(KEYS.state(ROBOT), lambda k, p: time.sleep(1.0))
+            extra.append(slow)
+        for _ in range(extra_subs):
             b = open_bus(BusSettings(connect=(ep,)))
             b.subscribe(KEYS.state(ROBOT), lambda k, p: None)
             extra.append(b)
@@ -246,6 +250,17 @@ def main() -> None:
         a, b = statistics.median(without), statistics.median(with_)
         print(f"target 2: {a:.0f} states/s alone, {b:.0f} with a 1 s/sample subscriber and "
               f"10 more: ratio {b / a:.3f} (target >= 0.95); runs {without} / {with_}")
+        # which of the two costs what: the stalled one alone, the ten ordinary ones alone
+        alone, only_stalled, only_ten = [], [], []
+        for _ in range(args.repeats):
+            alone.append(stalled(with_load=False, loops=args.loops))
+            only_stalled.append(stalled(with_load=True, loops=args.loops, extra_subs=0))
+            only_ten.append(stalled(with_load=True, loops=args.loops, stalled=False))
+        a = statistics.median(alone)
+        print(f"  the stalled subscriber alone: ratio "
+              f"{statistics.median(only_stalled) / a:.3f}; the ten ordinary ones alone: "
+              f"{statistics.median(only_ten) / a:.3f} (runs {alone} / {only_stalled} / "
+              f"{only_ten})")
     if 3 in parts:
         times = [recovery() for _ in range(args.repeats)]
         print(f"target 3: first new state {statistics.median(times):.2f} s after the restart "
