@@ -165,3 +165,126 @@ def test_registration_counts_a_control_flood_in_a_few_log_lines(router_endpoint,
     control_lines = [ln for ln in err.splitlines() if "CameraControl" in ln]
     assert 1 <= len(control_lines) <= 10, control_lines[:12]
     assert "Traceback" not in err
+
+
+# ------------------------------------------------------------------------------ the viewer
+CAMERA = "cam1"
+RANDOM_PER_KEY = 36  #: random bytes, truncated msgpack, wrong roots (tests/fuzz.py) per key
+
+
+def _viewer_payloads(kind, seed: int) -> list[bytes]:
+    """Every field breaker of ``kind`` once (a dtype as a list or an unknown string, 70
+    dimensions, a huge declared shape, NaN and infinity, wrong types, missing fields),
+    then a random sample of the other malformed kinds."""
+    import msgpack
+
+    from tests.fuzz import field_breakers
+
+    template = valid(kind, robot=ROBOT, camera=CAMERA).to_dict()
+    out = []
+    for name, value in field_breakers(kind):
+        broken = dict(template)
+        if value is None:
+            broken.pop(name, None)
+        else:
+            broken[name] = value
+        out.append(msgpack.packb(broken, use_bin_type=True))
+    rng = np.random.default_rng(seed)
+    out += [p for i, p in enumerate(bad_payloads(kind, rng, RANDOM_PER_KEY * 2,
+                                                 robot=ROBOT, camera=CAMERA))
+            if i % 6 < 3][:RANDOM_PER_KEY]
+    return out
+
+
+def test_viewer_survives_garbage_on_every_key_it_subscribes(router_endpoint, make_client,
+                                                            tmp_path) -> None:
+    """State, health, tracked pose, the camera's registration and frames: each malformed
+    payload is counted under its input (the viewer keeps the newest state, frame and
+    registration, so they are sent one at a time, each once the previous was counted),
+    logged in a few clear lines, and a good state afterwards is drawn."""
+    import cv2
+    import zenoh
+
+    from common.messages import CameraFrame, Registration
+    from tests.web_client import http
+
+    viewer = spawn("viewer", "--robot", ROBOT, "--camera", CAMERA, "--connect",
+                   router_endpoint, "--http", "127.0.0.1:0", "--late-join-timeout-s", "0",
+                   "--recordings-dir", str(tmp_path / "recordings"))
+    try:
+        url = viewer.wait_for_line("viewer ready").split()[-1]
+
+        def status() -> dict:
+            code, _, body = http(url + "/api/status")
+            assert code == 200, body
+            return json.loads(body)
+
+        def wait_status(predicate, timeout: float = 30.0) -> dict:
+            deadline = time.monotonic() + timeout
+            while True:  # polling the status endpoint until the condition holds
+                now = status()
+                if predicate(now):
+                    return now
+                assert time.monotonic() < deadline, now
+                assert viewer.poll() is None, "".join(viewer.err[-30:])
+                time.sleep(0.01)
+
+        client = make_client()
+        # (key, message type, the input the viewer counts it under)
+        inputs = [(KEYS.tracked_by("overhead", ROBOT), Truth, "tracked"),
+                  (KEYS.state(ROBOT), SlamState, "state"),
+                  (KEYS.health(ROBOT), Health, "health"),
+                  (KEYS.registration(CAMERA, ROBOT), Registration, f"registration {CAMERA}"),
+                  (KEYS.frame(CAMERA), CameraFrame, f"frame {CAMERA}")]
+        pubs, queues = {}, {}
+        for seed, (key, kind, name) in enumerate(inputs, start=10):
+            pubs[name] = client.session.declare_publisher(
+                key, congestion_control=zenoh.CongestionControl.BLOCK)
+            queues[name] = _viewer_payloads(kind, seed)
+        for name, pub in pubs.items():  # a new publisher drops what it puts before matching
+            deadline = time.monotonic() + 10
+            while not pub.matching_status and time.monotonic() < deadline:
+                time.sleep(0.01)
+            assert pub.matching_status, name
+
+        sent = dict.fromkeys(pubs, 0)
+        for i in range(max(len(q) for q in queues.values())):
+            # tracked first: it wakes nobody and is taken in with the next state or health
+            for name, pub in pubs.items():
+                if i < len(queues[name]):
+                    pub.put(queues[name][i])
+                    sent[name] += 1
+            wait_status(lambda s: s["bad_messages"] == {k: n for k, n in sent.items() if n})
+        assert viewer.poll() is None
+        assert all(n >= 60 for n in sent.values()), sent
+
+        # afterwards, still serving: a good registration, frame and state are drawn
+        width, height = 640, 480
+        ok, jpeg = cv2.imencode(".jpg", np.full((height, width, 3), 90, np.uint8))
+        assert ok
+        pubs[f"registration {CAMERA}"].put(valid(Registration, robot=ROBOT,
+                                                 camera=CAMERA).to_bytes())
+        pubs[f"frame {CAMERA}"].put(CameraFrame(
+            camera=CAMERA, seq=3, stamp=1.0, encoding="jpeg", width=width, height=height,
+            data=jpeg.tobytes()).to_bytes())
+        pubs["state"].put(valid(SlamState, robot=ROBOT, seq=41).to_bytes())
+        final = wait_status(lambda s: (s["state"] or {}).get("seq") == 41
+                            and s["cameras"][0]["frame"] is not None
+                            and s["cameras"][0]["registration"] is not None)
+        assert final["bad_messages"] == sent
+        code, headers, body = http(url + "/snapshot.png")
+        assert code == 200 and body[:8] == b"\x89PNG\r\n\x1a\n"
+        assert headers["X-State-Seq"] == "41"
+        image = cv2.imdecode(np.frombuffer(body, np.uint8), cv2.IMREAD_COLOR)
+        assert image.shape == (height, width, 3)  # the camera's picture, registered size
+        assert viewer.poll() is None
+    finally:
+        for pub in locals().get("pubs", {}).values():
+            pub.undeclare()
+        out, err = stop(viewer)
+    assert viewer.returncode == 0, err
+    assert "Traceback" not in err, err[-3000:]
+    for name, n in sent.items():  # one clear line per bad message, then a summary a while
+        lines = [ln for ln in err.splitlines() if f"dropped bad {name} " in ln
+                 or f"dropped bad {name}:" in ln]
+        assert 1 <= len(lines) <= 5 + 3, (name, lines)
