@@ -153,7 +153,8 @@ def publisher(make_client) -> Callable[[str, bytes], None]:
     def put(key: str, payload: bytes) -> None:
         if key not in publishers:
             publishers[key] = bus.publisher(key)
-            time.sleep(0.2)  # let the subscription reach the new publisher
+            # a new publisher drops what it puts before it knows the viewer's subscription
+            assert publishers[key].wait_matched(), key  # type: ignore[attr-defined]
         publishers[key].put(payload)  # type: ignore[attr-defined]
 
     return put
@@ -186,7 +187,9 @@ def test_a_late_viewer_shows_the_current_picture_at_once(start_viewer, make_clie
     state, registration = make_state(42), make_registration()
     estimator.serve_latest(KEYS.state(ROBOT), lambda: state.to_bytes())
     estimator.serve_latest(KEYS.registration(CAMERA, ROBOT), lambda: registration.to_bytes())
-    time.sleep(0.3)
+    probe = make_client()  # the router routes queries to both queryables: so will the viewer's
+    wait_until(lambda: len(probe.get(KEYS.state(ROBOT), timeout=1.0)) == 1
+               and len(probe.get(KEYS.registration(CAMERA, ROBOT), timeout=1.0)) == 1)
 
     _, url = start_viewer(camera=CAMERA)
     image, headers = snapshot(url)
@@ -210,9 +213,9 @@ def test_malformed_states_are_counted_and_the_viewer_keeps_going(start_viewer,
     bad = [b"\x00garbage", msgpack.packb({"schema": 1, "robot": ROBOT}),
            msgpack.packb(wrong_shape, use_bin_type=True),
            msgpack.packb(nan_pose, use_bin_type=True)]
-    for payload in bad:
-        publisher(key, payload)
-        time.sleep(0.1)  # one by one: the viewer keeps only the latest
+    for n, payload in enumerate(bad, start=1):
+        publisher(key, payload)  # one by one: the viewer keeps only the latest
+        wait_until(lambda n=n: status_of(url)["bad_messages"].get("state") == n)
     publisher(key, make_state(5).to_bytes())
 
     wait_until(lambda: (status_of(url)["state"] or {}).get("seq") == 5)
@@ -362,7 +365,10 @@ def test_recording_writes_a_playable_video_that_can_be_downloaded(start_viewer,
     started = json.loads(body)
     for seq in range(2, 8):
         publisher(KEYS.state(ROBOT), make_state(seq).to_bytes())
-        time.sleep(0.1)
+        wait_until(lambda s=seq: (status_of(url)["state"] or {}).get("seq") == s)
+    # the video is real time (fps frames a second): wait until it holds a few of them
+    recorder = service.clients._recorders["rec"]
+    wait_until(lambda: recorder.frames >= 5)
     status, _, body = http(url + "/api/record/stop?client=rec", data={})
     assert status == 200, body
     info = json.loads(body)
@@ -409,9 +415,8 @@ def test_the_path_covers_states_received_before_any_view_was_drawn(start_viewer,
     for k, x in enumerate(xs):
         state = dataclasses.replace(make_state(k + 1), pose=np.array([x, 0.1, 0.0]))
         publisher(KEYS.state(ROBOT), state.to_bytes())
-        time.sleep(0.05)
-    wait_until(lambda: (s := status_of(url))["state"] is not None
-               and s["state"]["seq"] == len(xs))
+        # each one taken in before the next (the viewer keeps only the latest)
+        wait_until(lambda s=k + 1: (status_of(url)["state"] or {}).get("seq") == s)
     image, _ = snapshot(url)  # the first picture drawn of this run
     green = (image[:, :, 1].astype(int) > 150) & (image[:, :, 0] < 110) & (image[:, :, 2] < 110)
     for x in (1.3, 1.7, 2.1):  # well behind the robot's final position at x = 2.8
@@ -424,12 +429,23 @@ def test_several_viewers_attach_to_the_same_robot(start_viewer, publisher) -> No
     robot at once (a viewer joining late is tested above)."""
     _, url_a = start_viewer()
     _, url_b = start_viewer()
-    for seq in (1, 2, 3):
+    def seq_of(url: str) -> int | None:
+        return (status_of(url)["state"] or {}).get("seq")
+
+    # the publisher matched *a* viewer; until the other's subscription is known too, the
+    # first state is sent again (the same state twice is the same picture)
+    deadline = time.monotonic() + 10.0
+    while True:
+        publisher(KEYS.state(ROBOT), make_state(1).to_bytes())
+        try:
+            wait_until(lambda: seq_of(url_a) == 1 and seq_of(url_b) == 1, timeout=0.5)
+            break
+        except AssertionError:
+            assert time.monotonic() < deadline, (seq_of(url_a), seq_of(url_b))
+    for seq in (2, 3):
         publisher(KEYS.state(ROBOT), make_state(seq).to_bytes())
-        time.sleep(0.05)
+        wait_until(lambda s=seq: seq_of(url_a) == s and seq_of(url_b) == s)
     for url in (url_a, url_b):
-        wait_until(lambda url=url: (s := status_of(url))["state"] is not None
-                   and s["state"]["seq"] == 3)
         _, headers = snapshot(url)
         assert headers["X-State-Seq"] == "3"
 
