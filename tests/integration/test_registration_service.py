@@ -54,6 +54,22 @@ def wait_for(predicate: Callable[[], object], timeout: float = 15.0) -> None:
     assert predicate(), "timed out"
 
 
+def deliver(publisher, payload: bytes, seen: Callable[[], object],
+            timeout: float = 30.0) -> None:
+    """The first sample on a new route: put it until ``seen()`` (after its publisher
+    matched, a route may still drop samples for a few hundred ms on a loaded machine:
+    zenoh 1.10, measured up to 0.3 s); again only if it was not seen within 2 s."""
+    assert publisher.wait_matched()
+    deadline = time.monotonic() + timeout
+    while True:
+        publisher.put(payload)
+        try:
+            wait_for(seen, timeout=2.0)
+            return
+        except AssertionError:
+            assert time.monotonic() < deadline, "the first sample never arrived"
+
+
 class Inbox:
     """Decoded messages of one key, in arrival order."""
 
@@ -128,9 +144,8 @@ def test_frames_registration_late_get_and_tracked_poses(make_client, run_service
     tracked = Inbox(Truth, client, KEYS.tracked(ROBOT))
     truth_pub = client.publisher(KEYS.truth(ROBOT))
     service = run_service()
-    assert truth_pub.wait_matched()  # type: ignore[attr-defined]
-    truth_pub.put(paper_truths[0].to_bytes())  # SLAM starts: the robot at the map origin
-    wait_for(lambda: len(registrations) > 0)
+    # SLAM starts: the robot at the map origin
+    deliver(truth_pub, paper_truths[0].to_bytes(), lambda: len(registrations) > 0)
 
     reg = registrations.last()
     assert reg.status == "registered" and reg.camera == CAMERA and reg.robot == ROBOT
@@ -171,16 +186,16 @@ def test_reregister_on_request_and_bad_control_messages(make_client, run_service
     truth_pub = client.publisher(KEYS.truth(ROBOT))
     control = client.publisher(KEYS.camera_control(CAMERA))
     service = run_service()
-    assert truth_pub.wait_matched() and control.wait_matched()  # type: ignore[attr-defined]
-    truth_pub.put(truth_at((0.0, 0.0, 0.0), 0.0).to_bytes())
-    wait_for(lambda: service.pipelines[0].stats.registrations == 1)
+    deliver(truth_pub, truth_at((0.0, 0.0, 0.0), 0.0).to_bytes(),
+            lambda: service.pipelines[0].stats.registrations == 1)
 
+    deliver(control, b"\xc1 not msgpack", lambda: service.drops.counts["CameraControl"] >= 1)
+    bad = service.drops.counts["CameraControl"]
     control.put(msgpack.packb({"schema": 1, "command": "reregister", "robot": "other"}))
-    control.put(b"\xc1 not msgpack")
     control.put(msgpack.packb({"schema": 1, "command": "explode"}))
-    # in order on one publisher: once the two bad ones are counted, the other robot's
-    # request (sent first) was handled too
-    wait_for(lambda: service.drops.counts["CameraControl"] == 2)
+    # in order on one publisher: once the bad one after it is counted, the other robot's
+    # request was handled too
+    wait_for(lambda: service.drops.counts["CameraControl"] == bad + 1)
 
     # SLAM restarts with the robot somewhere else: that pose is the new map origin
     new_start = np.array([0.8, 0.6, 1.1])

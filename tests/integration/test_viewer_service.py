@@ -126,8 +126,34 @@ def status_of(url: str) -> dict:
     return json.loads(body)
 
 
+def received_by(service: ViewerService, key: str) -> int | None:
+    """How many samples of ``key`` the viewer's subscription received (None: it does not
+    subscribe to it), read from its intake's slots: what a test waits on to know that a
+    route from its publisher to the viewer carries samples."""
+    intake = service.intake
+    for robot in intake._robots.values():
+        if key == KEYS.state(robot.name):
+            return robot.state_slot.count
+        if key == KEYS.health(robot.name):
+            return robot.health_queue.received_count
+    for camera in intake._cameras.values():
+        if key == KEYS.frame(camera.name):
+            return camera.frame_slot.count
+        for robot_name, registration in camera.registrations.items():
+            if key == KEYS.registration(camera.name, robot_name):
+                return registration.slot.count
+    return None
+
+
 @pytest.fixture
-def start_viewer(make_client, tmp_path: Path) -> Iterator[Callable[..., tuple[ViewerService, str]]]:
+def viewers() -> list[ViewerService]:
+    """The viewer services a test started (the publisher waits until they receive)."""
+    return []
+
+
+@pytest.fixture
+def start_viewer(make_client, tmp_path: Path, viewers: list[ViewerService]
+                 ) -> Iterator[Callable[..., tuple[ViewerService, str]]]:
     started: list[tuple[ViewerService, WebServer]] = []
 
     def start(**config: object) -> tuple[ViewerService, str]:
@@ -137,6 +163,7 @@ def start_viewer(make_client, tmp_path: Path) -> Iterator[Callable[..., tuple[Vi
         web = WebServer(service, host="127.0.0.1", port=0)
         url = web.start()
         started.append((service, web))
+        viewers.append(service)
         return service, url
 
     yield start
@@ -146,16 +173,34 @@ def start_viewer(make_client, tmp_path: Path) -> Iterator[Callable[..., tuple[Vi
 
 
 @pytest.fixture
-def publisher(make_client) -> Callable[[str, bytes], None]:
+def publisher(make_client, viewers: list[ViewerService]) -> Callable[[str, bytes], None]:
+    """``put(key, payload)`` as the estimator, camera or monitor would.
+
+    A new publisher first waits for its matching status; then its first sample is put
+    until every viewer subscribing to the key received it: on a loaded machine a route
+    can still drop samples for a few hundred ms after the publisher matched (zenoh 1.10,
+    measured: up to 0.3 s). Once a sample went through, the route is there (reliable)."""
     bus = make_client()
     publishers: dict[str, object] = {}
 
     def put(key: str, payload: bytes) -> None:
-        if key not in publishers:
-            publishers[key] = bus.publisher(key)
-            # a new publisher drops what it puts before it knows the viewer's subscription
-            assert publishers[key].wait_matched(), key  # type: ignore[attr-defined]
-        publishers[key].put(payload)  # type: ignore[attr-defined]
+        if key in publishers:
+            publishers[key].put(payload)  # type: ignore[attr-defined]
+            return
+        pub = publishers[key] = bus.publisher(key)
+        assert pub.wait_matched(), key  # type: ignore[attr-defined]
+        subscribed = [v for v in viewers if received_by(v, key) is not None]
+        before = [received_by(v, key) for v in subscribed]
+        deadline = time.monotonic() + 15.0
+        while True:
+            pub.put(payload)  # type: ignore[attr-defined]
+            try:  # a second put only if the first did not arrive in 2 s
+                wait_until(lambda: all(received_by(v, key) > n  # type: ignore[operator]
+                                       for v, n in zip(subscribed, before, strict=True)),
+                           timeout=2.0)
+                return
+            except AssertionError:
+                assert time.monotonic() < deadline, f"nothing put on {key} reached the viewer"
 
     return put
 
@@ -432,17 +477,7 @@ def test_several_viewers_attach_to_the_same_robot(start_viewer, publisher) -> No
     def seq_of(url: str) -> int | None:
         return (status_of(url)["state"] or {}).get("seq")
 
-    # the publisher matched *a* viewer; until the other's subscription is known too, the
-    # first state is sent again (the same state twice is the same picture)
-    deadline = time.monotonic() + 10.0
-    while True:
-        publisher(KEYS.state(ROBOT), make_state(1).to_bytes())
-        try:
-            wait_until(lambda: seq_of(url_a) == 1 and seq_of(url_b) == 1, timeout=0.5)
-            break
-        except AssertionError:
-            assert time.monotonic() < deadline, (seq_of(url_a), seq_of(url_b))
-    for seq in (2, 3):
+    for seq in (1, 2, 3):  # (the first is put until both viewers received it)
         publisher(KEYS.state(ROBOT), make_state(seq).to_bytes())
         wait_until(lambda s=seq: seq_of(url_a) == s and seq_of(url_b) == s)
     for url in (url_a, url_b):
