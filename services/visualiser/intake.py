@@ -431,7 +431,12 @@ class Intake:
                 if raw is None:
                     continue
                 last = time.monotonic()
-                if self._decode_frame(cam, raw):
+                try:
+                    decoded = self._decode_frame(cam, raw)
+                except Exception as exc:  # a frame nobody foresaw: dropped, decoding goes on
+                    self.bad.drop(f"frame {cam.name}", f"undecodable ({exc!r:.200})")
+                    continue
+                if decoded:
                     cam.rate.tick()
                     self._on_input()
 
