@@ -5,9 +5,12 @@ subscribes to, this sends ``--count`` payloads from tests/fuzz.py (random bytes,
 types, dtype as a list or an unknown string, 70-dimensional or huge shapes, NaN/∞,
 truncated msgpack …), paced so that none is lost in transit, then one correct message,
 and reports: payloads per second taken, rejections counted against sent, whether the
-correct message still produced correct output, and the exit status on SIGTERM.
+correct message still produced correct output, and the exit status on SIGTERM. The viewer
+(state, health, tracked pose, registration, frames) keeps only the newest of most inputs,
+so it counts what it looked at: at most what it was sent.
 
-Run: ``.venv/bin/python benchmarks/bench_fuzz.py [--count 100000] [--only estimator,monitor]``
+Run: ``.venv/bin/python benchmarks/bench_fuzz.py [--count 100000]
+[--only estimator,monitor,viewer]``
 """
 
 from __future__ import annotations
@@ -111,7 +114,73 @@ def fuzz_monitor(ep: str, count: int) -> None:
           f"{correct}, exit {mon.returncode}, tracebacks {err.count('Traceback')}")
 
 
-SERVICES = {"estimator": fuzz_estimator, "monitor": fuzz_monitor}
+def fuzz_viewer(ep: str, count: int) -> None:
+    """The viewer keeps the newest state, frame, registration and tracked pose (latest
+    wins) and a bounded FIFO of health: a payload replaced before the viewer looked at it
+    is not decoded, so it counts at most what it was sent (the suite's test sends one at a
+    time and checks exact counts)."""
+    import tempfile
+    import urllib.request
+
+    import cv2
+
+    from common.messages import CameraFrame, Registration
+
+    camera = "cam1"
+    with tempfile.TemporaryDirectory() as recordings:
+        viewer = spawn("viewer", "--robot", ROBOT, "--camera", camera, "--connect", ep,
+                       "--http", "127.0.0.1:0", "--late-join-timeout-s", "0",
+                       "--recordings-dir", recordings)
+        url = viewer.wait_for_line("viewer ready").split()[-1]
+
+        def status() -> dict:
+            with urllib.request.urlopen(url + "/api/status", timeout=10) as response:
+                return json.loads(response.read())
+
+        bus = open_bus(BusSettings(connect=(ep,)))
+        sent: dict[str, int] = {}
+        try:
+            for key, kind, seed, name in (
+                    (KEYS.state(ROBOT), SlamState, 10, "state"),
+                    (KEYS.health(ROBOT), Health, 11, "health"),
+                    (KEYS.tracked_by("overhead", ROBOT), Truth, 12, "tracked"),
+                    (KEYS.registration(camera, ROBOT), Registration, 13,
+                     f"registration {camera}"),
+                    (KEYS.frame(camera), CameraFrame, 14, f"frame {camera}")):
+                n, took = _send(bus, key, kind, count, seed)
+                sent[name] = n
+                print(f"viewer {name}: {n} payloads sent in {took:.1f} s ({n / took:.0f}/s)")
+            pubs = {k: bus.publisher(k) for k in (KEYS.registration(camera, ROBOT),
+                                                  KEYS.frame(camera), KEYS.state(ROBOT))}
+            for pub in pubs.values():
+                pub.wait_matched()  # type: ignore[attr-defined]
+            jpeg = cv2.imencode(".jpg", np.full((480, 640, 3), 90, np.uint8))[1].tobytes()
+            good = [valid(Registration, robot=ROBOT, camera=camera).to_bytes(),
+                    CameraFrame(camera=camera, seq=1, stamp=1.0, encoding="jpeg", width=640,
+                                height=480, data=jpeg).to_bytes(),
+                    valid(SlamState, robot=ROBOT, seq=41).to_bytes()]
+
+            def drawn() -> bool:
+                for pub, payload in zip(pubs.values(), good, strict=True):
+                    pub.put(payload)  # (again until seen: a new route may drop a while)
+                now = status()
+                return ((now["state"] or {}).get("seq") == 41
+                        and now["cameras"][0]["registration"] is not None)
+
+            correct = _wait(drawn, 120)
+            with urllib.request.urlopen(url + "/snapshot.png", timeout=30) as response:
+                correct = correct and response.headers["X-State-Seq"] == "41"
+            counted = status()["bad_messages"]
+        finally:
+            out, err = stop(viewer, timeout=30)
+            bus.close()
+    for name, n in sent.items():
+        print(f"viewer {name}: counted {counted.get(name, 0)} of {n} sent (latest wins)")
+    print(f"viewer: correct picture afterwards {correct}, exit {viewer.returncode}, "
+          f"tracebacks {err.count('Traceback')}, log lines {len(err.splitlines())}")
+
+
+SERVICES = {"estimator": fuzz_estimator, "monitor": fuzz_monitor, "viewer": fuzz_viewer}
 
 
 def main() -> None:

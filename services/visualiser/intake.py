@@ -7,7 +7,8 @@ verdicts in a bounded FIFO (:class:`Queue`: every verdict feeds the plots). Fram
 decoded on the ``viewer-decode`` thread as they arrive; everything else when the render
 thread calls :meth:`Intake.ingest`. A bad payload is logged (the first few of each kind,
 then one line in a hundred: :class:`~common.drops.DropCounter`), counted and dropped; so
-is a frame whose JPEG header (read without decoding) claims another size than its message
+is a registration no camera model can be made of (or larger than ``max_frame_pixels``),
+and a frame whose JPEG header (read without decoding) claims another size than its message
 or more pixels than allowed (a decode bomb).
 
 Several robots: each has its own state, health and tracked pose, and one registration
@@ -40,10 +41,12 @@ import numpy as np
 
 from common.bus import Bus
 from common.drops import DropCounter
+from common.errors import MessageError
 from common.keys import Keys
 from common.latest import Latest
 from common.messages import CameraFrame, Health, Registration, SlamState, Truth
 from common.verdict import violation_text
+from services.visualiser.camera_model import CameraModel
 from services.visualiser.jpeg import JpegError, jpeg_size
 
 log = logging.getLogger("slamlens.viewer")
@@ -435,7 +438,12 @@ class Intake:
                 if raw is None:
                     continue
                 last = time.monotonic()
-                if self._decode_frame(cam, raw):
+                try:
+                    decoded = self._decode_frame(cam, raw)
+                except Exception as exc:  # a frame nobody foresaw: dropped, decoding goes on
+                    self.bad.drop(f"frame {cam.name}", f"undecodable ({exc!r:.200})")
+                    continue
+                if decoded:
                     cam.rate.tick()
                     self._on_input()
 
@@ -523,7 +531,7 @@ class Intake:
                 raw_reg = reg_input.slot.take()
                 if raw_reg is None:
                     continue
-                reg = decode(f"registration {cam.name}", raw_reg, Registration.from_bytes,
+                reg = decode(f"registration {cam.name}", raw_reg, self._registration,
                              self.bad)
                 if reg is not None:
                     with self._lock:
@@ -551,6 +559,19 @@ class Intake:
         """The registrations seen (newest first): who asked, how far the frame moved."""
         with self._lock:
             return [dict(e) for e in reversed(self._reg_events)]
+
+    def _registration(self, payload: bytes) -> Registration:
+        """A registration the viewer can draw through: well-formed, a camera model
+        (positive focal lengths, K[2,2] = 1, a known number of distortion coefficients) and
+        at most ``max_frame_pixels`` (the picture is drawn at its size even before a frame
+        comes); else an error naming what is wrong (counted, never a failed render)."""
+        reg = Registration.from_bytes(payload)
+        if reg.width * reg.height > self.max_frame_pixels:
+            raise MessageError("Registration", "width×height",
+                               f"at most {self.max_frame_pixels} pixels (max_frame_pixels)",
+                               f"{reg.width}×{reg.height}")
+        CameraModel.from_registration(reg)  # CalibrationError: no camera has such a model
+        return reg
 
     def _ingest_state(self, r: _Robot) -> tuple[SlamState | None, bool]:
         raw = r.state_slot.take()

@@ -54,6 +54,22 @@ def wait_for(predicate: Callable[[], object], timeout: float = 15.0) -> None:
     assert predicate(), "timed out"
 
 
+def deliver(publisher, payload: bytes, seen: Callable[[], object],
+            timeout: float = 30.0) -> None:
+    """The first sample on a new route: put it until ``seen()`` (after its publisher
+    matched, a route may still drop samples for a few hundred ms on a loaded machine:
+    zenoh 1.10, measured up to 0.3 s); again only if it was not seen within 2 s."""
+    assert publisher.wait_matched()
+    deadline = time.monotonic() + timeout
+    while True:
+        publisher.put(payload)
+        try:
+            wait_for(seen, timeout=2.0)
+            return
+        except AssertionError:
+            assert time.monotonic() < deadline, "the first sample never arrived"
+
+
 class Inbox:
     """Decoded messages of one key, in arrival order."""
 
@@ -128,9 +144,8 @@ def test_frames_registration_late_get_and_tracked_poses(make_client, run_service
     tracked = Inbox(Truth, client, KEYS.tracked(ROBOT))
     truth_pub = client.publisher(KEYS.truth(ROBOT))
     service = run_service()
-    time.sleep(0.3)
-    truth_pub.put(paper_truths[0].to_bytes())  # SLAM starts: the robot at the map origin
-    wait_for(lambda: len(registrations) > 0)
+    # SLAM starts: the robot at the map origin
+    deliver(truth_pub, paper_truths[0].to_bytes(), lambda: len(registrations) > 0)
 
     reg = registrations.last()
     assert reg.status == "registered" and reg.camera == CAMERA and reg.robot == ROBOT
@@ -158,7 +173,7 @@ def test_frames_registration_late_get_and_tracked_poses(make_client, run_service
     by_stamp = {t.stamp: t for t in paper_truths}
     for truth in paper_truths[1:120]:
         truth_pub.put(truth.to_bytes())
-        time.sleep(1 / 30)
+        time.sleep(1 / 30)  # pacing: the robot drives in real time past the 30 fps camera
     wait_for(lambda: len(tracked) > 40)
     errors = [np.linalg.norm(t.pose[:2] - by_stamp[t.stamp].pose[:2]) for t in tracked.all()]
     assert max(errors) < 0.01, max(errors)
@@ -171,19 +186,22 @@ def test_reregister_on_request_and_bad_control_messages(make_client, run_service
     truth_pub = client.publisher(KEYS.truth(ROBOT))
     control = client.publisher(KEYS.camera_control(CAMERA))
     service = run_service()
-    time.sleep(0.3)
-    truth_pub.put(truth_at((0.0, 0.0, 0.0), 0.0).to_bytes())
-    wait_for(lambda: service.pipelines[0].stats.registrations == 1)
+    deliver(truth_pub, truth_at((0.0, 0.0, 0.0), 0.0).to_bytes(),
+            lambda: service.pipelines[0].stats.registrations == 1)
 
-    control.put(b"\xc1 not msgpack")
-    control.put(msgpack.packb({"schema": 1, "command": "explode"}))
+    deliver(control, b"\xc1 not msgpack", lambda: service.drops.counts["CameraControl"] >= 1)
+    bad = service.drops.counts["CameraControl"]
     control.put(msgpack.packb({"schema": 1, "command": "reregister", "robot": "other"}))
-    wait_for(lambda: service.drops.counts["CameraControl"] == 2)
+    control.put(msgpack.packb({"schema": 1, "command": "explode"}))
+    # in order on one publisher: once the bad one after it is counted, the other robot's
+    # request was handled too
+    wait_for(lambda: service.drops.counts["CameraControl"] == bad + 1)
 
     # SLAM restarts with the robot somewhere else: that pose is the new map origin
     new_start = np.array([0.8, 0.6, 1.1])
     truth_pub.put(truth_at(new_start, 50.0).to_bytes())
-    time.sleep(0.3)
+    processed = service.pipelines[0].stats.processed
+    wait_for(lambda: service.pipelines[0].stats.processed >= processed + 5)  # 5 more frames
     assert service.pipelines[0].stats.registrations == 1  # the other robot's request ignored
     control.put(msgpack.packb({"schema": 1, "command": "reregister", "robot": ROBOT}))
     wait_for(lambda: service.pipelines[0].stats.registrations == 2)
@@ -226,7 +244,7 @@ def test_vanished_folder_logs_once_and_keeps_serving_the_registration(
         shutil.rmtree(folder)
         wait_for(lambda: service.pipelines[0].source.outages == 1)
         published = stats.published
-        time.sleep(1.0)
+        time.sleep(1.0)  # what is tested: nothing is published during 1 s without a camera
     assert stats.published == published  # no frames without a camera …
     (sample,) = client.get(KEYS.registration(CAMERA, ROBOT))  # … but still registered
     reg = Registration.from_bytes(sample.payload)
@@ -245,7 +263,7 @@ def test_frames_of_another_size_than_the_calibration_are_not_registered(
         cv2.imwrite(str(path), cv2.resize(cv2.imread(str(path)), (640, 360)))
     client = make_client()
     frames = Inbox(CameraFrame, client, KEYS.frame(CAMERA))
-    time.sleep(0.3)
+    assert make_client().wait_for_subscriber(KEYS.frame(CAMERA))  # the router knows it
     with caplog.at_level(logging.ERROR):
         service = run_service(source=str(folder), calibration=calibration, loop=True,
                               fps=20.0)
@@ -313,7 +331,7 @@ def test_a_slow_subscriber_does_not_slow_the_camera(make_client, run_service) ->
             sample = viewer.recv(timeout=0.5)
             if sample is not None:
                 lags.append(pipeline.stats.published - CameraFrame.from_bytes(sample.payload).seq)
-                time.sleep(0.2)
+                time.sleep(0.2)  # what is tested: a viewer slow to draw each frame
 
     thread = threading.Thread(target=slow_viewer)
     thread.start()
@@ -336,12 +354,15 @@ def test_head_mounted_stereo_follows_the_moving_cameras(make_client, run_service
     registrations = {n: Inbox(Registration, client, KEYS.registration(n, ROBOT)) for n in names}
     poses = {n: Inbox(CameraPose, client, KEYS.camera_pose(n)) for n in names}
     truth_pub = client.publisher(KEYS.truth(ROBOT))
-    time.sleep(0.3)
+    probe = make_client()  # the router knows the test's subscriptions before any is published
+    assert all(probe.wait_for_subscriber(KEYS.registration(n, ROBOT))
+               and probe.wait_for_subscriber(KEYS.camera_pose(n)) for n in names)
     service = run_service(mode="head-mounted", stereo_baseline=0.1, fps=10.0)
+    assert truth_pub.wait_matched()  # type: ignore[attr-defined]
     stamps = np.arange(0.0, 6.0, 0.1)
     for stamp in stamps:  # the robot stays at the origin; the viewer walks around
         truth_pub.put(truth_at((0.0, 0.0, 0.0), float(stamp)).to_bytes())
-        time.sleep(0.1)
+        time.sleep(0.1)  # pacing: the truth in real time, as the 10 fps cameras walk
     wait_for(lambda: all(len(registrations[n]) > 10 for n in names))
     for i, name in enumerate(names):
         checked = 0
@@ -374,7 +395,7 @@ def test_cli_process_publishes_and_stops_cleanly_on_sigterm(router_endpoint,
         while len(registrations) == 0 and time.monotonic() < deadline:
             pub.put(Truth(robot="r9", stamp=0.0, pose=np.zeros(3), landmark_ids=np.zeros(
                 0, np.int64), landmarks=np.zeros((0, 2))).to_bytes())
-            time.sleep(0.2)
+            time.sleep(0.2)  # retried until the registration arrives (deadline above)
         assert len(registrations) > 0 and len(frames) > 0
         assert (frames.last().width, frames.last().height) == (960, 540)
     finally:
@@ -407,22 +428,22 @@ def test_head_mounted_with_an_external_tracker(make_client, run_service) -> None
     period = 600.0  # a slow walk, so the pose and the frame it belongs to barely differ
     service = run_service(mode="head-mounted", camera_pose_source="tracker",
                           orbit_period=period, fps=10.0)
-    time.sleep(0.3)
+    assert truth_pub.wait_matched() and pose_pub.wait_matched()  # type: ignore[attr-defined]
     assert len(registrations) == 0
     for stamp in np.arange(0.0, 3.0, 0.1):
         T_wc = orbit_pose(float(stamp), centre_xy=(0.5, 0.5), period_s=period)
         pose_pub.put(CameraPose(camera=CAMERA, stamp=float(stamp),
                                 T_world_from_camera=T_wc).to_bytes())
         truth_pub.put(truth_at((0.0, 0.0, 0.0), float(stamp)).to_bytes())
-        time.sleep(0.1)
+        time.sleep(0.1)  # pacing: a walk in real time past the 10 fps camera
     wait_for(lambda: len(registrations) > 5)
     for reg in registrations.all()[-5:]:
         T_wc = orbit_pose(reg.stamp, centre_xy=(0.5, 0.5), period_s=period)
         dt, dr = pose_error(reg.T_camera_from_map, invert_T(T_wc))
         assert dt < 0.01 and dr < DEG, (dt, dr)
     assert service.pipelines[0].stats.camera_poses == 0  # it publishes no pose of its own
-    time.sleep(1.5)  # the tracker went quiet: the registration is stale
-    wait_for(lambda: registrations.last().status == "camera pose lost", timeout=5.0)
+    # the tracker went quiet: the registration turns stale
+    wait_for(lambda: registrations.last().status == "camera pose lost", timeout=15.0)
 
 
 def test_calibrate_command_writes_a_loadable_calibration(tmp_path: Path) -> None:

@@ -132,16 +132,28 @@ def start_viewer(make_client, tmp_path: Path) -> Iterator[Callable[..., str]]:
 
 
 @pytest.fixture
-def publish_state(make_client) -> Callable[[int], None]:
+def publish_state(make_client) -> Callable[..., None]:
     """Publishes states (declared at the first, once the viewer subscribed)."""
     bus = make_client()
     publishers: list[Any] = []
 
-    def put(seq: int) -> None:
+    def put(seq: int, url: str | None = None) -> None:
+        """With ``url`` (the first state): put until that viewer shows it, since a matched
+        route may still drop samples for a few hundred ms on a loaded machine."""
         if not publishers:
             publishers.append(bus.publisher(KEYS.state(ROBOT)))
             assert publishers[0].wait_matched(10.0)
-        publishers[0].put(state(seq).to_bytes())
+        deadline = time.monotonic() + 30
+        while True:
+            publishers[0].put(state(seq).to_bytes())
+            if url is None:
+                return
+            try:
+                wait_until(lambda: (status_of(url)["state"] or {}).get("seq") == seq,
+                           timeout=2.0)
+                return
+            except AssertionError:
+                assert time.monotonic() < deadline, f"state {seq} never reached {url}"
 
     return put
 
@@ -149,7 +161,7 @@ def publish_state(make_client) -> Callable[[int], None]:
 def test_views_are_capped_the_oldest_idle_is_evicted_and_the_default_always_served(
         start_viewer, publish_state) -> None:
     url = start_viewer(max_views=2, client_ttl_s=600.0)
-    publish_state(1)
+    publish_state(1, url)
     wait_until(lambda: status_of(url)["state"] is not None)
     a = Stream(url, "a")  # streams its (default) settings …
     assert post_json(url + "/api/settings?client=a", {"scale": 2})[0] == 200
@@ -185,7 +197,7 @@ def test_views_are_capped_the_oldest_idle_is_evicted_and_the_default_always_serv
 def test_a_view_nobody_looks_at_is_dropped_with_its_picture(start_viewer,
                                                             publish_state) -> None:
     url = start_viewer(client_ttl_s=0.3)
-    publish_state(1)
+    publish_state(1, url)
     for k in range(5):
         assert post_json(f"{url}/api/settings?client=t{k}", {"sigma_k": 1 + k})[0] == 200
         assert http(f"{url}/snapshot.png?client=t{k}")[0] == 200
@@ -199,7 +211,7 @@ def test_small_soak_default_clients_see_every_state_while_others_churn(
     """A small version of benchmarks/bench_viewer_soak.py: 40 distinct settings asked by
     8 clients (4 of them streaming) beside 2 default-view streams, 4 views allowed."""
     url = start_viewer(max_views=4, client_ttl_s=1.0)
-    publish_state(1)
+    publish_state(1, url)
     defaults = [Stream(url), Stream(url, "plain")]
     for d in defaults:
         d.wait_for_seq(1)
@@ -237,7 +249,7 @@ def test_small_soak_default_clients_see_every_state_while_others_churn(
 def test_recordings_are_capped_in_number_time_and_disk_space(start_viewer,
                                                              publish_state) -> None:
     url = start_viewer(max_recordings=1, max_recording_s=1.0, fps=10.0)
-    publish_state(1)
+    publish_state(1, url)
     status, _, body = post_json(url + "/api/record/start?client=r1", {})
     assert status == 200, body
     status, _, body = post_json(url + "/api/record/start?client=r2", {})

@@ -12,7 +12,6 @@ import json
 import math
 import os
 import threading
-import time
 import urllib.request
 from collections.abc import Iterator
 from pathlib import Path
@@ -87,7 +86,8 @@ def _live_viewer(make_client, tmp_path: Path, *, token: str | None) -> Iterator[
     bus = make_client()
     publisher = bus.publisher(KEYS.state(ROBOT))
     monitor = bus.publisher(KEYS.health(ROBOT))
-    time.sleep(0.3)
+    # new publishers drop what they put before they know the viewer's subscriptions
+    assert publisher.wait_matched() and monitor.wait_matched()  # type: ignore[attr-defined]
     stop = threading.Event()
 
     def drive() -> None:
@@ -96,7 +96,7 @@ def _live_viewer(make_client, tmp_path: Path, *, token: str | None) -> Iterator[
             publisher.put(state(seq).to_bytes())
             monitor.put(health(seq).to_bytes())
             seq += 1
-            stop.wait(0.1)
+            stop.wait(0.1)  # pacing: the robot moves at 10 states a second
 
     driver = threading.Thread(target=drive, daemon=True)
     driver.start()
