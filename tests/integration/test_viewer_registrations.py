@@ -23,6 +23,7 @@ from tests.integration.test_viewer_service import (
 # the fixtures of those modules, used here too
 start_viewer = viewer_test.start_viewer
 publisher = viewer_test.publisher
+viewers = viewer_test.viewers
 browser = browser_test.browser
 
 
