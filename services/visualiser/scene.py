@@ -34,7 +34,7 @@ from common.errors import RenderError
 from common.geometry import all_relative_covariances
 from common.messages import SlamState
 from common.pairs import min_mean_max, pair_size, select_pairs
-from services.visualiser import overview
+from common import overview
 from services.visualiser.glyphs import Ellipsoids, ellipsoids_from_pd
 from services.visualiser.settings import ViewSettings
 
@@ -86,7 +86,7 @@ class Overview:
 
 def plan_overview(state: SlamState, settings: ViewSettings,
                   cluster_ids: np.ndarray | None) -> Overview | None:
-    """The glyph budget rule (``services.visualiser.overview``): None when the mode's
+    """The glyph budget rule (``common.overview``): None when the mode's
     pairs fit ``settings.glyph_budget`` (or a feature or a cluster is selected, or the
     budget is 0 = off); else the groups of the min/mean/max overview and the note.
     ``cluster_ids`` (stable, the view's clustering) must be given for every mode here."""
