@@ -28,6 +28,7 @@ import threading
 import time
 from collections import OrderedDict
 from dataclasses import dataclass, replace
+from typing import Any
 
 import numpy as np
 
@@ -35,7 +36,7 @@ from common import overview
 from common.clusters import ClusterTracker, cluster_labels
 from common.errors import SlamlensError
 from common.geometry import pd_size_m
-from common.messages import StateSummary, SlamState
+from common.messages import SlamState, StateSummary
 
 #: the parameters a summary query may carry, and what each means (for the error text)
 PARAMETERS = {
@@ -146,8 +147,9 @@ def parse_query(parameters: str) -> SummaryQuery:
             raise SummaryQueryError(f"summary query: threshold={seen['threshold']!r} must be "
                                     "> 0 (m)")
         q = replace(q, threshold_m=t)
-    ints = {k: int(_number(k, seen[k], int, low=None if k == "feature" else 0))
-            for k in ("count", "budget", "cluster", "feature", "after", "epoch") if k in seen}
+    ints: dict[str, Any] = {
+        k: int(_number(k, seen[k], int, low=None if k == "feature" else 0))
+        for k in ("count", "budget", "cluster", "feature", "after", "epoch") if k in seen}
     q = replace(q, **ints)
     if q.what == "pairs" and (q.cluster is None) == (q.feature is None):
         raise SummaryQueryError("summary query: what=pairs needs exactly one of cluster=K "

@@ -90,10 +90,12 @@ class SummaryPuller:
         self._thread = threading.Thread(target=self._loop, name=self._name, daemon=True)
         self._thread.start()
 
-    def stop(self) -> None:
+    def stop(self, timeout: float = 1.0) -> None:
+        """Stop pulling; waits at most ``timeout`` s for a query in flight (the thread is
+        a daemon, and closing the bus ends the query)."""
         self._stop.set()
         if self._thread is not None:
-            self._thread.join(timeout=self.timeout_s + 1.0)
+            self._thread.join(timeout=timeout)
 
     def pull_once(self) -> bytes | None:
         """One query: the answer's payload (also given to ``on_summary``), or None."""

@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from common import overview
 from common.geometry import all_relative_covariances, pd_size_m
 from common.messages import SlamState
-from common import overview
 from services.visualiser.camera_model import CameraModel
 from services.visualiser.render import Renderer
 from services.visualiser.scene import ROLE_PAIR, build_scene, min_mean_max, plan_overview

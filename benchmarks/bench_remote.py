@@ -1,0 +1,387 @@
+"""A remote viewer behind a 20 Mbit/s link (issue 13): full state vs. the summary stream.
+
+Two network namespaces (``tests/netns.py``: a robot and a workstation joined by a veth pair)
+with a token bucket on the link, both ways: ``tc qdisc … tbf rate 20mbit burst 32kbit
+latency 400ms``. The robot runs its router (linked to the workstation's), a publisher of an
+n = 1000 map state (3 + 2·1000 = 2003 rows: a 32 MB ``SlamState``; synthetic, three spatial
+clusters, a PSD EKF-like covariance) at ``--rate`` states/s through the estimator's kind of
+publisher (advanced, cache, congestion control drop), and ``slamlens summary``. Each state's
+``stamp`` is the robot's wall clock at publication (the namespaces share the clock).
+
+On the workstation, one phase after the other (the link carries one at a time):
+
+(a) **full state**: a subscriber of ``robot/R/state`` that keeps the newest, as the
+    viewer's intake does (the baseline): states/s received, and latency behind the robot
+    (receipt − stamp);
+(b) **summary**: a :class:`~common.summary_pull.SummaryPuller` pulling the clustered
+    min/mean/max summary (``what=clusters``, float32) — the viewer's ``--source summary``
+    intake — decoding each answer: states/s and latency behind the robot;
+(c) optional (``--viewer``): ``slamlens viewer --source summary`` itself, its state seq
+    and age read from ``/api/status`` once a second.
+
+Target (issue 13): the clustered picture of an n = 1000 map at ≥ 2 states/s, ≤ 1 s behind.
+Prints medians and the ratio summary/full. Needs root (namespaces, tc).
+
+Run: ``.venv/bin/python benchmarks/bench_remote.py [--seconds 40] [--rate 20] [--viewer]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO))
+
+ROBOT = "bench"
+PORT = 7447
+
+
+def synthetic_state(n: int, *, seed: int = 0):
+    """n features in three clusters of an arena, EKF-like: P_mm = a common (robot-induced)
+    part + a small anisotropic block per feature (PSD by construction)."""
+    import numpy as np
+
+    from common.messages import SlamState
+
+    rng = np.random.default_rng(seed)
+    centres = np.array([[-0.8, 0.8], [0.9, 0.9], [0.1, -0.9]])
+    xy = np.concatenate([c + rng.normal(0, 0.2, (n // 3 + 1, 2)) for c in centres])[:n]
+    N = 3 + 2 * n
+    P = np.zeros((N, N))
+    P[:3, :3] = np.diag([0.01, 0.01, 0.003])
+    P[3:, 3:] = np.kron(np.ones((n, n)), 0.03 ** 2 * np.eye(2))
+    for i in range(n):
+        a = rng.uniform(0.01, 0.04)
+        b = rng.uniform(0.004, a)
+        t = rng.uniform(0, np.pi)
+        R = np.array([[np.cos(t), -np.sin(t)], [np.sin(t), np.cos(t)]])
+        P[3 + 2 * i:5 + 2 * i, 3 + 2 * i:5 + 2 * i] += R @ np.diag([a * a, b * b]) @ R.T
+    return SlamState(robot=ROBOT, seq=1, stamp=time.time(), step="update",
+                     pose=[0.2, 0.1, 0.5], landmark_ids=np.arange(n), landmarks=xy,
+                     covariance=P, epoch=1)
+
+
+# ------------------------------------------------------------------------------ roles
+def role_publish(args: argparse.Namespace) -> None:
+    """Robot side: publish the state at ``--rate`` with a fresh seq and stamp each time."""
+    import msgpack
+
+    from common.keys import Keys
+    from common.session import BusSettings, open_bus
+
+    bus = open_bus(BusSettings(connect=(f"tcp/127.0.0.1:{PORT}",)))
+    if args.no_shm:
+        bus.shm.min_bytes = 1 << 62  # every payload as plain bytes
+    pub = bus.publisher(Keys().state(ROBOT), cache=4, cache_bytes=256 << 20)
+    latest: list[bytes] = []
+    bus.serve_latest(Keys().state(ROBOT), lambda: latest[-1] if latest else None)
+    raw = synthetic_state(args.n).to_dict()
+    print(json.dumps({"publisher": "ready", "bytes": len(msgpack.packb(raw))}), flush=True)
+    seq, period, t_next = 0, 1.0 / args.rate, time.monotonic()
+    end = time.monotonic() + args.seconds
+    while time.monotonic() < end:
+        seq += 1
+        raw["seq"], raw["stamp"] = seq, time.time()
+        payload = msgpack.packb(raw, use_bin_type=True)
+        latest[:] = [payload]  # the estimator's `state` queryable: the latest state
+        pub.put(payload)
+        t_next += period
+        time.sleep(max(0.0, t_next - time.monotonic()))
+    print(json.dumps({"published": seq}), flush=True)
+    bus.close()
+
+
+def role_full(args: argparse.Namespace) -> None:
+    """Workstation: the newest full state, as the viewer's intake keeps it."""
+    from common.keys import Keys
+    from common.latest import Latest
+    from common.messages import SlamState, peek_fields
+    from common.session import BusSettings, open_bus
+
+    bus = open_bus(BusSettings(connect=(f"tcp/127.0.0.1:{PORT}",)))
+    slot: Latest[tuple[bytes, float]] = Latest()
+    bus.subscribe(Keys().state(ROBOT), lambda _k, p: slot.put((p, time.time())))
+    print(json.dumps({"full": "ready"}), flush=True)
+    end = time.monotonic() + args.seconds
+    while time.monotonic() < end:
+        item = slot.take(timeout=0.5)
+        if item is None:
+            continue
+        payload, received = item
+        head = peek_fields(payload, ("seq", "stamp"))
+        SlamState.from_bytes(payload, check_symmetry=False)  # what a viewer must do
+        print(json.dumps({"seq": head["seq"], "latency_s": received - head["stamp"],
+                          "at": received, "bytes": len(payload)}), flush=True)
+    bus.close()
+
+
+def role_fullpull(args: argparse.Namespace) -> None:
+    """Workstation: the full state by ``get`` on ``state`` (SPEC §7's queryable), one
+    query in flight — the full-state counterpart of the summary pull."""
+    from common.keys import Keys
+    from common.messages import SlamState, peek_fields
+    from common.session import BusSettings, open_bus
+
+    bus = open_bus(BusSettings(connect=(f"tcp/127.0.0.1:{PORT}",)))
+    print(json.dumps({"fullpull": "ready"}), flush=True)
+    end = time.monotonic() + args.seconds
+    last = None
+    while time.monotonic() < end:
+        replies = bus.get(Keys().state(ROBOT), timeout=max(1.0, end - time.monotonic()))
+        if not replies:
+            time.sleep(0.2)
+            continue
+        payload, received = replies[-1].payload, time.time()
+        head = peek_fields(payload, ("seq", "stamp"))
+        if head["seq"] == last:
+            continue
+        last = head["seq"]
+        SlamState.from_bytes(payload, check_symmetry=False)
+        print(json.dumps({"seq": head["seq"], "latency_s": received - head["stamp"],
+                          "at": received, "bytes": len(payload)}), flush=True)
+    bus.close()
+
+
+def role_summary(args: argparse.Namespace) -> None:
+    """Workstation: pull the clustered summary, one query in flight."""
+    from common.keys import Keys
+    from common.messages import StateSummary
+    from common.session import BusSettings, open_bus
+    from common.summary import SummaryQuery
+    from common.summary_pull import SummaryPuller
+
+    bus = open_bus(BusSettings(connect=(f"tcp/127.0.0.1:{PORT}",)))
+
+    def on_summary(payload: bytes, _received: float) -> None:
+        now = time.time()
+        s = StateSummary.from_bytes(payload)
+        print(json.dumps({"seq": s.seq, "latency_s": now - s.stamp, "at": now,
+                          "bytes": len(payload), "compute_s": s.compute_s,
+                          "groups": 0 if s.group_pairs is None else len(s.group_pairs)}),
+              flush=True)
+
+    puller = SummaryPuller(bus, Keys().summary(ROBOT),
+                           SummaryQuery(what="clusters", budget=args.budget), on_summary)
+    print(json.dumps({"summary": "ready"}), flush=True)
+    end = time.monotonic() + args.seconds
+    while time.monotonic() < end:
+        if puller.pull_once() is None:
+            time.sleep(0.2)
+    print(json.dumps({"errors": puller.errors, "silent": puller.silent}), flush=True)
+    bus.close()
+
+
+# ------------------------------------------------------------------------ orchestration
+WORKSTATION_NS: set[str] = set()  #: namespaces given a private /dev/shm (see _in_ns)
+
+
+def _in_ns(ns: str, argv: list[str]) -> list[str]:
+    """``argv`` run in network namespace ``ns``. The workstation's processes also get a
+    mount namespace with their own empty /dev/shm: network namespaces share the host's
+    /dev/shm, and Zenoh would hand a robot's shared-memory buffer to the workstation by
+    reference, so 32 MB would never cross the shaped link. Two real hosts share no memory;
+    this makes the workstation one (Zenoh then sends the bytes)."""
+    if ns not in WORKSTATION_NS:
+        return ["ip", "netns", "exec", ns, *argv]
+    return ["ip", "netns", "exec", ns, "unshare", "--mount", "--propagation", "private",
+            "sh", "-c", 'mount -t tmpfs -o size=2g slamlens-ws /dev/shm && exec "$@"', "sh",
+            *argv]
+
+
+def _spawn(ns: str, *argv: str) -> subprocess.Popen[str]:
+    return subprocess.Popen(_in_ns(ns, list(argv)), cwd=REPO, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, text=True,
+                            env={"PYTHONUNBUFFERED": "1", "PATH": "/usr/bin:/bin",
+                                 "OPENBLAS_NUM_THREADS": "1"})
+
+
+def _netns_python(ns: str, *argv: str) -> subprocess.Popen[str]:
+    return _spawn(ns, sys.executable, *argv)
+
+
+def _wait_line(proc: subprocess.Popen[str], text: str, timeout: float = 60.0) -> str:
+    box: list[str] = []
+
+    def read() -> None:
+        assert proc.stdout is not None
+        for line in proc.stdout:
+            if text in line:
+                box.append(line)
+                return
+
+    t = threading.Thread(target=read, daemon=True)
+    t.start()
+    t.join(timeout)
+    if not box:
+        proc.kill()
+        raise RuntimeError(f"{proc.args} never printed {text!r}: "
+                           f"{proc.stderr.read() if proc.stderr else ''}")
+    return box[0]
+
+
+def _records(proc: subprocess.Popen[str], timeout: float) -> list[dict]:
+    out, err = proc.communicate(timeout=timeout)
+    rows = [json.loads(line) for line in out.splitlines() if line.startswith("{")]
+    if proc.returncode:
+        raise RuntimeError(f"{proc.args} failed: {err[-2000:]}")
+    return [r for r in rows if "seq" in r]
+
+
+def _stats(rows: list[dict], warmup_s: float) -> dict[str, float]:
+    if not rows:
+        return {"states": 0, "rate": 0.0, "latency_median_s": float("inf"),
+                "latency_max_s": float("inf"), "bytes": 0}
+    t0 = rows[0]["at"] + warmup_s
+    kept = [r for r in rows if r["at"] >= t0] or rows[-1:]
+    span = kept[-1]["at"] - kept[0]["at"]
+    rate = (len(kept) - 1) / span if span > 0 else 0.0
+    return {"states": len(kept), "rate": rate,
+            "latency_median_s": statistics.median(r["latency_s"] for r in kept),
+            "latency_max_s": max(r["latency_s"] for r in kept),
+            "bytes": statistics.median(r["bytes"] for r in kept)}
+
+
+def _phase(h, role: str, args: argparse.Namespace, rate: float) -> list[dict]:
+    me = str(Path(__file__).resolve())
+    common = ["--n", str(args.n), "--seconds", str(args.seconds), "--rate", str(rate),
+              "--budget", str(args.budget), *(["--no-shm"] if args.no_shm else [])]
+    consumer = _netns_python(h.workstation, me, "--role", role, *common)
+    _wait_line(consumer, "ready")
+    publisher = _netns_python(h.robot, me, "--role", "publish", *common)
+    _wait_line(publisher, "ready", timeout=120.0)
+    rows = _records(consumer, timeout=args.seconds + 120)
+    publisher.communicate(timeout=args.seconds + 60)
+    return rows
+
+
+def _viewer_phase(h, args: argparse.Namespace) -> list[dict]:
+    """(c): the viewer itself in summary mode, its state read from /api/status."""
+    from tests.netns import curl_json
+
+    me = str(Path(__file__).resolve())
+    viewer = _netns_python(h.workstation, "-m", "services", "viewer", "--robot", ROBOT,
+                           "--source", "summary", "--http", "127.0.0.1:8080", "--connect",
+                           f"tcp/127.0.0.1:{PORT}")
+    try:
+        _wait_line(viewer, "viewer ready", timeout=120.0)
+        publisher = _netns_python(h.robot, me, "--role", "publish", "--n", str(args.n),
+                                  "--seconds", str(args.seconds), "--rate", str(args.rate))
+        _wait_line(publisher, "ready", timeout=120.0)
+        rows, last_seq = [], None
+        end = time.monotonic() + args.seconds - 2
+        while time.monotonic() < end:
+            status = curl_json(h.workstation, "http://127.0.0.1:8080/api/status", 2.0)
+            state = (status or {}).get("state") or {}
+            if state.get("seq") is not None and state["seq"] != last_seq:
+                last_seq = state["seq"]
+                rows.append({"seq": state["seq"], "age_s": state.get("age_s"),
+                             "rate": state.get("rate")})
+            time.sleep(1.0)
+        publisher.communicate(timeout=args.seconds + 60)
+        return rows
+    finally:
+        viewer.terminate()
+        viewer.communicate(timeout=10)
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--role", default="main",
+                        choices=("main", "publish", "full", "fullpull", "summary"))
+    parser.add_argument("--n", type=int, default=1000, help="features in the map")
+    parser.add_argument("--seconds", type=float, default=40.0, help="length of each phase")
+    parser.add_argument("--rate", type=float, default=20.0, help="states/s published")
+    parser.add_argument("--budget", type=int, default=2000, help="summary glyph budget")
+    parser.add_argument("--link", default="20mbit", help="tbf rate of the link")
+    parser.add_argument("--full-rate", type=float, default=0.0,
+                        help="states/s published in phase (a) (0: --rate)")
+    parser.add_argument("--no-shm", action="store_true",
+                        help="the publisher puts plain bytes, never shared memory")
+    parser.add_argument("--viewer", action="store_true",
+                        help="also run the viewer with --source summary (phase c)")
+    args = parser.parse_args()
+    if args.role != "main":
+        {"publish": role_publish, "full": role_full, "fullpull": role_fullpull,
+         "summary": role_summary}[args.role](args)
+        return
+
+    from tests.netns import available, make_hosts
+
+    why = available()
+    if why is not None:
+        sys.exit(f"bench_remote needs network namespaces: {why}")
+    h = make_hosts()
+    procs: list[subprocess.Popen[str]] = []
+    try:
+        h.shape(args.link, burst="32kbit", latency="400ms")
+        WORKSTATION_NS.add(h.workstation)
+        ws_router = _netns_python(h.workstation, "-m", "services", "router", "--listen",
+                                  f"tcp/{h.workstation_ip}:{PORT}", "--listen",
+                                  f"tcp/127.0.0.1:{PORT}")
+        procs.append(ws_router)
+        _wait_line(ws_router, "router ready")
+        robot_router = _netns_python(h.robot, "-m", "services", "router", "--listen",
+                                     f"tcp/127.0.0.1:{PORT}", "--connect",
+                                     f"tcp/{h.workstation_ip}:{PORT}")
+        procs.append(robot_router)
+        _wait_line(robot_router, "router ready")
+        summary = _netns_python(h.robot, "-m", "services", "summary", "--robot", ROBOT,
+                                "--connect", f"tcp/127.0.0.1:{PORT}")
+        procs.append(summary)
+        _wait_line(summary, "summary ready")
+        print(f"n = {args.n} ({3 + 2 * args.n}² covariance), {args.rate:g} states/s "
+              f"published, link {args.link} tbf both ways, {args.seconds:g} s per phase")
+        warm = min(5.0, args.seconds / 4)
+        full_rate = args.full_rate or args.rate
+
+        def line(label: str, r: dict[str, float], unit: float, unit_name: str) -> str:
+            return (f"{label}: {r['states']} states, {r['rate']:.2f} states/s, latency "
+                    f"median {r['latency_median_s']:.2f} s (max {r['latency_max_s']:.2f} s), "
+                    f"{r['bytes'] / unit:.1f} {unit_name} each")
+
+        sub = _stats(_phase(h, "full", args, full_rate), warm)
+        print(line(f"(a1) full state, subscribed ({full_rate:g}/s published)", sub, 1e6,
+                   "MB"), flush=True)
+        pull = _stats(_phase(h, "fullpull", args, full_rate), warm)
+        print(line(f"(a2) full state, get on `state` ({full_rate:g}/s published)", pull,
+                   1e6, "MB"), flush=True)
+        summ = _stats(_phase(h, "summary", args, args.rate), warm)
+        print(line(f"(b)  summary pull, clusters ({args.rate:g}/s published)", summ, 1e3,
+                   "kB"), flush=True)
+        base = max(sub, pull, key=lambda r: r["rate"])
+        if base["rate"] > 0:
+            print(f"ratio summary / best full-state path: {summ['rate'] / base['rate']:.1f}x "
+                  f"states/s, {base['latency_median_s'] / summ['latency_median_s']:.1f}x "
+                  "less behind")
+        else:
+            print("ratio summary / full state: no full state arrived in the phase")
+        ok = summ["rate"] >= 2.0 and summ["latency_median_s"] <= 1.0
+        print(f"target (>= 2 states/s, <= 1 s behind): {'met' if ok else 'NOT met'}")
+        if args.viewer:
+            rows = _viewer_phase(h, args)
+            ages = [r["age_s"] for r in rows if r["age_s"] is not None]
+            rates = [r["rate"] for r in rows if r["rate"]]
+            print(f"(c) viewer --source summary: {len(rows)} distinct seqs seen in "
+                  f"{len(rows)} polls, state rate median "
+                  f"{statistics.median(rates) if rates else 0:.2f}/s, age median "
+                  f"{statistics.median(ages) if ages else float('nan'):.2f} s")
+    finally:
+        for proc in reversed(procs):
+            if proc.poll() is None:
+                proc.terminate()
+                try:
+                    proc.communicate(timeout=10)
+                except subprocess.TimeoutExpired:
+                    proc.kill()
+        h.remove()
+
+
+if __name__ == "__main__":
+    main()
