@@ -83,6 +83,7 @@ def role_publish(args: argparse.Namespace) -> None:
     latest: list[bytes] = []
     bus.serve_latest(Keys().state(ROBOT), lambda: latest[-1] if latest else None)
     raw = synthetic_state(args.n).to_dict()
+    raw["epoch"] = time.time_ns()  # a new map per run, as the estimator's epoch
     print(json.dumps({"publisher": "ready", "bytes": len(msgpack.packb(raw))}), flush=True)
     seq, period, t_next = 0, 1.0 / args.rate, time.monotonic()
     end = time.monotonic() + args.seconds
@@ -274,21 +275,35 @@ def _viewer_phase(h, args: argparse.Namespace) -> list[dict]:
         publisher = _netns_python(h.robot, me, "--role", "publish", "--n", str(args.n),
                                   "--seconds", str(args.seconds), "--rate", str(args.rate))
         _wait_line(publisher, "ready", timeout=120.0)
-        rows, last_seq = [], None
+        rows = []
         end = time.monotonic() + args.seconds - 2
         while time.monotonic() < end:
             status = curl_json(h.workstation, "http://127.0.0.1:8080/api/status", 2.0)
+            now = time.time()
             state = (status or {}).get("state") or {}
-            if state.get("seq") is not None and state["seq"] != last_seq:
-                last_seq = state["seq"]
-                rows.append({"seq": state["seq"], "age_s": state.get("age_s"),
-                             "rate": state.get("rate")})
-            time.sleep(1.0)
+            if state.get("seq") is not None:  # the robot's stamps are its wall clock
+                rows.append({"seq": state["seq"], "behind_s": now - state["stamp"],
+                             "rate": state.get("rate_hz"), "at": now})
+            time.sleep(0.5)
+        shot = subprocess.run(["ip", "netns", "exec", h.workstation, "curl", "-s", "-D", "-",
+                               "-o", "/dev/null", "http://127.0.0.1:8080/snapshot.png"],
+                              capture_output=True, text=True, timeout=30).stdout
+        rows.append({"snapshot": [ln.strip() for ln in shot.splitlines()
+                                  if ln.lower().startswith(("http/", "x-state-seq"))]})
         publisher.communicate(timeout=args.seconds + 60)
         return rows
     finally:
         viewer.terminate()
         viewer.communicate(timeout=10)
+
+
+def _rate_bits(rate: str) -> float:
+    """A tc rate ("20mbit", "5mbit", "800kbit") in bits per second."""
+    units = {"kbit": 1e3, "mbit": 1e6, "gbit": 1e9}
+    for unit, scale in units.items():
+        if rate.endswith(unit):
+            return float(rate[:-len(unit)]) * scale
+    return float(rate)
 
 
 def main() -> None:
@@ -364,14 +379,26 @@ def main() -> None:
             print("ratio summary / full state: no full state arrived in the phase")
         ok = summ["rate"] >= 2.0 and summ["latency_median_s"] <= 1.0
         print(f"target (>= 2 states/s, <= 1 s behind): {'met' if ok else 'NOT met'}")
+        floor = full_bytes = 0.0
+        if args.n:
+            full_bytes = float(len(synthetic_state(args.n).to_bytes()))
+            floor = full_bytes * 8 / _rate_bits(args.link)
+            print(f"link floor for the full state: {full_bytes / 1e6:.1f} MB takes "
+                  f"{floor:.1f} s of a {args.link} link: at best {1 / floor:.3f} states/s, "
+                  f">= {floor:.1f} s behind; summary / floor: {summ['rate'] * floor:.0f}x "
+                  "states/s")
         if args.viewer:
             rows = _viewer_phase(h, args)
-            ages = [r["age_s"] for r in rows if r["age_s"] is not None]
+            shot = rows.pop()["snapshot"] if rows and "snapshot" in rows[-1] else []
+            seqs = sorted({r["seq"] for r in rows})
+            behind = [r["behind_s"] for r in rows]
             rates = [r["rate"] for r in rows if r["rate"]]
-            print(f"(c) viewer --source summary: {len(rows)} distinct seqs seen in "
-                  f"{len(rows)} polls, state rate median "
-                  f"{statistics.median(rates) if rates else 0:.2f}/s, age median "
-                  f"{statistics.median(ages) if ages else float('nan'):.2f} s")
+            print(f"(c)  viewer --source summary: {len(seqs)} distinct states in "
+                  f"{len(rows)} polls of /api/status, its state rate median "
+                  f"{statistics.median(rates) if rates else 0:.2f}/s, picture behind the "
+                  f"robot median {statistics.median(behind) if behind else float('nan'):.2f} "
+                  f"s (max {max(behind) if behind else float('nan'):.2f} s); snapshot: "
+                  f"{' '.join(shot)}")
     finally:
         for proc in reversed(procs):
             if proc.poll() is None:

@@ -392,8 +392,9 @@ class MonitorSettings:
 
 @dataclass(frozen=True)
 class SummarySettings:
-    """``slamlens summary``: what remote viewers draw of the newest state, on request
-    (``robot/R/summary``; docs/remote_viewers.md)."""
+    """``slamlens summary``: remote viewers' summaries of the newest state (docs/remote_viewers.md).
+
+    It answers the queryable ``robot/R/summary`` (docs/protocol.md)."""
 
     robot: str = _robot()
     hold_s: float = setting(

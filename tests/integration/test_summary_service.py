@@ -154,3 +154,33 @@ def test_the_summary_process_answers_and_exits_cleanly(router_endpoint, make_cli
     finally:
         if proc.poll() is None:
             proc.kill()
+
+
+def test_malformed_states_are_dropped_counted_and_the_service_goes_on(make_client) -> None:
+    service, halt, thread = _service(make_client)
+    try:
+        _, pub = _publish(make_client)
+        client = make_client()
+        pub.put(b"\x93not a state")
+        _wait_received(service, 1)
+        errors: list[bytes] = []
+        assert client.get(KEYS.summary("r1") + "?what=blocks", timeout=10.0,
+                          errors=errors) == []
+        assert "no state of robot r1 yet" in error_text(errors[0])
+        other = consistent_state(5, seq=2)
+        pub.put(type(other)(**{**{f: getattr(other, f) for f in (
+            "seq", "stamp", "step", "pose", "landmark_ids", "landmarks", "covariance")},
+            "robot": "someone-else"}).to_bytes())
+        _wait_received(service, 2)
+        errors.clear()
+        assert client.get(KEYS.summary("r1") + "?what=blocks", timeout=10.0,
+                          errors=errors) == []
+        assert "no state of robot r1 yet" in error_text(errors[0])
+        assert service.drops.counts["SlamState"] == 1 and service.drops.counts["robot"] == 1
+        pub.put(consistent_state(5, seq=3).to_bytes())
+        _wait_received(service, 3)
+        replies = client.get(KEYS.summary("r1") + "?what=blocks", timeout=10.0)
+        assert StateSummary.from_bytes(replies[0].payload).seq == 3
+    finally:
+        halt.set()
+        thread.join(5.0)
