@@ -184,16 +184,12 @@ WORKSTATION_NS: set[str] = set()  #: namespaces given a private /dev/shm (see _i
 
 
 def _in_ns(ns: str, argv: list[str]) -> list[str]:
-    """``argv`` run in network namespace ``ns``. The workstation's processes also get a
-    mount namespace with their own empty /dev/shm: network namespaces share the host's
-    /dev/shm, and Zenoh would hand a robot's shared-memory buffer to the workstation by
-    reference, so 32 MB would never cross the shaped link. Two real hosts share no memory;
-    this makes the workstation one (Zenoh then sends the bytes)."""
-    if ns not in WORKSTATION_NS:
-        return ["ip", "netns", "exec", ns, *argv]
-    return ["ip", "netns", "exec", ns, "unshare", "--mount", "--propagation", "private",
-            "sh", "-c", 'mount -t tmpfs -o size=2g slamlens-ws /dev/shm && exec "$@"', "sh",
-            *argv]
+    """``argv`` run in network namespace ``ns``; the workstation's processes also get an
+    empty /dev/shm of their own (``tests.netns.own_shm``: otherwise Zenoh hands the robot's
+    shared-memory buffers over by reference and 32 MB never cross the shaped link)."""
+    from tests.netns import own_shm
+
+    return ["ip", "netns", "exec", ns, *(own_shm(argv) if ns in WORKSTATION_NS else argv)]
 
 
 def _spawn(ns: str, *argv: str) -> subprocess.Popen[str]:

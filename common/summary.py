@@ -253,7 +253,7 @@ class Summariser:
             return self._pairs(state, q, base, clusters)
         groups, tile_m = clusters, None
         k = len(np.unique(clusters))
-        if q.budget > 0 and k > overview.max_groups(q.budget):
+        if q.budget > 0 and n >= 2 and k > overview.max_groups(q.budget):
             groups, tile_m = overview.tile_groups(state.landmarks, q.budget)
         k = len(np.unique(groups))
         if k * (k - 1) // 2 > self.max_group_pairs:
@@ -261,7 +261,12 @@ class Summariser:
                 f"summary query: {k} clusters make {k * (k - 1) // 2} cluster pairs, more "
                 f"than {self.max_group_pairs}; ask with budget=G (then map tiles) or a "
                 "larger threshold")
-        gp = overview.group_min_mean_max(P, groups)
+        if n < 2:  # no pair yet (the init state, a first feature): no group pairs
+            gp = overview.GroupPairs(np.zeros((0, 2), np.int64), np.zeros(0, np.int64),
+                                     np.zeros((0, 2), np.int64), np.zeros((0, 2), np.int64),
+                                     np.zeros((0, 2, 2)))
+        else:
+            gp = overview.group_min_mean_max(P, groups)
         return replace(
             base, what="clusters", cluster_threshold_m=q.threshold_m, cluster_count=q.count,
             tile_m=tile_m,

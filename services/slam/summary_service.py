@@ -150,6 +150,12 @@ class SummaryService:
             except SummaryQueryError as exc:
                 self._refuse(p.reply, str(exc))
                 continue
+            except Exception as exc:  # a state the summary cannot handle: say so, go on
+                log.exception("summary of seq %d for %s failed", state.seq,
+                              p.query.selector())
+                self._refuse(p.reply, f"summary: seq {state.seq} could not be summarised "
+                                      f"({type(exc).__name__}: {exc})")
+                continue
             p.reply.ok(payload)
             with self._lock:
                 self.answered += 1

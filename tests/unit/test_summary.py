@@ -205,3 +205,16 @@ def test_a_missing_feature_or_cluster_is_a_query_error() -> None:
         Summariser().summary(state, parse_query("feature=999"))
     with pytest.raises(SummaryQueryError, match="cluster 77 is not in the map"):
         Summariser().summary(state, parse_query("cluster=77"))
+
+
+@pytest.mark.parametrize("n", [0, 1, 2])
+def test_maps_without_pairs_or_with_one_summarise(n: int) -> None:
+    state = consistent_state(3)
+    small = SlamState(robot="r1", seq=0, stamp=0.0, step="init", pose=np.zeros(3),
+                      landmark_ids=state.landmark_ids[:n], landmarks=state.landmarks[:n],
+                      covariance=state.covariance[:3 + 2 * n, :3 + 2 * n])
+    for text in ("what=clusters", "what=clusters;budget=3", "what=blocks"):
+        s = StateSummary.from_bytes(Summariser().summary(small, parse_query(text)))
+        assert s.n == n
+        if s.what == "clusters":
+            assert len(s.group_pairs) == (1 if n == 2 and s.groups[0] != s.groups[1] else 0)
