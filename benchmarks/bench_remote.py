@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import signal
 import statistics
 import subprocess
 import sys
@@ -228,6 +229,10 @@ def _records(proc: subprocess.Popen[str], timeout: float) -> list[dict]:
     rows = [json.loads(line) for line in out.splitlines() if line.startswith("{")]
     if proc.returncode:
         raise RuntimeError(f"{proc.args} failed: {err[-2000:]}")
+    for r in rows:
+        if "errors" in r:  # the puller's own counts
+            print(f"     (the puller: {r['errors']} error replies, {r['silent']} queries "
+                  "unanswered within its timeout)")
     return [r for r in rows if "seq" in r]
 
 
@@ -395,6 +400,9 @@ def main() -> None:
                   f"robot median {statistics.median(behind) if behind else float('nan'):.2f} "
                   f"s (max {max(behind) if behind else float('nan'):.2f} s); snapshot: "
                   f"{' '.join(shot)}")
+        summary.send_signal(signal.SIGINT)
+        out, _ = summary.communicate(timeout=10)
+        print("robot side:", *[ln for ln in out.splitlines() if "summary stopped" in ln])
     finally:
         for proc in reversed(procs):
             if proc.poll() is None:
