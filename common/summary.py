@@ -180,8 +180,10 @@ class Summariser:
     state each time (one worker calls it); a new epoch forgets the clusterings.
     """
 
-    def __init__(self, *, cache: int = 16, max_group_pairs: int = 20_000) -> None:
+    def __init__(self, *, cache: int = 16, max_group_pairs: int = 20_000,
+                 max_pairs: int = 50_000) -> None:
         self.max_group_pairs = max_group_pairs  #: a larger clusters answer is refused
+        self.max_pairs = max_pairs  #: a larger pairs answer is refused
         self._cache: OrderedDict[tuple[int, int, SummaryQuery], bytes] = OrderedDict()
         self._size = cache
         self._trackers: OrderedDict[tuple[float, int], tuple[int, ClusterTracker,
@@ -294,12 +296,20 @@ class Summariser:
                                         f"{q.threshold_m:g} m, count {q.count})")
             a, b = np.triu_indices(len(members), k=1)
             ii, jj = members[a], members[b]
+        if q.budget <= 0 and len(ii) > self.max_pairs:  # refuse before the work
+            raise SummaryQueryError(
+                f"summary query: {len(ii)} pairs, more than {self.max_pairs}; ask with "
+                f"budget=G (then the {overview.SELECTED_CAP}·G largest)")
         Pd = overview.pair_relative_covariances(state.covariance, ii, jj)
         total = len(ii)
         cap = overview.SELECTED_CAP * q.budget
         if q.budget > 0 and total > cap:  # as the viewer: the largest, in pair order
             keep = np.sort(np.argsort(-pd_size_m(Pd), kind="stable")[:cap])
             ii, jj, Pd = ii[keep], jj[keep], Pd[keep]
+        if len(ii) > self.max_pairs:
+            raise SummaryQueryError(
+                f"summary query: {len(ii)} pairs, more than {self.max_pairs}; ask with "
+                f"budget=G (then the {overview.SELECTED_CAP}·G largest)")
         return replace(base, what="pairs", cluster_threshold_m=q.threshold_m,
                        cluster_count=q.count, groups=clusters, selected_cluster=q.cluster,
                        selected_feature=q.feature,

@@ -408,3 +408,7 @@ class SummarySettings:
     max_group_pairs: int = setting(
         20_000, doc="a clusters answer of more group pairs than this is refused (ask with a "
                     "glyph budget: the groups then become map tiles)", min=1)
+    max_pairs: int = setting(
+        50_000, doc="a pairs answer of more pairs than this is refused (ask with a glyph "
+                    "budget: then its largest); an answer must cross a slow link in a few "
+                    "seconds", min=1)

@@ -55,7 +55,8 @@ class SummaryService:
         self.robot = robot
         self.settings = settings
         self.summariser = Summariser(cache=settings.cache,
-                                     max_group_pairs=settings.max_group_pairs)
+                                     max_group_pairs=settings.max_group_pairs,
+                                     max_pairs=settings.max_pairs)
         self.drops = DropCounter(log)
         self._lock = threading.Lock()
         self._wake = threading.Event()

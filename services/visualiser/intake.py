@@ -426,8 +426,10 @@ class Intake:
     def stop(self) -> None:
         self._stop.set()
         self._decode_wake.set()
+        for puller in self._pullers:  # all told first; a query in flight ends with the bus
+            puller.stop(timeout=0.0)
         for puller in self._pullers:
-            puller.stop()
+            puller.stop(timeout=0.5)
         for thread in self._threads:
             thread.join(timeout=5.0)
 

@@ -91,6 +91,7 @@ LEGACY_FLAGS = {
                  "--secure", "--name", "--timeout", "--verbose", "--zenoh-config"],
     # issue 13: the summary stream for remote viewers
     "summary": ["--robot", "--hold-s", "--cache", "--max-pending", "--max-group-pairs",
+                "--max-pairs",
                 "--connect", "--config", "--secure", "--name", "--quiet", "--verbose"],
 }
 

@@ -199,6 +199,17 @@ def test_parameters_round_trip_through_the_selector() -> None:
     assert q.newer(5, 10) and not q.newer(5, 9) and q.newer(6, 1)
 
 
+def test_too_many_pairs_are_refused_before_the_work() -> None:
+    state = consistent_state(45)
+    summariser = Summariser(max_pairs=20)
+    first = StateSummary.from_bytes(summariser.summary(state, parse_query("what=clusters")))
+    with pytest.raises(SummaryQueryError, match="more than 20; ask with budget"):
+        summariser.summary(state, parse_query(f"cluster={int(first.groups[0])}"))
+    capped = StateSummary.from_bytes(summariser.summary(
+        state, parse_query(f"cluster={int(first.groups[0])};budget=4")))
+    assert len(capped.pairs) == 16
+
+
 def test_a_missing_feature_or_cluster_is_a_query_error() -> None:
     state = consistent_state(12)
     with pytest.raises(SummaryQueryError, match="feature 999 is not in the map"):
