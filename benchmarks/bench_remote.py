@@ -77,7 +77,7 @@ def role_publish(args: argparse.Namespace) -> None:
     from common.keys import Keys
     from common.session import BusSettings, open_bus
 
-    bus = open_bus(BusSettings(connect=(f"tcp/127.0.0.1:{PORT}",)))
+    bus = open_bus(BusSettings(connect=(f"tcp/127.0.0.1:{args.port}",)))
     if args.no_shm:
         bus.shm.min_bytes = 1 << 62  # every payload as plain bytes
     pub = bus.publisher(Keys().state(ROBOT), cache=4, cache_bytes=256 << 20)
@@ -107,7 +107,7 @@ def role_full(args: argparse.Namespace) -> None:
     from common.messages import SlamState, peek_fields
     from common.session import BusSettings, open_bus
 
-    bus = open_bus(BusSettings(connect=(f"tcp/127.0.0.1:{PORT}",)))
+    bus = open_bus(BusSettings(connect=(f"tcp/127.0.0.1:{args.port}",)))
     slot: Latest[tuple[bytes, float]] = Latest()
     bus.subscribe(Keys().state(ROBOT), lambda _k, p: slot.put((p, time.time())))
     print(json.dumps({"full": "ready"}), flush=True)
@@ -131,7 +131,7 @@ def role_fullpull(args: argparse.Namespace) -> None:
     from common.messages import SlamState, peek_fields
     from common.session import BusSettings, open_bus
 
-    bus = open_bus(BusSettings(connect=(f"tcp/127.0.0.1:{PORT}",)))
+    bus = open_bus(BusSettings(connect=(f"tcp/127.0.0.1:{args.port}",)))
     print(json.dumps({"fullpull": "ready"}), flush=True)
     end = time.monotonic() + args.seconds
     last = None
@@ -159,7 +159,7 @@ def role_summary(args: argparse.Namespace) -> None:
     from common.summary import SummaryQuery
     from common.summary_pull import SummaryPuller
 
-    bus = open_bus(BusSettings(connect=(f"tcp/127.0.0.1:{PORT}",)))
+    bus = open_bus(BusSettings(connect=(f"tcp/127.0.0.1:{args.port}",)))
 
     def on_summary(payload: bytes, _received: float) -> None:
         now = time.time()
@@ -312,6 +312,7 @@ def main() -> None:
     parser.add_argument("--role", default="main",
                         choices=("main", "publish", "full", "fullpull", "summary"))
     parser.add_argument("--n", type=int, default=1000, help="features in the map")
+    parser.add_argument("--port", type=int, default=PORT, help="roles: the local router's port")
     parser.add_argument("--seconds", type=float, default=40.0, help="length of each phase")
     parser.add_argument("--rate", type=float, default=20.0, help="states/s published")
     parser.add_argument("--budget", type=int, default=2000, help="summary glyph budget")

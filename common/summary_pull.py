@@ -45,7 +45,7 @@ class SummaryPuller:
     called with each answer (``received``: time.monotonic() when it arrived)."""
 
     def __init__(self, bus: Bus, key: str, query: SummaryQuery,
-                 on_summary: Callable[[bytes, float], None], *, timeout_s: float = 10.0,
+                 on_summary: Callable[[bytes, float], None], *, timeout_s: float = 5.0,
                  retry_s: float = 0.5, name: str = "summary-pull") -> None:
         self.bus = bus
         self.key = key

@@ -43,6 +43,7 @@ def summarised_state(summary: StateSummary) -> SummarisedState:
     P[lm, lm + 1] = blocks[:, 0, 1]
     P[lm + 1, lm] = blocks[:, 1, 0]
     P[lm + 1, lm + 1] = blocks[:, 1, 1]
+    P.setflags(write=False)  # frozen already: the message keeps it without a 32 MB copy
     return SummarisedState(
         robot=summary.robot, seq=summary.seq, stamp=summary.stamp, step=summary.step,
         pose=summary.pose, landmark_ids=summary.landmark_ids,
