@@ -151,6 +151,52 @@ def role_fullpull(args: argparse.Namespace) -> None:
     bus.close()
 
 
+PROBE_MB = (0.5, 1.0, 2.0, 4.0, 8.0)  #: put sizes of the probe
+PROBE_REPLY_MB = (8.0, 20.0)  #: reply sizes of the probe
+
+
+def role_probe_put(args: argparse.Namespace) -> None:
+    """Robot side of the probe: plain puts of growing size, congestion control drop or
+    block, then queryables answering large replies."""
+    import zenoh
+
+    from common.session import BusSettings, open_bus
+
+    bus = open_bus(BusSettings(connect=(f"tcp/127.0.0.1:{args.port}",)))
+    for size in PROBE_REPLY_MB:
+        data = b"r" * int(size * 1e6)
+        bus.session.declare_queryable(f"probe/reply/{size:g}",
+                                      lambda q, d=data: (q.reply(q.key_expr, d), q.drop()))
+    print(json.dumps({"probe": "ready"}), flush=True)
+    time.sleep(2.0)
+    for cc in ("DROP", "BLOCK"):
+        pub = bus.session.declare_publisher(
+            f"probe/put/{cc.lower()}", congestion_control=getattr(zenoh.CongestionControl, cc))
+        for size in PROBE_MB:
+            pub.put(b"p" * int(size * 1e6))
+            time.sleep(size * 8e6 / _rate_bits(args.link) + 2.0)  # its link time, and 2 s
+    time.sleep(60.0)  # serve the replies
+    bus.close()
+
+
+def role_probe_get(args: argparse.Namespace) -> None:
+    """Workstation side of the probe: what arrives of the puts, then each reply."""
+    from common.session import BusSettings, open_bus
+
+    bus = open_bus(BusSettings(connect=(f"tcp/127.0.0.1:{args.port}",)))
+    bus.subscribe("probe/put/*", lambda k, p: print(json.dumps(
+        {"put": k.rsplit("/", 1)[1], "mb": len(p) / 1e6}), flush=True))
+    print(json.dumps({"probe": "ready"}), flush=True)
+    total = sum(size * 8e6 / _rate_bits(args.link) + 2.0 for size in PROBE_MB) * 2 + 4
+    time.sleep(total)
+    for size in PROBE_REPLY_MB:
+        t0 = time.monotonic()
+        replies = bus.get(f"probe/reply/{size:g}", timeout=30.0)
+        print(json.dumps({"reply_mb": size, "got": [len(r.payload) / 1e6 for r in replies],
+                          "s": time.monotonic() - t0}), flush=True)
+    bus.close()
+
+
 def role_summary(args: argparse.Namespace) -> None:
     """Workstation: pull the clustered summary, one query in flight."""
     from common.keys import Keys
@@ -298,6 +344,31 @@ def _viewer_phase(h, args: argparse.Namespace) -> list[dict]:
         viewer.communicate(timeout=10)
 
 
+def _probe(h, args: argparse.Namespace, robot_router: subprocess.Popen[str]) -> None:
+    """What of a large plain Zenoh message crosses the link: puts with congestion control
+    drop and block, and replies (which Zenoh sends with block)."""
+    me = str(Path(__file__).resolve())
+    link = ["--link", args.link]
+    far = _netns_python(h.workstation, me, "--role", "probe_get", *link)
+    _wait_line(far, "ready")
+    near = _netns_python(h.robot, me, "--role", "probe_put", *link)
+    _wait_line(near, "ready")
+    out, _ = far.communicate(timeout=600)
+    near.kill()
+    rows = [json.loads(line) for line in out.splitlines() if line.startswith("{")]
+    for cc in ("drop", "block"):
+        got = [r["mb"] for r in rows if r.get("put") == cc]
+        print(f"put, congestion control {cc}: of {list(PROBE_MB)} MB, arrived {got}")
+    for r in rows:
+        if "reply_mb" in r:
+            print(f"get of a {r['reply_mb']:g} MB reply: {r['got'] or 'nothing'} after "
+                  f"{r['s']:.1f} s")
+    robot_router.send_signal(signal.SIGINT)
+    log, err = robot_router.communicate(timeout=10)
+    closed = [ln for ln in (log + err).splitlines() if "Closing transport" in ln]
+    print("robot router:", closed[0].strip() if closed else "no transport closed")
+
+
 def _rate_bits(rate: str) -> float:
     """A tc rate ("20mbit", "5mbit", "800kbit") in bits per second."""
     units = {"kbit": 1e3, "mbit": 1e6, "gbit": 1e9}
@@ -310,7 +381,8 @@ def _rate_bits(rate: str) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--role", default="main",
-                        choices=("main", "publish", "full", "fullpull", "summary"))
+                        choices=("main", "publish", "full", "fullpull", "summary",
+                                 "probe_put", "probe_get"))
     parser.add_argument("--n", type=int, default=1000, help="features in the map")
     parser.add_argument("--port", type=int, default=PORT, help="roles: the local router's port")
     parser.add_argument("--seconds", type=float, default=40.0, help="length of each phase")
@@ -321,12 +393,16 @@ def main() -> None:
                         help="states/s published in phase (a) (0: --rate)")
     parser.add_argument("--no-shm", action="store_true",
                         help="the publisher puts plain bytes, never shared memory")
+    parser.add_argument("--probe", action="store_true",
+                        help="only probe the link: plain Zenoh puts (drop / block) and "
+                             "replies of growing size")
     parser.add_argument("--viewer", action="store_true",
                         help="also run the viewer with --source summary (phase c)")
     args = parser.parse_args()
     if args.role != "main":
         {"publish": role_publish, "full": role_full, "fullpull": role_fullpull,
-         "summary": role_summary}[args.role](args)
+         "summary": role_summary, "probe_put": role_probe_put,
+         "probe_get": role_probe_get}[args.role](args)
         return
 
     from tests.netns import available, make_hosts
@@ -349,6 +425,9 @@ def main() -> None:
                                      f"tcp/{h.workstation_ip}:{PORT}")
         procs.append(robot_router)
         _wait_line(robot_router, "router ready")
+        if args.probe:
+            _probe(h, args, robot_router)
+            return
         summary = _netns_python(h.robot, "-m", "services", "summary", "--robot", ROBOT,
                                 "--connect", f"tcp/127.0.0.1:{PORT}")
         procs.append(summary)
