@@ -360,11 +360,13 @@ class Intake:
                        Queue("health", self._on_input))
             regs = {c.name: _RegistrationInput(Latest(on_put=self._on_input))
                     for c in self._cameras.values()}
+        puller = None
         if self.source == "summary":  # pulled, one query at a time (its own thread)
             puller = SummaryPuller(self.bus, k.summary(robot), self._summary_query,
                                    lambda p, t: r.state_slot.put(Raw(p, t)),
                                    name=f"viewer-summary-{robot}")
-            self._pullers.append(puller)
+            with self._lock:
+                self._pullers.append(puller)
         else:
             self.bus.subscribe(k.state(robot), _store(r.state_slot))
         self.bus.subscribe(k.health(robot), lambda _key, p: r.health_queue.offer(p))
@@ -377,8 +379,8 @@ class Intake:
                 self._cameras[name].registrations[robot] = reg
             self._added.append(robot)
         self._late_join(r, regs)
-        if self.source == "summary":
-            self._pullers[-1].start()
+        if puller is not None:
+            puller.start()
         self._on_input()
         return True
 
@@ -426,9 +428,11 @@ class Intake:
     def stop(self) -> None:
         self._stop.set()
         self._decode_wake.set()
-        for puller in self._pullers:  # all told first; a query in flight ends with the bus
+        with self._lock:
+            pullers = list(self._pullers)
+        for puller in pullers:  # all told first; a query in flight ends with the bus
             puller.stop(timeout=0.0)
-        for puller in self._pullers:
+        for puller in pullers:
             puller.stop(timeout=0.5)
         for thread in self._threads:
             thread.join(timeout=5.0)
