@@ -36,11 +36,11 @@ def _service(make_client, **settings) -> tuple[SummaryService, threading.Event,
 def _publish(make_client):
     bus = make_client()
     pub = bus.publisher(KEYS.state("r1"), cache=4)
-    assert bus.wait_for_subscriber(KEYS.state("r1"), timeout=10.0)
+    assert bus.wait_for_subscriber(KEYS.state("r1"), timeout=30.0)
     return bus, pub
 
 
-def _wait_received(service: SummaryService, count: int, timeout: float = 10.0) -> None:
+def _wait_received(service: SummaryService, count: int, timeout: float = 30.0) -> None:
     deadline = time.monotonic() + timeout
     while service.received < count:
         assert time.monotonic() < deadline, f"only {service.received} states arrived"
@@ -56,7 +56,7 @@ def test_the_answer_is_the_newest_state_s_summary(make_client) -> None:
         _wait_received(service, 3)
         client = make_client()
         replies = client.get(KEYS.summary("r1") + "?what=clusters;threshold=0.6",
-                             timeout=10.0)
+                             timeout=30.0)
         assert len(replies) == 1
         s = StateSummary.from_bytes(replies[0].payload)
         state = consistent_state(30, seq=3, seed=3)
@@ -109,21 +109,21 @@ def test_bad_parameters_get_an_error_reply_and_the_service_goes_on(make_client) 
     try:
         client = make_client()
         errors: list[bytes] = []
-        assert client.get(KEYS.summary("r1") + "?what=everything", timeout=10.0,
+        assert client.get(KEYS.summary("r1") + "?what=everything", timeout=30.0,
                           errors=errors) == []
         assert len(errors) == 1 and "what='everything'" in error_text(errors[0])
         errors.clear()
-        assert client.get(KEYS.summary("r1") + "?what=blocks", timeout=10.0,
+        assert client.get(KEYS.summary("r1") + "?what=blocks", timeout=30.0,
                           errors=errors) == []
         assert "no state of robot r1 yet" in error_text(errors[0])
         _, pub = _publish(make_client)
         pub.put(consistent_state(12, seq=5).to_bytes())
         _wait_received(service, 1)
         errors.clear()
-        assert client.get(KEYS.summary("r1") + "?feature=999", timeout=10.0,
+        assert client.get(KEYS.summary("r1") + "?feature=999", timeout=30.0,
                           errors=errors) == []
         assert "feature 999 is not in the map" in error_text(errors[0])
-        replies = client.get(KEYS.summary("r1") + "?what=blocks", timeout=10.0)
+        replies = client.get(KEYS.summary("r1") + "?what=blocks", timeout=30.0)
         assert StateSummary.from_bytes(replies[0].payload).seq == 5
         assert service.refused == 3 and service.drops.total == 3
     finally:
@@ -140,7 +140,7 @@ def test_the_summary_process_answers_and_exits_cleanly(router_endpoint, make_cli
         client = make_client()
         deadline = time.monotonic() + 30.0
         while True:  # the state may reach it just after the query: ask until it has one
-            replies = client.get(KEYS.summary("r1") + "?what=clusters", timeout=10.0)
+            replies = client.get(KEYS.summary("r1") + "?what=clusters", timeout=30.0)
             if replies:
                 break
             assert time.monotonic() < deadline, "no summary from the process"
@@ -164,7 +164,7 @@ def test_malformed_states_are_dropped_counted_and_the_service_goes_on(make_clien
         pub.put(b"\x93not a state")
         _wait_received(service, 1)
         errors: list[bytes] = []
-        assert client.get(KEYS.summary("r1") + "?what=blocks", timeout=10.0,
+        assert client.get(KEYS.summary("r1") + "?what=blocks", timeout=30.0,
                           errors=errors) == []
         assert "no state of robot r1 yet" in error_text(errors[0])
         other = consistent_state(5, seq=2)
@@ -173,13 +173,13 @@ def test_malformed_states_are_dropped_counted_and_the_service_goes_on(make_clien
             "robot": "someone-else"}).to_bytes())
         _wait_received(service, 2)
         errors.clear()
-        assert client.get(KEYS.summary("r1") + "?what=blocks", timeout=10.0,
+        assert client.get(KEYS.summary("r1") + "?what=blocks", timeout=30.0,
                           errors=errors) == []
         assert "no state of robot r1 yet" in error_text(errors[0])
         assert service.drops.counts["SlamState"] == 1 and service.drops.counts["robot"] == 1
         pub.put(consistent_state(5, seq=3).to_bytes())
         _wait_received(service, 3)
-        replies = client.get(KEYS.summary("r1") + "?what=blocks", timeout=10.0)
+        replies = client.get(KEYS.summary("r1") + "?what=blocks", timeout=30.0)
         assert StateSummary.from_bytes(replies[0].payload).seq == 3
     finally:
         halt.set()
