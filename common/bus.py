@@ -22,6 +22,9 @@ Delivery (SPEC §7a: producers never wait for consumers, and nothing is lost):
   cached before the subscriber existed. ``channel(key, latest_wins=True)`` keeps only the
   newest sample (a consumer that only draws the present).
 * ``serve_latest(key, provider)`` answers ``get`` with whatever ``provider()`` returns now.
+  ``answer(key, handler)`` answers with what the handler decides on Zenoh's thread;
+  ``answer_later(key, handler)`` hands the query to the handler with a :class:`Reply` that
+  any thread may complete later (a long poll, or work too heavy for a Zenoh callback).
 * Each :class:`Sample` carries its Zenoh timestamp (``source``: the publishing session,
   ``time``: its hybrid logical clock, NTP64), which orders one session's publications.
 """
@@ -41,6 +44,8 @@ from typing import Any, Protocol
 log = logging.getLogger(__name__)
 
 Callback = Callable[[str, bytes], None]
+#: a lazy subscriber's callback: (key, a function returning the payload's bytes when called)
+LazyCallback = Callable[[str, Callable[[], bytes]], None]
 #: a queryable's handler: (key, query payload or None, selector parameters) → reply or None
 Answer = Callable[[str, "bytes | None", str], "bytes | None"]
 
@@ -88,6 +93,26 @@ class Sample:
 
 class Publisher(Protocol):
     def put(self, payload: bytes) -> None: ...
+
+
+class Reply(Protocol):
+    """The answer to one query, given once, from any thread (``answer_later``)."""
+
+    def ok(self, payload: bytes) -> None:
+        """Answer with ``payload`` and end the query."""
+        ...
+
+    def error(self, payload: bytes) -> None:
+        """Answer with an error (Zenoh's ``reply_err``) and end the query."""
+        ...
+
+    @property
+    def done(self) -> bool: ...
+
+
+#: a deferred queryable's handler: (key, query payload or None, parameters, reply); it runs
+#: on Zenoh's thread, so it only stores the reply for a worker (or completes it at once)
+LaterAnswer = Callable[[str, "bytes | None", str, Reply], None]
 
 
 class Channel(Protocol):
@@ -141,8 +166,12 @@ class Bus(Protocol):
 
     def answer(self, key: str, handler: Answer) -> Any: ...
 
-    def get(self, key: str, *, timeout: float = 2.0, payload: bytes | None = None
-            ) -> list[Sample]: ...
+    def answer_later(self, key: str, handler: LaterAnswer) -> Any: ...
+
+    def subscribe_lazy(self, key: str, callback: LazyCallback) -> Any: ...
+
+    def get(self, key: str, *, timeout: float = 2.0, payload: bytes | None = None,
+            errors: list[bytes] | None = None) -> list[Sample]: ...
 
     def declare_alive(self, key: str) -> Any: ...
 
@@ -401,6 +430,41 @@ class _CachingPublisher:
         self._pub.undeclare()
 
 
+class _ZenohReply:
+    """A :class:`Reply` holding a Zenoh query until it is answered (then dropped: the
+    final reply goes out)."""
+
+    def __init__(self, query: Any, key: str) -> None:
+        self._query: Any = query
+        self._key = key
+        self._lock = threading.Lock()
+
+    @property
+    def done(self) -> bool:
+        return self._query is None
+
+    def _finish(self, send: Callable[[Any], None]) -> None:
+        with self._lock:
+            query, self._query = self._query, None
+        if query is None:
+            return
+        try:
+            send(query)
+        except Exception as exc:  # the client gave up, or the session closed
+            log.debug("reply on %s not sent: %s", self._key, exc)
+        finally:
+            try:
+                query.drop()
+            except Exception:
+                pass
+
+    def ok(self, payload: bytes) -> None:
+        self._finish(lambda q: q.reply(self._key, payload))
+
+    def error(self, payload: bytes) -> None:
+        self._finish(lambda q: q.reply_err(payload))
+
+
 class ZenohBus:
     """A :class:`Bus` on one Zenoh session; closes everything it declared on ``close``."""
 
@@ -467,6 +531,18 @@ class ZenohBus:
             try:
                 callback(str(sample.key_expr), sample.payload.to_bytes())
             except Exception:  # never let a callback kill zenoh's thread silently
+                log.exception("subscriber callback for %s failed", key)
+
+        return self._keep(self.session.declare_subscriber(key, on_sample))
+
+    def subscribe_lazy(self, key: str, callback: LazyCallback) -> Any:
+        """As :meth:`subscribe`, but the callback gets a function that copies the payload
+        only when called: a consumer that keeps only the newest of large payloads (a
+        32 MB state at 100 per second) pays for the ones it uses."""
+        def on_sample(sample: Any) -> None:
+            try:
+                callback(str(sample.key_expr), sample.payload.to_bytes)
+            except Exception:
                 log.exception("subscriber callback for %s failed", key)
 
         return self._keep(self.session.declare_subscriber(key, on_sample))
@@ -544,14 +620,33 @@ class ZenohBus:
 
         return self._keep(self.session.declare_queryable(key, on_query))
 
-    def get(self, key: str, *, timeout: float = 2.0, payload: bytes | None = None
-            ) -> list[Sample]:
+    def answer_later(self, key: str, handler: LaterAnswer) -> Any:
+        """Hand every ``get`` on ``key`` to ``handler(key, payload, parameters, reply)``
+        on Zenoh's thread; whoever holds ``reply`` completes it later, from any thread
+        (the query stays open until then, or until the client's timeout). A handler that
+        raises answers an error with its text."""
+        def on_query(query: Any) -> None:
+            reply = _ZenohReply(query, key)
+            try:
+                payload = query.payload.to_bytes() if query.payload is not None else None
+                handler(str(query.key_expr), payload, str(query.parameters), reply)
+            except Exception as exc:
+                log.exception("queryable %s failed", key)
+                reply.error(str(exc).encode())
+
+        return self._keep(self.session.declare_queryable(key, on_query))
+
+    def get(self, key: str, *, timeout: float = 2.0, payload: bytes | None = None,
+            errors: list[bytes] | None = None) -> list[Sample]:
+        """The replies to a query; error replies are appended to ``errors`` if given."""
         out = []
         replies = (self.session.get(key, timeout=timeout) if payload is None
                    else self.session.get(key, payload=payload, timeout=timeout))
         for reply in replies:
             if reply.ok is not None:
                 out.append(Sample(str(reply.ok.key_expr), reply.ok.payload.to_bytes()))
+            elif errors is not None and reply.err is not None:
+                errors.append(reply.err.payload.to_bytes())
         return out
 
     def declare_alive(self, key: str) -> Any:
@@ -598,6 +693,32 @@ def _intersects(a: str, b: str) -> bool:
     return bool(zenoh.KeyExpr(a).intersects(zenoh.KeyExpr(b)))
 
 
+class _InProcessReply:
+    """A :class:`Reply` that the in-process ``get`` waits on."""
+
+    def __init__(self) -> None:
+        self._event = threading.Event()
+        self.ok_payload: bytes | None = None
+        self.err_payload: bytes | None = None
+
+    @property
+    def done(self) -> bool:
+        return self._event.is_set()
+
+    def ok(self, payload: bytes) -> None:
+        if not self._event.is_set():
+            self.ok_payload = bytes(payload)
+            self._event.set()
+
+    def error(self, payload: bytes) -> None:
+        if not self._event.is_set():
+            self.err_payload = bytes(payload)
+            self._event.set()
+
+    def wait(self, timeout: float) -> bool:
+        return self._event.wait(timeout)
+
+
 class InProcessBus:
     """A synchronous bus inside one process: ``put`` delivers before it returns.
 
@@ -611,6 +732,7 @@ class InProcessBus:
         self._subs: list[tuple[str, Callable[[Sample], None]]] = []
         self._queryables: list[tuple[str, Callable[[], bytes | None]]] = []
         self._answerers: list[tuple[str, Answer]] = []
+        self._later: list[tuple[str, LaterAnswer]] = []
         self._alive: set[str] = set()
         self._clock = 0
         self._lock = threading.Lock()
@@ -635,6 +757,11 @@ class InProcessBus:
 
     def subscribe(self, key: str, callback: Callback) -> Any:
         entry = (key, lambda s: callback(s.key, s.payload))
+        self._subs.append(entry)
+        return entry
+
+    def subscribe_lazy(self, key: str, callback: LazyCallback) -> Any:
+        entry = (key, lambda s: callback(s.key, lambda: s.payload))
         self._subs.append(entry)
         return entry
 
@@ -665,8 +792,13 @@ class InProcessBus:
         self._answerers.append(entry)
         return entry
 
-    def get(self, key: str, *, timeout: float = 2.0, payload: bytes | None = None
-            ) -> list[Sample]:
+    def answer_later(self, key: str, handler: LaterAnswer) -> Any:
+        entry = (key, handler)
+        self._later.append(entry)
+        return entry
+
+    def get(self, key: str, *, timeout: float = 2.0, payload: bytes | None = None,
+            errors: list[bytes] | None = None) -> list[Sample]:
         out = []
         for pattern, provider in self._queryables:
             if _intersects(pattern, key.partition("?")[0]):
@@ -679,6 +811,19 @@ class InProcessBus:
                 reply = handler(base, payload, parameters)
                 if reply is not None:
                     out.append(Sample(pattern, reply))
+        deadline = time.monotonic() + timeout
+        for pattern, later in self._later:
+            if _intersects(pattern, base):
+                pending = _InProcessReply()
+                try:
+                    later(base, payload, parameters, pending)
+                except Exception as exc:
+                    pending.error(str(exc).encode())
+                if pending.wait(max(0.0, deadline - time.monotonic())):
+                    if pending.ok_payload is not None:
+                        out.append(Sample(pattern, pending.ok_payload))
+                    elif errors is not None and pending.err_payload is not None:
+                        errors.append(pending.err_payload)
         return out
 
     def declare_alive(self, key: str) -> Any:

@@ -59,6 +59,10 @@ class Keys:
     def health(self, robot: str) -> str:
         return self.robot(robot, "health")
 
+    def summary(self, robot: str) -> str:
+        """The queryable of what a remote viewer draws (docs/remote_viewers.md)."""
+        return self.robot(robot, "summary")
+
     def tracked(self, robot: str) -> str:
         """Every camera's measured pose of ``robot`` (issue 3, fields as Truth): the key
         expression to subscribe to. A camera publishes on :meth:`tracked_by` — under its own

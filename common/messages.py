@@ -449,6 +449,110 @@ class SlamState(Message):
         return state
 
 
+_F4: dict[str, Any] = {"kind": "array", "dtype": "<f4"}
+SUMMARY_WHATS = ("blocks", "clusters", "pairs")
+
+
+@dataclass(frozen=True, eq=False)
+class StateSummary(Message):
+    """What a remote viewer draws of one ``SlamState``, not the whole matrix (issue 13;
+    key ``robot/R/summary``, a queryable; docs/protocol.md, docs/remote_viewers.md).
+
+    Always the map's blocks (pose and its 3×3 covariance, each feature's mean and 2×2
+    marginal covariance); with ``what = "clusters"`` the min / mean / max of the relative
+    covariances P_d = P_ii + P_jj − P_ij − P_ji between every two groups of features; with
+    ``what = "pairs"`` the P_d of every pair of one cluster, or of one feature. Reals are
+    float32 on the wire but for ``pose`` and the stamps; indices are into the state's
+    landmarks (``landmark_ids`` order)."""
+
+    TYPE: ClassVar[str] = "StateSummary"
+    robot: str = _scalar("str", "robot name")
+    seq: int = _scalar("int", "seq of the state summarised")
+    stamp: float = _scalar("float", "its stamp, s")
+    step: str = _scalar("str", "its step: init / predict / update", choices=STEPS)
+    pose: np.ndarray = _arr(_F8, (3,), "estimated robot pose (x m, y m, θ rad), map frame")
+    pose_covariance: np.ndarray = _arr(_F4, (3, 3), "its covariance P_vv (m², m·rad, rad²)")
+    landmark_ids: np.ndarray = _arr(_I8, (None,), "landmark ids int64[n], state order")
+    landmarks: np.ndarray = _arr(_F4, (None, 2), "feature means float32[n,2], m, map frame")
+    landmark_covariances: np.ndarray = _arr(_F4, (None, 2, 2),
+                                            "marginal covariances P_ii float32[n,2,2], m²")
+    epoch: int = _scalar("int", "its map epoch (uint64; 0 = unknown)", range=_UINT64,
+                         default=0)
+    input_stamp: float | None = _scalar("float", "its input_stamp, s", optional=True)
+    what: str = _scalar("str", "what it holds beyond the blocks: blocks / clusters / pairs",
+                        choices=SUMMARY_WHATS, default="blocks")
+    state_bytes: int = _scalar("int", "size of the full state's payload summarised, bytes",
+                               default=0, range=_UINT64)
+    cluster_threshold_m: float | None = _scalar(
+        "float", "clusters: the single-linkage cut used, m", optional=True)
+    cluster_count: int | None = _scalar(
+        "int", "clusters: the cluster count asked for (0 = cut at the threshold)",
+        optional=True, range=(0, 2 ** 31 - 1))
+    tile_m: float | None = _scalar(
+        "float", "clusters: the groups are square map tiles of this side, m (the budget "
+        "rule); absent: they are the clusters", optional=True)
+    groups: np.ndarray | None = _arr(
+        _I8, (None,), "clusters, pairs: group per landmark int64[n]: stable cluster id "
+        "(or tile id with tile_m)", optional=True)
+    group_pairs: np.ndarray | None = _arr(_I8, (None, 2), "clusters: (A, B) group ids, A < "
+                                          "B, int64[c,2]", optional=True)
+    pair_count: np.ndarray | None = _arr(_I8, (None,), "clusters: feature pairs between A "
+                                         "and B, int64[c]", optional=True)
+    min_pair: np.ndarray | None = _arr(_I8, (None, 2), "clusters: landmark indices (i < j) "
+                                       "of the smallest P_d (by √λmax), int64[c,2]",
+                                       optional=True)
+    max_pair: np.ndarray | None = _arr(_I8, (None, 2), "clusters: those of the largest",
+                                       optional=True)
+    min_Pd: np.ndarray | None = _arr(_F4, (None, 2, 2), "clusters: the smallest P_d, m²",
+                                     optional=True)
+    mean_Pd: np.ndarray | None = _arr(_F4, (None, 2, 2), "clusters: the element-wise mean "
+                                      "P_d over the pairs between A and B, m²", optional=True)
+    max_Pd: np.ndarray | None = _arr(_F4, (None, 2, 2), "clusters: the largest P_d, m²",
+                                     optional=True)
+    selected_cluster: int | None = _scalar("int", "pairs: the cluster whose pairs these are",
+                                           optional=True)
+    selected_feature: int | None = _scalar("int", "pairs: the feature id whose pairs these "
+                                           "are", optional=True)
+    pairs: np.ndarray | None = _arr(_I8, (None, 2), "pairs: landmark indices (i < j), "
+                                    "int64[m,2]", optional=True)
+    pairs_Pd: np.ndarray | None = _arr(_F4, (None, 2, 2), "pairs: their P_d, m²",
+                                       optional=True)
+    pairs_total: int | None = _scalar("int", "pairs: how many there were before the cap "
+                                      "(the largest are kept)", optional=True, range=_UINT64)
+    compute_s: float | None = _scalar("float", "robot side: time to make it, s",
+                                      optional=True)
+
+    @property
+    def n(self) -> int:
+        return int(self.landmark_ids.shape[0])
+
+    def _check(self) -> None:
+        n = self.n
+        for name in ("landmarks", "landmark_covariances", "groups"):
+            _count_check(self.TYPE, name, getattr(self, name), n, "one per landmark id")
+        c = None if self.group_pairs is None else self.group_pairs.shape[0]
+        for name in ("pair_count", "min_pair", "max_pair", "min_Pd", "mean_Pd", "max_Pd"):
+            value = getattr(self, name)
+            if (value is None) != (c is None):
+                raise MessageError(self.TYPE, name, "present with group_pairs",
+                                   "missing" if value is None else "without group_pairs")
+            _count_check(self.TYPE, name, value, c or 0, "one per group pair")
+        m = None if self.pairs is None else self.pairs.shape[0]
+        if (self.pairs_Pd is None) != (m is None):
+            raise MessageError(self.TYPE, "pairs_Pd", "present with pairs", "alone")
+        _count_check(self.TYPE, "pairs_Pd", self.pairs_Pd, m or 0, "one per pair")
+        for name in ("min_pair", "max_pair", "pairs"):
+            value = getattr(self, name)
+            if value is not None and value.size and (value.min() < 0 or value.max() >= n):
+                raise MessageError(self.TYPE, name, f"landmark indices in [0, {n})",
+                                   f"[{int(value.min())}, {int(value.max())}]")
+        if self.what == "clusters" and (self.groups is None or self.group_pairs is None):
+            raise MessageError(self.TYPE, "groups", "groups and group_pairs (what = "
+                               "clusters)", "missing")
+        if self.what == "pairs" and self.pairs is None:
+            raise MessageError(self.TYPE, "pairs", "present (what = pairs)", "missing")
+
+
 @dataclass(frozen=True)
 class Violation:
     """One broken expectation found by the monitor (an entry of ``Health.violations``)."""
@@ -661,5 +765,5 @@ def peek_fields(payload: bytes | bytearray | memoryview,
 
 MESSAGE_TYPES: tuple[type[Message], ...] = (
     Odometry, Observations, Truth, SlamState, Health, CameraFrame, Registration, CameraPose,
-    CameraControl, ServiceStatus,
+    CameraControl, ServiceStatus, StateSummary,
 )

@@ -86,7 +86,7 @@ def role_name(service: str, *, robot: str | None = None, camera: str | None = No
     when it runs without ``--secure``."""
     first_robot = (robot or "").split(",")[0]
     first_camera = (camera or "").split(",")[0]
-    if service in ("sim", "replay", "serial", "estimator") and first_robot:
+    if service in ("sim", "replay", "serial", "estimator", "summary") and first_robot:
         return f"robot-{first_robot}"
     if service == "monitor" and first_robot:
         return f"monitor-{first_robot}"

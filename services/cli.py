@@ -51,6 +51,8 @@ COMMANDS: dict[str, Command] = {
                       "services.slam.settings:SerialSettings"),
     "monitor": Command("services.slam.cli", "the covariance behaviour monitor",
                        "services.slam.settings:MonitorSettings"),
+    "summary": Command("services.slam.cli", "what remote viewers draw of the newest state, "
+                       "on request (issue 13)", "services.slam.settings:SummarySettings"),
     "tune": Command("services.slam.cli", "noise settings fitted to runs with ground truth",
                     "services.slam.settings:TuneSettings", bus=False),
     "registration": Command("services.registration.cli",

@@ -30,6 +30,7 @@ from common.messages import (
     Registration,
     ServiceStatus,
     SlamState,
+    StateSummary,
     Truth,
     Violation,
 )
@@ -73,6 +74,16 @@ def valid(kind: type[Message], *, robot: str = "robot1", camera: str = "cam1",
                              version="0", started=1.0, uptime_s=2.0, state="running",
                              robot=robot, epoch=7, counts={"states": 3.0},
                              rates={"states": 1.5})
+    if kind is StateSummary:
+        return StateSummary(robot=robot, seq=seq, stamp=1.0, step="update", pose=np.zeros(3),
+                            pose_covariance=np.eye(3) * 0.01, landmark_ids=np.array([1, 2]),
+                            landmarks=np.ones((2, 2)),
+                            landmark_covariances=np.stack([np.eye(2) * 0.01] * 2), epoch=7,
+                            what="clusters", cluster_threshold_m=0.6, cluster_count=0,
+                            groups=np.array([0, 1]), group_pairs=np.array([[0, 1]]),
+                            pair_count=np.array([1]), min_pair=np.array([[0, 1]]),
+                            max_pair=np.array([[0, 1]]), min_Pd=np.eye(2)[None] * 0.02,
+                            mean_Pd=np.eye(2)[None] * 0.02, max_Pd=np.eye(2)[None] * 0.02)
     raise TypeError(kind)
 
 

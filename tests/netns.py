@@ -103,6 +103,16 @@ def two_hosts():
         hosts.remove()
 
 
+def own_shm(argv: list[str]) -> list[str]:
+    """``argv`` with a mount namespace of its own and an empty /dev/shm (run it inside
+    ``ip netns exec``). Network namespaces share the host's /dev/shm, and Zenoh hands a
+    shared-memory buffer across a link by reference when both ends can map it — so a
+    "remote" process would get large payloads without them crossing the link. Two real
+    hosts share no memory; a workstation started this way is one."""
+    return ["unshare", "--mount", "--propagation", "private", "sh", "-c",
+            'mount -t tmpfs -o size=2g slamlens-shm /dev/shm && exec "$@"', "sh", *argv]
+
+
 def curl_json(ns: str, url: str, timeout: float = 5.0) -> dict | None:
     """GET ``url`` from inside namespace ``ns`` (None if it does not answer)."""
     import json

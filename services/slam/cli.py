@@ -1,4 +1,5 @@
-"""Commands of the SLAM side: ``sim``, ``estimator``, ``replay``, ``serial``, ``monitor``.
+"""Commands of the SLAM side: ``sim``, ``estimator``, ``replay``, ``serial``, ``monitor``,
+``summary``.
 
 Each command: its settings (:mod:`services.slam.settings`) from ``--config FILE`` with the
 flags over it, a bus from the common flags, the service's ``run`` until SIGINT/SIGTERM (or
@@ -31,6 +32,7 @@ from services.slam.settings import (
     ReplaySettings,
     SerialSettings,
     SimSettings,
+    SummarySettings,
     TuneSettings,
 )
 
@@ -40,7 +42,8 @@ log = logging.getLogger("slamlens")
 def run(command: str, args: argparse.Namespace) -> int:
     setup_logging(args, command)
     return {"sim": _run_sim, "estimator": _run_estimator, "replay": _run_replay,
-            "serial": _run_serial, "monitor": _run_monitor, "tune": _run_tune}[command](args)
+            "serial": _run_serial, "monitor": _run_monitor, "tune": _run_tune,
+            "summary": _run_summary}[command](args)
 
 
 def _estimator_ready(out: Any, stop: threading.Event, s: SimSettings | ReplaySettings) -> bool:
@@ -285,6 +288,32 @@ def _run_monitor(args: argparse.Namespace) -> int:
         service.run(stop)
         print(f"monitor verdict: {_verdict_sentence(service.summary())}", flush=True)
         print(f"monitor stopped: {json.dumps(service.summary())}", flush=True)
+    finally:
+        bus.close()
+    return 0
+
+
+def _run_summary(args: argparse.Namespace) -> int:
+    _one_blas_thread()
+    from services.slam.summary_service import SummaryService
+
+    settings = settings_from_args(SummarySettings, args)
+    stop = stop_event()
+    bus = open_bus(bus_settings(args))
+    try:
+        service = SummaryService(bus, keys=keys_from(args), robot=settings.robot,
+                                 settings=settings)
+
+        def status() -> Report:
+            s = service.summary()
+            return Report(counts=counts_of(s, "answered", "made", "shared", "refused",
+                                           "received", "decoded"),
+                          dropped=int(s["dropped"]))  # type: ignore[call-overload]
+
+        announce(bus, args, "summary", status, robot=settings.robot)
+        print("summary ready", flush=True)
+        service.run(stop)
+        print(f"summary stopped: {json.dumps(service.summary())}", flush=True)
     finally:
         bus.close()
     return 0

@@ -388,3 +388,27 @@ class MonitorSettings:
         20, doc="Health lists at most this many violations per kind (the largest); counts are "
                 "in the statistics (pairs_growing …) and the blame uses all of them", min=1,
         group=_BLAME)
+
+
+@dataclass(frozen=True)
+class SummarySettings:
+    """``slamlens summary``: remote viewers' summaries of the newest state (docs/remote_viewers.md).
+
+    It answers the queryable ``robot/R/summary`` (docs/protocol.md)."""
+
+    robot: str = _robot()
+    hold_s: float = setting(
+        2.0, doc="a query with after=SEQ waits up to this long for a newer state, then gets "
+                 "the newest anyway (the long poll; a client's timeout must be longer)",
+        unit="s", min=0.0, max=60.0)
+    cache: int = setting(16, doc="summaries kept (per state and query): viewers that ask the "
+                                 "same share one computation", min=1)
+    max_pending: int = setting(256, doc="queries held at once; more are answered 'busy'",
+                               min=1)
+    max_group_pairs: int = setting(
+        20_000, doc="a clusters answer of more group pairs than this is refused (ask with a "
+                    "glyph budget: the groups then become map tiles)", min=1)
+    max_pairs: int = setting(
+        50_000, doc="a pairs answer of more pairs than this is refused (ask with a glyph "
+                    "budget: then its largest); an answer must cross a slow link in a few "
+                    "seconds", min=1)

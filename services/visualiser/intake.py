@@ -45,9 +45,12 @@ from common.errors import MessageError
 from common.keys import Keys
 from common.latest import Latest
 from common.messages import CameraFrame, Health, Registration, SlamState, Truth
+from common.summary import SummaryQuery
+from common.summary_pull import SummaryPuller
 from common.verdict import violation_text
 from services.visualiser.camera_model import CameraModel
 from services.visualiser.jpeg import JpegError, jpeg_size
+from services.visualiser.summary_view import decode_summary_state
 
 log = logging.getLogger("slamlens.viewer")
 
@@ -292,8 +295,14 @@ class Intake:
     def __init__(self, bus: Bus, *, keys: Keys, robots: tuple[str, ...],
                  cameras: tuple[str, ...], fps: float, late_join_timeout_s: float,
                  on_input: Callable[[], None], drops: DropCounter,
-                 discover: bool = False, max_frame_pixels: int = 16_777_216) -> None:
+                 discover: bool = False, max_frame_pixels: int = 16_777_216,
+                 source: str = "state", summary_query: SummaryQuery | None = None) -> None:
         self.bus = bus
+        #: "state": subscribe to each robot's full state; "summary": pull its summary
+        #: stream instead (docs/remote_viewers.md); either fills the robot's state slot
+        self.source = source
+        self._summary_query = summary_query or SummaryQuery(what="clusters")
+        self._pullers: list[SummaryPuller] = []
         self.max_frame_pixels = max_frame_pixels  #: frames claiming more are not decoded
         self.keys = keys
         self.bad = drops  #: malformed input messages, by input
@@ -361,7 +370,15 @@ class Intake:
                        Queue("health", self._on_input))
             regs = {c.name: _RegistrationInput(Latest(on_put=self._on_input))
                     for c in self._cameras.values()}
-        self.bus.subscribe(k.state(robot), _store(r.state_slot))
+        puller = None
+        if self.source == "summary":  # pulled, one query at a time (its own thread)
+            puller = SummaryPuller(self.bus, k.summary(robot), self._summary_query,
+                                   lambda p, t: r.state_slot.put(Raw(p, t)),
+                                   name=f"viewer-summary-{robot}")
+            with self._lock:
+                self._pullers.append(puller)
+        else:
+            self.bus.subscribe(k.state(robot), _store(r.state_slot))
         self.bus.subscribe(k.health(robot), lambda _key, p: r.health_queue.offer(p))
         self.bus.subscribe(k.tracked(robot), _store(r.tracked_slot))
         for name, reg in regs.items():
@@ -372,6 +389,8 @@ class Intake:
                 self._cameras[name].registrations[robot] = reg
             self._added.append(robot)
         self._late_join(r, regs)
+        if puller is not None:
+            puller.start()
         self._on_input()
         return True
 
@@ -381,7 +400,8 @@ class Intake:
         timeout = self._late_join_timeout_s
         if timeout <= 0:
             return
-        wanted = [(self.keys.state(robot.name), robot.state_slot)]
+        wanted = ([] if self.source == "summary"  # the first pull is answered at once
+                  else [(self.keys.state(robot.name), robot.state_slot)])
         wanted += [(self.keys.registration(c, robot.name), reg.slot) for c, reg in regs.items()]
         for key, slot in wanted:
             try:
@@ -418,6 +438,12 @@ class Intake:
     def stop(self) -> None:
         self._stop.set()
         self._decode_wake.set()
+        with self._lock:
+            pullers = list(self._pullers)
+        for puller in pullers:  # all told first; a query in flight ends with the bus
+            puller.stop(timeout=0.0)
+        for puller in pullers:
+            puller.stop(timeout=0.5)
         for thread in self._threads:
             thread.join(timeout=5.0)
 
@@ -578,8 +604,9 @@ class Intake:
         if raw is None:
             return None, False
         # symmetry is the monitor's business: the viewer shows what the estimator sent
-        state = decode("state", raw, lambda b: SlamState.from_bytes(
-            b, check_symmetry=False), self.bad)
+        state = decode("state", raw, decode_summary_state if self.source == "summary"
+                       else lambda b: SlamState.from_bytes(b, check_symmetry=False),
+                       self.bad)
         if state is None:
             return None, False
         if state.robot != r.name:

@@ -34,6 +34,7 @@ from services.visualiser.camera_model import CameraModel
 from services.visualiser.glyphs import ImageEllipses, project_ellipsoids
 from services.visualiser.scene import ROLE_NAMES, ROLE_PAIR, Scene, build_scene, plan_overview
 from services.visualiser.settings import ViewSettings
+from services.visualiser.summary_view import SummarisedState, summary_scene
 
 MAX_PATH_POINTS = 20_000  #: beyond this the older path is thinned (every other point)
 _MAX_TRACKERS = 8  # one per distinct clustering setting in use, oldest dropped
@@ -220,18 +221,21 @@ class Renderer:
         # the clusters: for the clustered modes, a selected cluster, and the glyph budget
         # (a mode whose pairs exceed it draws the min/mean/max overview instead)
         n = state.n
-        over_budget = (settings.glyph_budget > 0 and settings.mode == "all"
-                       and n * (n - 1) // 2 > settings.glyph_budget
-                       and settings.selected_feature is None
-                       and settings.selected_cluster is None)
-        clustered = (settings.mode in ("inter", "minmeanmax") or over_budget
-                     or settings.selected_cluster is not None)
-        cluster_ids = self.cluster_ids(state, settings) if clustered else None
         violating, suspects = _health_sets(health, state) if settings.health else (
             frozenset(), np.zeros(0, np.int64))
-        plan = plan_overview(state, settings, cluster_ids)
-        scene = build_scene(state, settings, cluster_ids=cluster_ids,
-                            violating_pairs=violating, plan=plan)
+        if isinstance(state, SummarisedState):  # --source summary: the robot's picture
+            scene = summary_scene(state, settings, violating)
+        else:
+            over_budget = (settings.glyph_budget > 0 and settings.mode == "all"
+                           and n * (n - 1) // 2 > settings.glyph_budget
+                           and settings.selected_feature is None
+                           and settings.selected_cluster is None)
+            clustered = (settings.mode in ("inter", "minmeanmax") or over_budget
+                         or settings.selected_cluster is not None)
+            cluster_ids = self.cluster_ids(state, settings) if clustered else None
+            plan = plan_overview(state, settings, cluster_ids)
+            scene = build_scene(state, settings, cluster_ids=cluster_ids,
+                                violating_pairs=violating, plan=plan)
         with self._lock:
             key = _overview_key(settings)
             self._overviews[key] = scene.overview

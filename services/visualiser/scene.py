@@ -30,11 +30,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from common import overview
 from common.errors import RenderError
 from common.geometry import all_relative_covariances
 from common.messages import SlamState
 from common.pairs import min_mean_max, pair_size, select_pairs
-from services.visualiser import overview
 from services.visualiser.glyphs import Ellipsoids, ellipsoids_from_pd
 from services.visualiser.settings import ViewSettings
 
@@ -86,7 +86,7 @@ class Overview:
 
 def plan_overview(state: SlamState, settings: ViewSettings,
                   cluster_ids: np.ndarray | None) -> Overview | None:
-    """The glyph budget rule (``services.visualiser.overview``): None when the mode's
+    """The glyph budget rule (``common.overview``): None when the mode's
     pairs fit ``settings.glyph_budget`` (or a feature or a cluster is selected, or the
     budget is 0 = off); else the groups of the min/mean/max overview and the note.
     ``cluster_ids`` (stable, the view's clustering) must be given for every mode here."""
@@ -226,8 +226,7 @@ def _min_mean_max_scene(state: SlamState, settings: ViewSettings, cluster_ids: n
     """Per pair of groups (clusters, or the overview's tiles) a line between their
     centroids and the min / mean / max glyphs (module docstring)."""
     n = state.n
-    ids, xy, P = state.landmark_ids, state.landmarks, state.covariance
-    centroids = _centroids(xy, cluster_ids)
+    ids, P = state.landmark_ids, state.covariance
     if fast:
         # whole-matrix kernel: no per-pair Python work for n(n−1)/2 pairs
         gp = overview.group_min_mean_max(P, cluster_ids)
@@ -268,7 +267,31 @@ def _min_mean_max_scene(state: SlamState, settings: ViewSettings, cluster_ids: n
             group_flag = np.array([(int(a), int(b)) in bad for a, b in groups], dtype=bool)
         min_flag, max_flag = pair_flags[stats.min_pair], pair_flags[stats.max_pair]
         Pd_min, Pd_max = Pd[stats.min_pair], Pd[stats.max_pair]
+    return group_scene(state, settings, cluster_ids, groups=groups, min_ij=min_ij,
+                       max_ij=max_ij, Pd_min=Pd_min, mean_Pd=mean_Pd, Pd_max=Pd_max,
+                       flags=(min_flag, group_flag, max_flag),
+                       selected_missing=selected_missing,
+                       note="" if plan is None else plan.note,
+                       tile_m=None if plan is None else plan.tile_m)
+
+
+def group_scene(state: SlamState, settings: ViewSettings, cluster_ids: np.ndarray, *,
+                groups: np.ndarray, min_ij: np.ndarray, max_ij: np.ndarray,
+                Pd_min: np.ndarray, mean_Pd: np.ndarray, Pd_max: np.ndarray,
+                flags: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+                selected_missing: bool = False, note: str = "",
+                tile_m: float | None = None) -> Scene:
+    """The min / mean / max picture of given per-group-pair statistics (module docstring):
+    ``groups`` (c, 2) group ids, ``min_ij`` / ``max_ij`` (c, 2) landmark indices of the
+    smallest / largest pair and their ``Pd_min`` / ``Pd_max``, ``mean_Pd`` (c, 2, 2);
+    ``flags`` the (min, group, max) violation flags (none: all clear). Also what a
+    viewer draws from a robot's summary (``summary_view``)."""
+    ids, xy = state.landmark_ids, state.landmarks
+    centroids = _centroids(xy, cluster_ids)
     c = len(groups)
+    if flags is None:
+        flags = (np.zeros(c, bool),) * 3
+    min_flag, group_flag, max_flag = flags
     start = np.array([centroids[int(a)] for a in groups[:, 0]]).reshape(-1, 2)
     end = np.array([centroids[int(b)] for b in groups[:, 1]]).reshape(-1, 2)
     Pd3 = np.concatenate([Pd_min, mean_Pd, Pd_max])
@@ -292,6 +315,4 @@ def _min_mean_max_scene(state: SlamState, settings: ViewSettings, cluster_ids: n
                  glyph_clusters=np.tile(groups, (3, 1)).reshape(-1, 2),
                  glyph_size=pair_size(Pd3), glyph_violation=glyph_flags,
                  cluster_ids=cluster_ids, centroids=centroids,
-                 selected_missing=selected_missing,
-                 overview="" if plan is None else plan.note,
-                 tile_m=None if plan is None else plan.tile_m)
+                 selected_missing=selected_missing, overview=note, tile_m=tile_m)

@@ -33,6 +33,7 @@ from common.drops import DropCounter
 from common.errors import ConfigError
 from common.keys import Keys
 from common.messages import CameraControl
+from common.summary import SummaryQuery
 from services.visualiser.api import ViewerApi
 from services.visualiser.clients import ClientRegistry
 from services.visualiser.compose import Composer
@@ -43,6 +44,7 @@ from services.visualiser.render import Renderer
 from services.visualiser.robots import RobotHistories
 from services.visualiser.series import SeriesStore
 from services.visualiser.settings import ViewerConfig, ViewSettings
+from services.visualiser.summary_view import SummarisedState
 from services.visualiser.views import EyeChooser
 
 log = logging.getLogger("slamlens.viewer")
@@ -71,7 +73,12 @@ class ViewerService:
         self.intake = Intake(bus, keys=keys, robots=config.robots, cameras=config.cameras,
                              fps=config.fps, late_join_timeout_s=config.late_join_timeout_s,
                              on_input=self._wake, drops=self.bad, discover=config.discover,
-                             max_frame_pixels=config.max_frame_pixels)
+                             max_frame_pixels=config.max_frame_pixels,
+                             source=config.source,
+                             summary_query=SummaryQuery(
+                                 what="clusters", budget=config.summary_budget,
+                                 threshold_m=ViewSettings().cluster_threshold_m,
+                                 count=ViewSettings().cluster_count))
         self.composer = Composer(self.intake, eyes=self.eyes, histories=self.histories,
                                  failures=self.failures,
                                  restart_note_s=config.restart_note_s)
@@ -155,7 +162,8 @@ class ViewerService:
                 history.renderer.track(state.robot, state.seq, state.pose[:2], state.epoch)
                 history.tracked.add_estimate(state.stamp, state.pose)
                 try:
-                    history.series.add_state(state, now=now)
+                    if not isinstance(state, SummarisedState):  # no cross terms: no P_d
+                        history.series.add_state(state, now=now)
                 except Exception as exc:  # the plots are optional; the picture is not
                     self.failures.drop("plots", f"state seq {state.seq}: {exc!r}")
             if arrived.tracked is not None:

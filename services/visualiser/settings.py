@@ -33,6 +33,7 @@ LAYERS = ("robot", "path", "features", "lines", "ellipsoids", "legend", "labels"
 
 BGR = tuple[int, int, int]
 ALL_ROBOTS = "all"  #: --robot all: every robot whose estimator is alive
+SOURCES = ("state", "summary")  #: --source: the full state, or the summary stream
 #: a host name or IP literal ([…] for IPv6), with an optional port: the Host header's form
 HOST_PATTERN = re.compile(r"^(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+)(:[0-9]{1,5})?$")
 
@@ -186,6 +187,15 @@ class ViewerConfig:
     client_ttl_s: float = setting(5.0, doc="a view nobody streams keeps rendering this long "
                                            "after its last request, then is dropped with its "
                                            "picture", unit="s", min=0.1)
+    source: str = setting(
+        "state", doc="what the viewer takes in of each robot: state = the full state "
+                     "(subscribed); summary = the robot's summary stream (slamlens summary "
+                     "on the robot: the map's blocks and the clustered min/mean/max, pulled "
+                     "at the rate the link sustains; the picture is min/mean/max whatever "
+                     "the mode; docs/remote_viewers.md)", choices=SOURCES)
+    summary_budget: int = setting(
+        2000, doc="with --source summary: the glyph budget the robot's summary is made for "
+                  "(too many clusters for it: map tiles)", min=0)
     late_join_timeout_s: float = setting(2.0, doc="at start, wait this long for the latest "
                                                   "state and registrations (0 = do not ask)",
                                          unit="s", min=0.0)

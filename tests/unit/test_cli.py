@@ -89,6 +89,10 @@ LEGACY_FLAGS = {
                "--quiet", "--secure", "--name", "--timeout", "--verbose", "--zenoh-config"],
     "register": ["--camera", "--connect", "--listen", "--prefix", "--quiet", "--robot",
                  "--secure", "--name", "--timeout", "--verbose", "--zenoh-config"],
+    # issue 13: the summary stream for remote viewers
+    "summary": ["--robot", "--hold-s", "--cache", "--max-pending", "--max-group-pairs",
+                "--max-pairs",
+                "--connect", "--config", "--secure", "--name", "--quiet", "--verbose"],
 }
 
 

@@ -20,6 +20,7 @@ from common.messages import (
     Registration,
     ServiceStatus,
     SlamState,
+    StateSummary,
     Truth,
     Violation,
 )
@@ -56,6 +57,13 @@ SAMPLES = [
                   started=1.7e9, uptime_s=12.5, state="ok", robot="r1", epoch=3,
                   counts={"checked": 120.0, "violations": 0.0}, rates={"checked": 9.5},
                   dropped=1, lost=2),
+    StateSummary(robot="r1", seq=7, stamp=1.5, step="update", pose=[0.1, 0.2, 0.3],
+                 pose_covariance=np.eye(3) * 0.01, landmark_ids=[10, 11, 12],
+                 landmarks=[[0.0, 0.0], [0.1, 0.0], [2.0, 2.0]],
+                 landmark_covariances=np.stack([np.eye(2) * 0.02] * 3), epoch=3,
+                 input_stamp=1.5, what="pairs", cluster_threshold_m=0.6, cluster_count=0,
+                 groups=[0, 0, 1], selected_cluster=0, pairs=[[0, 1]],
+                 pairs_Pd=[[[0.01, 0.0], [0.0, 0.02]]], pairs_total=1, compute_s=0.002),
 ]
 
 

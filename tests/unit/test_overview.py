@@ -1,4 +1,4 @@
-"""Large maps within a glyph budget (services/visualiser/overview.py, scene.plan_overview):
+"""Large maps within a glyph budget (common/overview.py, scene.plan_overview):
 the overview's min / mean / max against a brute-force oracle, the budget rule, map tiles,
 and full detail for a selected feature or cluster."""
 
@@ -7,9 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from common import overview
 from common.geometry import all_relative_covariances, pd_size_m
 from common.messages import SlamState
-from services.visualiser import overview
 from services.visualiser.camera_model import CameraModel
 from services.visualiser.render import Renderer
 from services.visualiser.scene import ROLE_PAIR, build_scene, min_mean_max, plan_overview
