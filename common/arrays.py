@@ -22,10 +22,42 @@ _DTYPES: dict[str, np.dtype] = {}
 MAX_DIMS = 4
 
 
-def encode_array(array: np.ndarray, dtype: str) -> dict[str, Any]:
-    """Encode ``array`` as the SPEC §7 map with the little-endian ``dtype`` given."""
+def encode_array(array: np.ndarray, dtype: str, *, view: bool = False) -> dict[str, Any]:
+    """Encode ``array`` as the SPEC §7 map with the little-endian ``dtype`` given; with
+    ``view`` the data is the array's own memory (its bytearray, or a memoryview), which
+    msgpack packs as the same bin value without a copy first."""
     a = np.ascontiguousarray(array, dtype=np.dtype(dtype))
+    if view and a.nbytes:
+        own = buffer_of(a)
+        return {"dtype": dtype, "shape": list(a.shape),
+                "data": a.data.cast("B") if own is None else own}
     return {"dtype": dtype, "shape": list(a.shape), "data": a.tobytes()}
+
+
+def bytes_backed_array(shape: tuple[int, ...], dtype: str) -> np.ndarray:
+    """A new zeroed, writable array whose memory is a ``bytearray`` (its ``base``).
+
+    A message holding it can be written out by consumers that take only bytes-like
+    objects (Zenoh's shared memory, ``common/bus.py``) without another copy of the array;
+    :func:`buffer_of` gives that bytearray back.
+    """
+    want = np.dtype(dtype)
+    count = math.prod(shape)
+    return np.frombuffer(bytearray(count * want.itemsize), dtype=want).reshape(shape)
+
+
+def buffer_of(array: np.ndarray) -> bytes | bytearray | None:
+    """The ``bytes``/``bytearray`` holding exactly ``array``'s data in order, or None."""
+    root: Any = array
+    while isinstance(root, np.ndarray) and root.base is not None:
+        root = root.base
+    if isinstance(root, memoryview):
+        root = root.obj
+    if isinstance(root, (bytes, bytearray)) and array.flags.c_contiguous \
+            and len(root) == array.nbytes \
+            and np.frombuffer(root, dtype=np.uint8).ctypes.data == array.ctypes.data:
+        return root
+    return None
 
 
 def _describe(value: Any) -> str:
