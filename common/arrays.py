@@ -9,6 +9,7 @@ Every array a message holds is a read-only, C-contiguous copy.
 from __future__ import annotations
 
 import math
+import sys
 from collections.abc import Sequence
 from typing import Any
 
@@ -44,6 +45,39 @@ def bytes_backed_array(shape: tuple[int, ...], dtype: str) -> np.ndarray:
     want = np.dtype(dtype)
     count = math.prod(shape)
     return np.frombuffer(bytearray(count * want.itemsize), dtype=want).reshape(shape)
+
+
+class RecycledBuffers:
+    """:func:`bytes_backed_array` s whose bytearrays are reused once nothing refers to
+    them any more: no message, array or view (CPython's reference count says so).
+
+    A new 32 MB bytearray (a state at n = 1000) is zero-filled and its pages faulted in on
+    first write: ~3 ms and more each, measured; a reused one costs nothing. ``keep`` bounds
+    the buffers held (the oldest are dropped to the garbage collector).
+    """
+
+    def __init__(self, keep: int = 4) -> None:
+        self.keep = keep
+        self._buffers: list[bytearray] = []
+        self.reused = 0  #: arrays served from a recycled buffer
+
+    def array(self, shape: tuple[int, ...], dtype: str) -> np.ndarray:
+        """A writable array of ``shape`` (contents undefined), backed by a bytearray."""
+        want = np.dtype(dtype)
+        size = math.prod(shape) * want.itemsize
+        for k in range(len(self._buffers)):
+            # referred to only by this list (and getrefcount's argument): nothing else can
+            # see it (a numpy view holds a memoryview, which refers to it)
+            if len(self._buffers[k]) == size and sys.getrefcount(self._buffers[k]) <= 2:
+                buf = self._buffers.pop(k)
+                self._buffers.append(buf)  # newest last
+                self.reused += 1
+                return np.frombuffer(buf, dtype=want).reshape(shape)
+        out = bytes_backed_array(shape, dtype)
+        self._buffers.append(buffer_of(out))  # type: ignore[arg-type]
+        if len(self._buffers) > self.keep:
+            del self._buffers[0]
+        return out
 
 
 def buffer_of(array: np.ndarray) -> bytes | bytearray | None:

@@ -17,7 +17,7 @@ from typing import Any
 
 import numpy as np
 
-from common.arrays import bytes_backed_array
+from common.arrays import RecycledBuffers
 from common.errors import EstimationError
 from common.messages import SlamState
 from services.slam import association, ekf, faults
@@ -124,6 +124,7 @@ class Estimator:
         #: robot rows/columns may have changed since (then it is materialised again whole)
         self._published: np.ndarray | None = None
         self._map_dirty = True
+        self._buffers = RecycledBuffers(keep=4)
 
     # -- read-only views ---------------------------------------------------------------
     @property
@@ -324,8 +325,9 @@ class Estimator:
         """The current state as a SlamState message (covariance materialised once)."""
         n = self._n
         N = 3 + 2 * n
-        # backed by a bytearray: shared memory takes it with one copy (common/bus.py)
-        cov = bytes_backed_array((N, N), "<f8")
+        # backed by a bytearray: shared memory takes it with one copy (common/bus.py);
+        # recycled once no message or view of an earlier state holds it any more
+        cov = self._buffers.array((N, N), "<f8")
         previous = self._published
         if not self._map_dirty and previous is not None and previous.shape == (N, N):
             # only predicts since the last state: P_mm is as it was (SPEC §4)

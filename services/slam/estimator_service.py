@@ -176,6 +176,7 @@ class EstimatorService:
         return msgpack.packb({"schema": 1, "robot": state.robot, "seq": state.seq,
                               "stamp": state.stamp, "step": state.step,
                               "epoch": state.epoch, "input_stamp": state.input_stamp,
+                              "n": state.n,
                               "origin_stamp": state.origin_stamp,
                               "dropped": self.drops.total, "lost": self.order.stats.lost},
                              use_bin_type=True)

@@ -370,3 +370,21 @@ def test_published_covariance_is_the_full_symmetric_matrix_after_every_event(
         previous = state
         checked[step] += 1
     assert checked["predict"] > 100 and checked["update"] > 100
+
+
+def test_covariance_buffers_are_recycled_only_when_nothing_holds_them() -> None:
+    """The estimator reuses a covariance buffer of an earlier state only once no state,
+    array or view refers to it: a state kept by a caller never changes under it."""
+    est = Estimator(EstimatorSettings())
+    est.observe(ids=[1, 2, 3], ranges=[1.0, 1.5, 2.0], bearings=[0.2, -0.3, 0.5], stamp=0.1)
+    kept = est.to_state(seq=1, stamp=0.1, step="update")
+    snapshot = np.array(kept.covariance)
+    view = kept.covariance[:, 0:3]  # the robot columns: every predict changes them
+    del kept
+    for k in range(10):  # nothing holds these: their buffers go round
+        est.predict(v=0.2, w=0.1, dt=0.1, stamp=0.2 + 0.1 * k)
+        state = est.to_state(seq=2 + k, stamp=0.2 + 0.1 * k, step="predict")
+        assert not np.shares_memory(state.covariance, view)
+        del state
+    assert est._buffers.reused >= 5
+    assert np.array_equal(view, snapshot[:, 0:3])  # the view kept its buffer as it was
