@@ -20,8 +20,13 @@ world (no monitor, camera or viewer): what the consumers cost it; (b) the same w
 on the ``paper`` world (n = 15): what n = 1000 costs. Ratios are printed against both.
 CPU seconds per process over the window and the load average are printed too.
 
-Run: ``.venv/bin/python benchmarks/bench_large.py [--window 20] [--repeats 1]``
-(about 2–3 min per repeat on the shared 2-core machine).
+``--profile`` first profiles the estimator service in this process at n = 1000 (a real
+Zenoh session, shared memory on): where a state's time goes (EKF update, materialising the
+covariance, encoding, the shared-memory copy, the publish), and the publish path as it was
+before issue 13 (msgpack.packb of a freshly materialised state) timed on the same states.
+
+Run: ``.venv/bin/python benchmarks/bench_large.py [--window 20] [--repeats 1] [--profile]``
+(about 5 min per repeat on the shared 2-core machine).
 """
 
 from __future__ import annotations
@@ -40,6 +45,7 @@ import msgpack
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as the services run (docs/monitor.md)
 
 from common.keys import Keys  # noqa: E402
 from common.messages import Health  # noqa: E402
@@ -243,6 +249,97 @@ def run(endpoint: str, world: str, *, full: bool, window_s: float, seed: int) ->
     return out
 
 
+def profile_estimator(events: int = 300) -> None:
+    """cProfile of ``EstimatorService.apply`` at n = 1000, grouped by what the time is."""
+    import cProfile
+    import pstats
+
+    from common.messages import Observations, Odometry, SlamState
+    from services.slam import ekf
+    from services.slam.estimator_service import EstimatorService
+    from services.slam.input_order import Input
+    from services.slam.settings import EstimatorSettings
+    from services.slam.sim import Simulator
+    from services.slam.world import load_world
+
+    endpoint = free_tcp_endpoint()
+    router = open_bus(BusSettings(listen=(endpoint,), mode="router"))
+    bus, sub = (open_bus(BusSettings(connect=(endpoint,))) for _ in range(2))
+    received = [0]
+    sub.session.declare_subscriber(  # a same-host consumer: the payload stays in shm
+        KEYS.state(ROBOT), lambda _s: received.__setitem__(0, received[0] + 1))
+    service = EstimatorService(bus, keys=KEYS, settings=EstimatorSettings(robot=ROBOT))
+    stream = Simulator(load_world("large"), loops=2, seed=0).events()
+    est = service.estimator
+    for m in stream:  # the first loop straight into the filter: the map, unpublished
+        if isinstance(m, Odometry):
+            est.predict(v=m.v, w=m.w, dt=m.dt, stamp=m.stamp)
+        elif isinstance(m, Observations):
+            est.observe(ids=m.ids, ranges=m.ranges, bearings=m.bearings, stamp=m.stamp)
+        if est.n >= 1000:
+            break
+    items = [Input("odometry" if isinstance(m, Odometry) else "observations", m)
+             for m in stream if isinstance(m, (Odometry, Observations))][:events + 20]
+    for item in items[:20]:  # warm: the shared-memory pool is made on first use
+        service.apply(item)
+    profiler = cProfile.Profile()
+    t0 = time.perf_counter()
+    profiler.enable()
+    for item in items[20:]:
+        service.apply(item)
+    profiler.disable()
+    wall = time.perf_counter() - t0
+    stats = pstats.Stats(profiler).stats  # type: ignore[attr-defined]
+    groups = {
+        "EKF update (downdate, gains)": ("downdate_lower", "_robot_columns", "_check_update",
+                                         "mahalanobis", "initialise"),
+        "EKF predict": ("predict",),
+        "materialise P after an update (symmetric)": ("symmetric",),
+        "materialise P after a predict (copy + robot rows)": ("symmetric_after_predict",),
+        "finite checks on construction (sums)": ("reduce",),
+        "shared-memory copy (ShmPool.wrap)": ("wrap",),
+        "encode (wire_parts, msgpack of the small fields)": ("wire_parts", "_wire_dict",
+                                                            "encode_array", "pack"),
+        "Zenoh put": ("put",),
+    }
+    spent = {name: 0.0 for name in groups}
+    for (_file, _line, func), (_cc, _nc, tottime, _ct, _callers) in stats.items():
+        for name, funcs in groups.items():
+            if func in funcs or any(func.startswith(f"<method '{f}'") for f in funcs):
+                spent[name] += tottime
+    n = len(items) - 20
+    print(f"PROFILE estimator service at n = {est.n}: {n} events in {wall:.2f} s = "
+          f"{n / wall:.0f} states/s (under cProfile), load {os.getloadavg()[0]:.2f}; "
+          f"{received[0]} received by a same-host subscriber, shm {bus.shm.shared} / plain "
+          f"{bus.shm.plain}")
+    for name, t in sorted(spent.items(), key=lambda kv: -kv[1]):
+        print(f"  {name:52s} {t / n * 1e3:6.2f} ms per state ({t / wall:5.1%})")
+    # the same states through the old publish path (before issue 13), timed without profiler
+    state = est.to_state(seq=1, stamp=0.0, step="update")
+    old, new = [], []
+    for _ in range(7):
+        t = time.perf_counter()
+        cov = ekf.symmetric(est._L, 3 + 2 * est.n)
+        cov.flags.writeable = False
+        old_state = SlamState(robot=ROBOT, seq=1, stamp=0.0, step="update", pose=est.pose,
+                              landmark_ids=est.landmark_ids, landmarks=est.landmarks,
+                              covariance=cov)
+        d = old_state.to_dict()
+        d["covariance"] = {"dtype": "<f8", "shape": [cov.size], "data": cov.tobytes()}
+        bus.shm.wrap(msgpack.packb(d, use_bin_type=True))
+        old.append(time.perf_counter() - t)
+        t = time.perf_counter()
+        state = est.to_state(seq=1, stamp=0.0, step="update")
+        bus.shm.wrap(state.wire_parts())
+        new.append(time.perf_counter() - t)
+        del state
+    o, w = statistics.median(old) * 1e3, statistics.median(new) * 1e3
+    print(f"  publish path of an update state (materialise + encode + shm): before {o:.1f} ms, "
+          f"now {w:.1f} ms (ratio {o / w:.1f}×; median of 7)")
+    for b in (bus, sub, router):
+        b.close()
+
+
 def _line(r: dict) -> str:
     text = (f"{r['world']:>5} {'pipeline' if r['full'] else 'alone   '} n={FULL_N[r['world']]}: "
             f"estimator {r['estimator_states_s']:.0f} states/s (mean "
@@ -264,8 +361,11 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--window", type=float, default=20.0, help="seconds measured at full n")
     parser.add_argument("--repeats", type=int, default=1)
+    parser.add_argument("--profile", action="store_true",
+                        help="first profile the estimator service in-process at n = 1000")
     args = parser.parse_args()
-    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+    if args.profile:
+        profile_estimator()
     router = spawn("router", "--listen", (endpoint := free_tcp_endpoint()), "-q")
     router.wait_for_line("router ready")
     results: dict[str, list[dict]] = {"large-full": [], "large-alone": [], "paper-full": []}
