@@ -350,7 +350,7 @@ def _line(r: dict) -> str:
                  f"({r['viewer_parts_s']:.0f} frames/s, fps {r['viewer_fps']:.1f}, "
                  f"render {r['render_ms_median'] or 0:.1f} ms median, camera "
                  f"{r['camera_hz'] or 0:.0f} Hz, registered {r['registered']}); monitor "
-                 f"checks {r['monitor_checked_s']:.0f} states/s, sampled_out "
+                 f"checks {r['monitor_checked_s']:.1f} states/s, sampled_out "
                  f"{r['monitor_sampled_out']:.0f} in the window, behind ≤ "
                  f"{r['monitor_behind_max']:.0f}")
     cpu = ", ".join(f"{k} {v:.1f}" for k, v in r["cpu_s"].items())
@@ -395,7 +395,7 @@ def main() -> None:
     print(f"VIEWER at n = 1000, camera 30 fps: {view:.0f} states/s rendered (target ≥ 10), "
           f"render_ms_median {med('large-full', 'render_ms_median'):.1f} ms; paper "
           f"{paper_view:.0f} states/s (ratio {view / max(paper_view, 1e-9):.2f}×)")
-    print(f"MONITOR at n = 1000: checks {med('large-full', 'monitor_checked_s'):.0f} states/s "
+    print(f"MONITOR at n = 1000: checks {med('large-full', 'monitor_checked_s'):.1f} states/s "
           f"of {est:.0f} published, sampled_out {med('large-full', 'monitor_sampled_out'):.0f} "
           f"in {args.window:.0f} s; paper: checks {med('paper-full', 'monitor_checked_s'):.0f} "
           f"of {paper_est:.0f}, sampled_out {med('paper-full', 'monitor_sampled_out'):.0f}")
