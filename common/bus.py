@@ -91,8 +91,22 @@ class Sample:
     time: int | None = None
 
 
+#: a payload, whole or as consecutive parts (``Message.wire_parts``: a large one is then
+#: copied once, into shared memory or into the joined bytes)
+Payload = bytes | bytearray | list[bytes | bytearray | memoryview]
+
+
+def joined(payload: Payload) -> bytes:
+    """A payload as one bytes object."""
+    return b"".join(payload) if isinstance(payload, list) else bytes(payload)
+
+
+def payload_length(payload: Payload) -> int:
+    return sum(len(p) for p in payload) if isinstance(payload, list) else len(payload)
+
+
 class Publisher(Protocol):
-    def put(self, payload: bytes) -> None: ...
+    def put(self, payload: Payload) -> None: ...
 
 
 class Reply(Protocol):
@@ -347,10 +361,12 @@ class ShmPool:
         self.shared = 0  #: payloads sent through shared memory
         self.plain = 0  #: large payloads sent as bytes (pool full or unavailable)
 
-    def wrap(self, payload: bytes) -> Any:
-        """``payload`` as a shared-memory ZBytes if it is large and there is room."""
-        if len(payload) < self.min_bytes or self._unavailable:
-            return payload
+    def wrap(self, payload: Payload) -> Any:
+        """``payload`` as a shared-memory ZBytes if it is large and there is room (parts
+        are written one after the other: one copy in all), else as bytes."""
+        size = payload_length(payload)
+        if size < self.min_bytes or self._unavailable:
+            return joined(payload) if isinstance(payload, list) else payload
         import zenoh
         from zenoh import shm
 
@@ -362,13 +378,18 @@ class ShmPool:
                     self._unavailable = True
                     log.warning("no shared memory for large payloads (%s): they go as bytes",
                                 exc)
-                    return payload
+                    return joined(payload) if isinstance(payload, list) else payload
             try:  # never block: garbage-collect what subscribers released, else give up
-                buf = self._provider.alloc(len(payload), shm.GarbageCollect())
+                buf = self._provider.alloc(size, shm.GarbageCollect())
             except zenoh.ZError:
                 self.plain += 1
-                return payload
-        buf[0:len(payload)] = payload
+                return joined(payload) if isinstance(payload, list) else payload
+        offset = 0
+        for part in payload if isinstance(payload, list) else (payload,):
+            end = offset + len(part)
+            # ZShmMut takes bytes or bytearray only
+            buf[offset:end] = part if isinstance(part, (bytes, bytearray)) else bytes(part)
+            offset = end
         self.shared += 1
         return zenoh.ZBytes(buf)
 
@@ -378,8 +399,8 @@ class _ZenohPublisher:
         self._pub = publisher
         self._pool = pool
 
-    def put(self, payload: bytes) -> None:
-        self._pub.put(payload if self._pool is None else self._pool.wrap(payload))
+    def put(self, payload: Payload) -> None:
+        self._pub.put(joined(payload) if self._pool is None else self._pool.wrap(payload))
 
     def wait_matched(self, timeout: float = 10.0) -> bool:
         """Wait until this publisher itself knows a matching subscriber (its own matching
@@ -411,11 +432,12 @@ class _CachingPublisher:
         self._pub = declare(self._samples)
         self.redeclared = 0
 
-    def put(self, payload: bytes) -> None:
+    def put(self, payload: Payload) -> None:
         budget = self._budget
+        size = payload_length(payload)
         if budget is not None and self._samples > self.MIN_SAMPLES \
-                and len(payload) * self._samples > budget:
-            samples = max(self.MIN_SAMPLES, budget // max(1, len(payload)) // 2)
+                and size * self._samples > budget:
+            samples = max(self.MIN_SAMPLES, budget // max(1, size) // 2)
             if samples < self._samples:
                 old, self._samples = self._pub, samples
                 self._pub = self._declare(samples)
@@ -424,7 +446,7 @@ class _CachingPublisher:
                     old.undeclare()
                 except Exception:
                     pass
-        self._pub.put(payload if self._pool is None else self._pool.wrap(payload))
+        self._pub.put(joined(payload) if self._pool is None else self._pool.wrap(payload))
 
     def undeclare(self) -> None:
         self._pub.undeclare()
@@ -742,8 +764,8 @@ class InProcessBus:
         bus = self
 
         class _Pub:
-            def put(self, payload: bytes) -> None:
-                bus.put(key, payload)
+            def put(self, payload: Payload) -> None:
+                bus.put(key, joined(payload))
 
         return _Pub()
 

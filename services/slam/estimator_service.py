@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import msgpack
 import numpy as np
 
-from common.bus import Bus, Sample
+from common.bus import Bus, Payload, Sample, joined
 from common.drops import DropCounter
 from common.errors import EstimationError, MessageError
 from common.keys import Keys
@@ -116,7 +116,9 @@ class EstimatorService:
         if init is None:
             init = self.estimator.to_state(seq=0, stamp=0.0, step="init", epoch=self.epoch,
                                            input_stamp=0.0)
-        self._latest = init.to_bytes()
+        #: the latest state's encoding in parts (a large map's covariance not copied: it
+        #: is joined only when asked for, by a get or a checkpoint)
+        self._latest: Payload = init.wire_parts()
         self._header = self._header_of(init)
         bus.answer(keys.state(self.robot), self._on_query)
         self._publisher.put(self._latest)
@@ -145,10 +147,8 @@ class EstimatorService:
         return state
 
     def _checkpoint(self) -> ckpt.Checkpoint:
-        with self._lock:
-            state = self._latest
         return ckpt.Checkpoint(
-            robot=self.robot, state=state, positions=self.order.positions(),
+            robot=self.robot, state=self.latest_bytes(), positions=self.order.positions(),
             next_anonymous_id=self.estimator.next_anonymous_id,
             noise={k: float(getattr(self.settings, k)) for k in _NOISE})
 
@@ -161,7 +161,14 @@ class EstimatorService:
     # -- the event logic ----------------------------------------------------------------
     def latest_bytes(self) -> bytes:
         with self._lock:
-            return self._latest
+            latest = self._latest
+        if isinstance(latest, list):  # joined once, then kept (it may be asked again)
+            whole = joined(latest)
+            with self._lock:
+                if self._latest is latest:
+                    self._latest = whole
+            return whole
+        return bytes(latest)
 
     def _header_of(self, state: SlamState) -> bytes:
         """``get state?header``'s answer: what a driver paces on, not the map (and the
@@ -169,6 +176,7 @@ class EstimatorService:
         return msgpack.packb({"schema": 1, "robot": state.robot, "seq": state.seq,
                               "stamp": state.stamp, "step": state.step,
                               "epoch": state.epoch, "input_stamp": state.input_stamp,
+                              "n": state.n,
                               "origin_stamp": state.origin_stamp,
                               "dropped": self.drops.total, "lost": self.order.stats.lost},
                              use_bin_type=True)
@@ -176,8 +184,10 @@ class EstimatorService:
     def _on_query(self, key: str, payload: bytes | None, parameters: str) -> bytes:
         """The latest state, or with ``?header`` only its header (SPEC §7: a ``get`` on
         the state key answers the latest state; the header is ours, docs/protocol.md)."""
-        with self._lock:
-            return self._header if "header" in parameters.split(";") else self._latest
+        if "header" in parameters.split(";"):
+            with self._lock:
+                return self._header
+        return self.latest_bytes()
 
     def handle(self, key: str, payload: bytes) -> SlamState | None:
         """Decode and apply one input now (no ordering); the state published, or None."""
@@ -245,7 +255,7 @@ class EstimatorService:
                                         report=report,  # type: ignore[arg-type]
                                         epoch=self.epoch, input_stamp=stamp,
                                         origin_stamp=self._origin_stamp)
-        payload = state.to_bytes()
+        payload = state.wire_parts()  # the covariance copied once, by the publisher
         header = self._header_of(state)
         with self._lock:
             self._latest, self._header = payload, header

@@ -157,16 +157,24 @@ class MonitorService:
         """Check states until ``stop`` is set."""
         last = time.monotonic()
         while not stop.is_set():
-            sample = self._inputs.recv(timeout=0.2)
-            if sample is not None:
-                self.handle(sample.key, sample.payload)
-                if self._inputs.backlog_bytes > self._sample_above:
-                    self._sample()
+            self.step(timeout=0.2)
             if time.monotonic() - last >= status_every_s:
                 last = time.monotonic()
                 log.info("%s", self.status_line())
 
-    def _sample(self) -> None:
+    def step(self, timeout: float = 0.2) -> int:
+        """Check the next sample waiting (up to ``timeout`` s for one); if what still
+        waits is beyond ``sample_above_mb``, jump to the newest state. Returns the number
+        of samples handled (0: nothing came)."""
+        sample = self._inputs.recv(timeout=timeout)
+        if sample is None:
+            return 0
+        self.handle(sample.key, sample.payload)
+        if self._inputs.backlog_bytes > self._sample_above:
+            return 1 + self._sample()
+        return 1
+
+    def _sample(self) -> int:
         """Too far behind on a large map: take everything waiting, keep the truths, check
         only the newest state (the comparison with the last one checked stays valid)."""
         waiting = self._inputs.take_all()
@@ -182,6 +190,7 @@ class MonitorService:
         for s in waiting:
             if not s.key.endswith("/state") or s is states[-1]:
                 self.handle(s.key, s.payload)
+        return len(waiting)
 
     def summary(self) -> dict[str, object]:
         s = self.monitor.summary

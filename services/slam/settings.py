@@ -40,7 +40,7 @@ class SimSettings:
     marker_ids: tuple[int, ...] = setting(
         (), doc="the fiducial marker id each robot carries, in --robot order (in its Truth, "
                 "for a synthetic camera); empty = 0, 1, 2 …", metavar="ID,ID")
-    scenario: str = setting("paper", doc="world: a packaged world name (paper, grid) or the "
+    scenario: str = setting("paper", doc="world: a packaged world name (paper, grid, large) or the "
                                          "path of a world TOML file", metavar="WORLD")
     seed: int = setting(0, doc="random seed: same seed, same run")
     rate: float = setting(1.0, doc="× real time; 0 = as fast as possible", min=0.0)

@@ -4,6 +4,8 @@ A world file is small and documented (``worlds/paper.toml`` is the reference, SP
 
     name = "paper"
     landmarks = [[x, y], ...]          # or [[id, x, y], ...]; ids default to 1..n
+    [landmark_grid] rows, columns, spacing_m, origin_xy, jitter_m, seed, first_id
+                                       # instead of ``landmarks``: a seeded, generated grid
     waypoints = [[x, y], ...]          # a closed loop, visited in order, then again
     [start]  pose = [0.0, 0.0, 0.0]    # x m, y m, θ rad; the map frame is this pose (SPEC §3)
     [area]   min_xy = [-1, -1]  max_xy = [2, 2]   # optional: every landmark must lie inside
@@ -13,7 +15,7 @@ A world file is small and documented (``worlds/paper.toml`` is the reference, SP
     [run]    loops
 
 Coordinates in the file are in the world frame. :func:`load_world` accepts the name of a
-packaged world ("paper", "grid") or a path; unknown keys and bad values raise
+packaged world ("paper", "grid", "large") or a path; unknown keys and bad values raise
 :class:`~common.errors.ConfigError` naming the key.
 """
 
@@ -79,6 +81,37 @@ class _Area:
     max_xy: tuple[float, ...] = ()
 
 
+#: a generated map larger than this is refused (a typo in rows/columns, not a map)
+MAX_GENERATED_LANDMARKS = 100_000
+
+
+@dataclass(frozen=True, kw_only=True)
+class LandmarkGrid:
+    """A generated map: ``rows`` × ``columns`` landmarks ``spacing_m`` apart, each moved by
+    a seeded uniform offset in [−jitter_m, jitter_m] on both axes (``seed``). Ids run from
+    ``first_id`` row by row from the lower left (``origin_xy`` is that row's first grid
+    point, before the jitter)."""
+
+    rows: int = 0  #: grid rows (along y), ≥ 1
+    columns: int = 0  #: grid columns (along x), ≥ 1
+    spacing_m: float = 1.0  #: distance between neighbouring grid points, m
+    origin_xy: tuple[float, ...] = (0.0, 0.0)  #: grid point of row 0, column 0, world frame, m
+    jitter_m: float = 0.0  #: each coordinate moved by U(−jitter, jitter), m; < spacing/2
+    seed: int = 0  #: seed of the jitter (numpy SeedSequence)
+    first_id: int = 1  #: id of the landmark at row 0, column 0
+
+    def generate(self) -> tuple[np.ndarray, np.ndarray]:
+        """(ids int64[n], landmarks_xy float64[n, 2]), read-only; deterministic per seed."""
+        row, column = np.divmod(np.arange(self.rows * self.columns), self.columns)
+        grid = np.column_stack([column, row]) * self.spacing_m + np.asarray(self.origin_xy)
+        rng = np.random.default_rng(np.random.SeedSequence(self.seed))
+        # jitter < spacing/2 keeps every landmark inside its own cell: distinct, and at least
+        # spacing − 2·jitter from any other (data association stays unambiguous)
+        offsets = rng.uniform(-self.jitter_m, self.jitter_m, size=grid.shape)
+        ids = self.first_id + np.arange(grid.shape[0])
+        return frozen_array(ids, "<i8"), frozen_array(grid + offsets, "<f8")
+
+
 @dataclass(frozen=True, eq=False, kw_only=True)
 class World:
     """A loaded world. Arrays are read-only; equality compares their contents."""
@@ -110,7 +143,7 @@ class World:
     __hash__ = None  # type: ignore[assignment]
 
 
-_TOP_KEYS = {"name", "description", "landmarks", "waypoints",
+_TOP_KEYS = {"name", "description", "landmarks", "landmark_grid", "waypoints",
              "start", "area", "sensor", "motion", "noise", "run"}
 _POSITIVE = {
     "sensor": ("max_range_m", "fov_rad", "period_s"),
@@ -192,7 +225,12 @@ def world_from_mapping(raw: dict[str, Any], *, source: str = "world") -> World:
     if len(start) != 3:
         raise ConfigError(f"{source}: key 'start.pose' must be [x, y, theta], got {list(start)}")
 
-    ids, landmarks = _parse_landmarks(raw.get("landmarks"), source)
+    if "landmark_grid" in raw:
+        if "landmarks" in raw:
+            raise ConfigError(f"{source}: give either 'landmarks' or [landmark_grid], not both")
+        ids, landmarks = _generate_landmarks(raw["landmark_grid"], source)
+    else:
+        ids, landmarks = _parse_landmarks(raw.get("landmarks"), source)
     waypoints = _parse_points(raw.get("waypoints"), "waypoints", source, columns=2)
     if waypoints.shape[0] < 1:
         raise ConfigError(f"{source}: key 'waypoints' must list at least one [x, y]")
@@ -234,6 +272,41 @@ def _parse_points(value: Any, key: str, source: str, *, columns: int) -> np.ndar
         raise ConfigError(f"{source}: key {key!r}: values must be finite")
     array.setflags(write=False)
     return array
+
+
+def _generate_landmarks(table: Any, source: str) -> tuple[np.ndarray, np.ndarray]:
+    """Validate a [landmark_grid] table and generate its landmarks."""
+    if not isinstance(table, dict):
+        raise ConfigError(f"{source}: key 'landmark_grid' must be a table [landmark_grid]")
+    for key in ("rows", "columns"):
+        if key not in table:
+            raise ConfigError(f"{source}: key 'landmark_grid.{key}' is required")
+    try:
+        grid = settings_from_mapping(LandmarkGrid, table)
+    except ConfigError as exc:
+        raise ConfigError(f"{source} [landmark_grid]: {exc}") from None
+    for key in ("rows", "columns"):
+        if getattr(grid, key) < 1:
+            raise ConfigError(f"{source}: key 'landmark_grid.{key}' must be ≥ 1, "
+                              f"got {getattr(grid, key)}")
+    if grid.rows * grid.columns > MAX_GENERATED_LANDMARKS:
+        raise ConfigError(f"{source}: [landmark_grid] makes {grid.rows * grid.columns} "
+                          f"landmarks; at most {MAX_GENERATED_LANDMARKS}")
+    if not (math.isfinite(grid.spacing_m) and grid.spacing_m > 0):
+        raise ConfigError(f"{source}: key 'landmark_grid.spacing_m' must be > 0, "
+                          f"got {grid.spacing_m!r}")
+    if not (math.isfinite(grid.jitter_m) and 0 <= grid.jitter_m < grid.spacing_m / 2):
+        raise ConfigError(f"{source}: key 'landmark_grid.jitter_m' must be in "
+                          f"[0, spacing_m / 2 = {grid.spacing_m / 2:g}), got {grid.jitter_m!r}")
+    if len(grid.origin_xy) != 2 or not all(math.isfinite(v) for v in grid.origin_xy):
+        raise ConfigError(f"{source}: key 'landmark_grid.origin_xy' must be [x, y], "
+                          f"got {list(grid.origin_xy)}")
+    if grid.seed < 0:
+        raise ConfigError(f"{source}: key 'landmark_grid.seed' must be ≥ 0, got {grid.seed}")
+    if grid.first_id < 0:
+        raise ConfigError(f"{source}: key 'landmark_grid.first_id' must be ≥ 0, "
+                          f"got {grid.first_id}")
+    return grid.generate()
 
 
 def _parse_landmarks(value: Any, source: str) -> tuple[np.ndarray, np.ndarray]:

@@ -253,8 +253,11 @@ def test_large_payloads_go_through_shared_memory_on_one_host(router_endpoint) ->
             while (s := ch.recv(timeout=0.5)) is not None:
                 assert s.payload == b"w"
         payloads = [bytes([k]) * (4 << 20) for k in range(3)]  # 4 MB each
-        for p in payloads:
-            pub.put(p)
+        payloads[2] = b"head" + payloads[2][4:-4] + b"tail"
+        pub.put(payloads[0])
+        pub.put(bytearray(payloads[1]))
+        # in parts (Message.wire_parts): written one after the other into one buffer
+        pub.put([b"head", bytearray(payloads[2][4:-4]), memoryview(b"tail")])
         for ch in (got_local, got_remote):
             received = [ch.recv(timeout=20.0) for _ in payloads]
             assert [s.payload if s else None for s in received] == payloads

@@ -334,3 +334,57 @@ def test_monte_carlo_single_update_is_consistent() -> None:
         m = float(np.mean(values))
         band = 4 * math.sqrt(2 * dof / trials)  # 4σ of the mean of χ²_dof over the trials
         assert abs(m - dof) < band, f"mean {m:.3f} for {dof} dof (±{band:.3f})"
+
+
+@pytest.mark.parametrize("fault", ["none", "cross-covariance", "map-update"])
+def test_published_covariance_is_the_full_symmetric_matrix_after_every_event(
+        fault: str) -> None:
+    """A state after predicts only reuses the last published covariance and rewrites the
+    robot rows/columns (P_mm untouched by a predict, SPEC §4): it must equal the matrix
+    materialised from scratch, bit for bit, whatever the planted fault."""
+    from services.slam.sim import Simulator
+    from services.slam.world import load_world
+
+    settings = EstimatorSettings() if fault == "none" else EstimatorSettings(
+        fault=fault, faulty_features=(3, 7))
+    est = Estimator(settings)
+    previous = None
+    checked = {"predict": 0, "update": 0}
+    for k, message in enumerate(Simulator(load_world("paper"), seed=4, loops=1).events()):
+        kind = type(message).__name__
+        if kind == "Odometry":
+            est.predict(v=message.v, w=message.w, dt=message.dt, stamp=message.stamp)
+            step = "predict"
+        elif kind == "Observations":
+            est.observe(ids=message.ids, ranges=message.ranges, bearings=message.bearings,
+                        stamp=message.stamp)
+            step = "update"
+        else:
+            continue
+        state = est.to_state(seq=k, stamp=message.stamp, step=step)
+        assert np.array_equal(state.covariance, est.covariance)  # from scratch
+        assert np.array_equal(state.covariance, state.covariance.T)
+        assert not state.covariance.flags.writeable
+        if previous is not None:  # a new buffer each time: earlier states stay as they were
+            assert not np.shares_memory(previous.covariance, state.covariance)
+        previous = state
+        checked[step] += 1
+    assert checked["predict"] > 100 and checked["update"] > 100
+
+
+def test_covariance_buffers_are_recycled_only_when_nothing_holds_them() -> None:
+    """The estimator reuses a covariance buffer of an earlier state only once no state,
+    array or view refers to it: a state kept by a caller never changes under it."""
+    est = Estimator(EstimatorSettings())
+    est.observe(ids=[1, 2, 3], ranges=[1.0, 1.5, 2.0], bearings=[0.2, -0.3, 0.5], stamp=0.1)
+    kept = est.to_state(seq=1, stamp=0.1, step="update")
+    snapshot = np.array(kept.covariance)
+    view = kept.covariance[:, 0:3]  # the robot columns: every predict changes them
+    del kept
+    for k in range(10):  # nothing holds these: their buffers go round
+        est.predict(v=0.2, w=0.1, dt=0.1, stamp=0.2 + 0.1 * k)
+        state = est.to_state(seq=2 + k, stamp=0.2 + 0.1 * k, step="predict")
+        assert not np.shares_memory(state.covariance, view)
+        del state
+    assert est._buffers.reused >= 5
+    assert np.array_equal(view, snapshot[:, 0:3])  # the view kept its buffer as it was

@@ -225,3 +225,32 @@ def test_truth_may_say_the_robots_marker() -> None:
     with pytest.raises(MessageError, match="marker_id"):
         Truth(robot="r", stamp=0.0, pose=[0, 0, 0], landmark_ids=[],
               landmarks=np.zeros((0, 2)), marker_id=-1)
+
+
+def test_wire_parts_join_to_the_msgpack_encoding_with_large_arrays_not_copied() -> None:
+    """A large state's encoding in parts (the covariance its own part, its own memory):
+    joined, the same bytes msgpack would write, and the message decodes back equal."""
+    from common.arrays import bytes_backed_array
+
+    n = 200  # covariance 403² · 8 B = 1.3 MB, above BIG_BINARY
+    N = 3 + 2 * n
+    rng = np.random.default_rng(5)
+    A = rng.standard_normal((N, N))
+    cov = bytes_backed_array((N, N), "<f8")
+    cov[...] = A @ A.T
+    cov.flags.writeable = False
+    state = SlamState(robot="r", seq=3, stamp=1.5, step="update", pose=[1.0, 2.0, 0.5],
+                      landmark_ids=np.arange(n), landmarks=rng.standard_normal((n, 2)),
+                      covariance=cov, observed_ids=[1, 2], new_ids=[], epoch=7,
+                      diagnostics={"gated": 0.0})
+    assert state.covariance is cov  # a frozen array of the right dtype is kept, not copied
+    parts = state.wire_parts()
+    assert len(parts) == 3 and parts[1] is not None and len(parts[1]) == N * N * 8
+    reference = msgpack.packb(state.to_dict(), use_bin_type=True)
+    assert b"".join(parts) == reference == state.to_bytes()
+    assert np.shares_memory(np.frombuffer(parts[1], dtype="<f8"), cov)
+    assert SlamState.from_bytes(state.to_bytes()) == state
+    # a small message is one part, msgpack's own encoding
+    small = SlamState(robot="r", seq=1, stamp=0.0, step="init", pose=[0, 0, 0],
+                      landmark_ids=[], landmarks=np.zeros((0, 2)), covariance=np.zeros((3, 3)))
+    assert small.wire_parts() == [msgpack.packb(small.to_dict(), use_bin_type=True)]

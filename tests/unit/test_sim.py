@@ -10,7 +10,13 @@ import pytest
 
 from common.geometry import compose2, inverse2
 from common.messages import Observations, Odometry, Truth
-from services.slam.sim import Simulator, first_seen_times, plan_trajectory, staggered
+from services.slam.sim import (
+    Simulator,
+    first_seen_times,
+    plan_trajectory,
+    staggered,
+    visible,
+)
 from services.slam.world import NoiseModel, World, load_world
 
 PAPER = load_world("paper")
@@ -283,3 +289,27 @@ def test_one_robot_is_the_plain_simulator() -> None:
     same = list(Simulator(world, seed=3, loops=1, truth_origin=origin).events())
     assert plain == same
     assert all(t.marker_id is None for t in plain if isinstance(t, Truth))
+
+
+def test_large_world_path_observes_all_1000_landmarks_in_one_loop() -> None:
+    """Issue 13's scenario: the lawnmower loop sees every landmark of the 1000 within one
+    loop, a few at a time (the update cost stays that of ~4 observations per batch)."""
+    world = load_world("large")
+    traj = plan_trajectory(world, loops=1)
+    duration = float(traj.stamps[-1])
+    assert 300.0 < duration < 600.0  # ~411 m at 1 m/s plus turns on the spot
+    seen = first_seen_times(world, loops=1)
+    assert sorted(seen) == list(range(1, 1001))
+    # the map grows over the whole loop: a quarter of it by the first quarter of the time
+    times = np.array(sorted(seen.values()))
+    assert times[249] < 0.35 * duration and times[749] < 0.85 * duration
+    counts = [int(visible(traj.poses[k], traj.landmarks_xy,
+                          max_range_m=world.sensor.max_range_m,
+                          fov_rad=world.sensor.fov_rad)[0].sum()) for k in traj.sensor_steps]
+    assert 2.5 < float(np.mean(counts)) < 6.0 and max(counts) <= 10
+    # the same seed gives the same stream (the map itself does not depend on the sim seed)
+    first = [m.to_bytes() for m, _ in zip(Simulator(world, seed=3).events(), range(300),
+                                          strict=False)]
+    again = [m.to_bytes() for m, _ in zip(Simulator(world, seed=3).events(), range(300),
+                                          strict=False)]
+    assert first == again

@@ -288,6 +288,53 @@ def test_series_cluster_min_mean_max_against_brute_force() -> None:
     assert c["mean"] == [pytest.approx(np.sqrt(np.linalg.eigvalsh(mean_pd)[-1]), rel=1e-6)]
 
 
+def test_series_cluster_stats_of_many_clusters_match_a_per_pair_loop() -> None:
+    """Many clusters (singletons among them, labels in no order): every cluster pair's
+    min / mean / max as a loop over the pairs computes it (issue 13: a 1000-singleton map
+    has ~500 000 cluster pairs, reduced at once)."""
+    n = 40
+    rng = np.random.default_rng(11)
+    state = random_state(n, seed=12, landmarks=rng.uniform(0, 5, (n, 2)).tolist())
+    labels = rng.permutation(np.r_[np.arange(25), rng.integers(0, 25, n - 25)]) * 3 + 2
+    store = SeriesStore(min_interval_s=0.0, cluster=lambda _xy, _ids: labels)
+    store.add_state(state, now=0.0)
+    got = {tuple(c["clusters"]): (c["min"][0], c["mean"][0], c["max"][0])
+           for c in store.to_json([])["clusters"]}
+    P = np.array(state.covariance)
+
+    def pd(i: int, j: int) -> np.ndarray:
+        si, sj = slice(3 + 2 * i, 5 + 2 * i), slice(3 + 2 * j, 5 + 2 * j)
+        return P[si, si] + P[sj, sj] - P[si, sj] - P[sj, si]
+
+    want: dict[tuple[int, int], list[tuple[int, int]]] = {}
+    for i in range(n):
+        for j in range(i + 1, n):
+            if labels[i] != labels[j]:
+                key = (int(min(labels[i], labels[j])), int(max(labels[i], labels[j])))
+                want.setdefault(key, []).append((i, j))
+    assert set(got) == set(want) and len(want) > 250
+    for key, members in want.items():
+        sizes = [np.sqrt(np.linalg.eigvalsh(pd(i, j))[-1]) for i, j in members]
+        mean = np.sqrt(np.linalg.eigvalsh(np.mean([pd(i, j) for i, j in members], axis=0))[-1])
+        assert got[key] == (pytest.approx(min(sizes), rel=1e-6), pytest.approx(mean, rel=1e-6),
+                            pytest.approx(max(sizes), rel=1e-6))
+
+
+def test_series_keeps_no_cluster_stats_beyond_the_cluster_pair_budget() -> None:
+    from services.visualiser.series import MAX_CLUSTER_PAIRS
+
+    n = 70  # 70 singletons: 2415 cluster pairs, above the budget of 2000
+    assert n * (n - 1) // 2 > MAX_CLUSTER_PAIRS > 60 * 59 // 2
+    state = random_state(n, seed=3, landmarks=np.random.default_rng(4).uniform(
+        0, 5, (n, 2)).tolist())
+    many = SeriesStore(min_interval_s=0.0, cluster=lambda _xy, _ids: np.arange(n))
+    many.add_state(state, now=0.0)
+    assert many.to_json([])["clusters"] == []
+    fewer = SeriesStore(min_interval_s=0.0, cluster=lambda _xy, _ids: np.arange(n) % 60)
+    fewer.add_state(state, now=0.0)
+    assert len(fewer.to_json([])["clusters"]) == 60 * 59 // 2
+
+
 def test_series_decimates_in_time_and_restarts_with_a_new_run() -> None:
     store = SeriesStore(min_interval_s=0.2)
     assert store.add_state(random_state(3, seq=1), now=10.0)

@@ -125,3 +125,85 @@ def test_unknown_world_and_unreadable_files(tmp_path: Path) -> None:
         load_world(tmp_path / "missing.toml")
     with pytest.raises(ConfigError, match="not valid TOML"):
         load_world(write(tmp_path, "name = \n"))
+
+
+# -- generated maps ([landmark_grid]; the "large" world, issue 13) ---------------------
+
+GRID = """
+name = "gen"
+waypoints = [[1.0, 0.0], [0.0, 0.0]]
+[landmark_grid]
+rows = 3
+columns = 4
+spacing_m = 0.5
+origin_xy = [1.0, -1.0]
+jitter_m = 0.1
+seed = 7
+"""
+
+
+def test_large_world_has_1000_distinct_landmarks_inside_its_area() -> None:
+    world = load_world("large")
+    assert "large" in packaged_worlds()
+    assert world.n_landmarks == 1000
+    assert list(world.landmark_ids) == list(range(1, 1001))
+    xy = world.landmarks_xy
+    assert len({(float(x), float(y)) for x, y in xy}) == 1000
+    assert np.all(xy >= world.area_min_xy) and np.all(xy <= world.area_max_xy)
+    # each landmark stays within the jitter of its own 1 m grid point (25 rows x 40 columns)
+    row, column = np.divmod(np.arange(1000), 40)
+    grid = np.column_stack([column, row]) - 1.0
+    assert np.all(np.abs(xy - grid) <= 0.2)
+    gaps = np.hypot(*(xy[:, None, :] - xy[None, :, :]).transpose(2, 0, 1))
+    np.fill_diagonal(gaps, np.inf)
+    assert gaps.min() >= 1.0 - 2 * 0.2  # distinct, and never closer than spacing − 2·jitter
+    assert world.landmarks_xy.flags.writeable is False
+
+
+def test_generated_map_is_deterministic_per_seed(tmp_path: Path) -> None:
+    first, again = load_world(write(tmp_path, GRID)), load_world(write(tmp_path, GRID))
+    assert first == again
+    other = load_world(write(tmp_path, GRID.replace("seed = 7", "seed = 8")))
+    assert not np.array_equal(first.landmarks_xy, other.landmarks_xy)
+    assert np.array_equal(first.landmark_ids, other.landmark_ids)
+    # ids row by row from the lower left, first_id 1 by default
+    assert list(first.landmark_ids) == list(range(1, 13))
+    row, column = np.divmod(np.arange(12), 4)
+    assert np.all(np.abs(first.landmarks_xy - (np.column_stack([column, row]) * 0.5
+                                               + [1.0, -1.0])) <= 0.1)
+    no_jitter = load_world(write(tmp_path, GRID.replace("jitter_m = 0.1", "jitter_m = 0.0")))
+    assert np.array_equal(no_jitter.landmarks_xy, np.column_stack([column, row]) * 0.5
+                          + [1.0, -1.0])
+    shifted = load_world(write(tmp_path, GRID + "first_id = 100\n"))
+    assert list(shifted.landmark_ids) == list(range(100, 112))
+
+
+@pytest.mark.parametrize(("change", "named"), [
+    (("rows = 3", "rows = 0"), "landmark_grid.rows"),
+    (("columns = 4", ""), "landmark_grid.columns"),
+    (("columns = 4", "columns = 4.5"), "columns"),
+    (("spacing_m = 0.5", "spacing_m = -1.0"), "landmark_grid.spacing_m"),
+    (("jitter_m = 0.1", "jitter_m = 0.25"), "landmark_grid.jitter_m"),
+    (("jitter_m = 0.1", "jitter_m = -0.1"), "landmark_grid.jitter_m"),
+    (("origin_xy = [1.0, -1.0]", "origin_xy = [1.0]"), "landmark_grid.origin_xy"),
+    (("seed = 7", "seed = -1"), "landmark_grid.seed"),
+    (("seed = 7", "colour = 3"), "colour"),
+    (("rows = 3", "rows = 400"), "at most"),
+])
+def test_bad_landmark_grids_are_rejected_naming_the_key(tmp_path: Path, change: tuple[str, str],
+                                                        named: str) -> None:
+    text = GRID.replace(*change)
+    if "400" in change[1]:
+        text = text.replace("columns = 4", "columns = 400")
+    with pytest.raises(ConfigError, match=named):
+        load_world(write(tmp_path, text))
+
+
+def test_landmark_grid_and_a_landmark_list_are_exclusive(tmp_path: Path) -> None:
+    with pytest.raises(ConfigError, match="either 'landmarks' or \\[landmark_grid\\]"):
+        load_world(write(tmp_path, 'landmarks = [[1.0, 2.0]]\n' + GRID))
+    with pytest.raises(ConfigError, match="must be a table"):
+        load_world(write(tmp_path, GRID.split("[landmark_grid]")[0].replace(
+            'name = "gen"', 'name = "gen"\nlandmark_grid = 3')))
+    with pytest.raises(ConfigError, match="outside the area"):
+        load_world(write(tmp_path, GRID + "[area]\nmin_xy = [0.0, 0.0]\nmax_xy = [3.0, 3.0]\n"))
