@@ -259,7 +259,14 @@ def test_the_plots_are_real_charts_and_the_verdict_is_the_monitors(live_viewer, 
 
     # every series is visible: pixels of the NIS line's colour where its points are
     def stroke_pixels(chart_id: str, series: int) -> int:
-        return page.evaluate("""([id, k]) => {
+        # the live page updates its charts a few times a second and uPlot redraws on the
+        # next animation frame: read after a frame was drawn, best of a few reads (a read
+        # between a data update and its redraw compares new points with old pixels)
+        return max(_stroke_pixels_once(chart_id, series) for _ in range(4))
+
+    def _stroke_pixels_once(chart_id: str, series: int) -> int:
+        return page.evaluate("""async ([id, k]) => {
+            await new Promise((done) => requestAnimationFrame(() => requestAnimationFrame(done)));
             const u = window.slamlens.charts[id];
             const ctx = u.ctx, dpr = window.devicePixelRatio || 1;
             const colour = u.series[k].stroke();
