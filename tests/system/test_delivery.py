@@ -91,6 +91,20 @@ def _estimator(endpoint: str, *extra: str) -> Service:
     return proc
 
 
+def _flood(ep: str, states: States, *, seed: int) -> int:
+    """Eight paper loops at rate 0 (paced on the estimator): every input applied, and the
+    recovering subscriber has every state. Returns the number of inputs."""
+    sim = spawn("sim", "--robot", ROBOT, "--rate", "0", "--loops", "8", "--seed", str(seed),
+                "--connect", ep)
+    out, err = sim.communicate(timeout=300)
+    assert sim.returncode == 0, err
+    assert "all applied by the estimator" in out, out
+    counts = driver_counts(out, "sim")
+    inputs = counts["Odometry"] + counts["Observations"]
+    assert states.wait(lambda s: s.max_seq() >= inputs)
+    return inputs
+
+
 def test_flood_at_full_speed_every_input_applied_every_state_checked(router) -> None:
     ep = router.endpoint
     est = _estimator(ep)
@@ -98,14 +112,7 @@ def test_flood_at_full_speed_every_input_applied_every_state_checked(router) -> 
     mon.wait_for_line("monitor ready")
     states = States(ep)
     try:
-        sim = spawn("sim", "--robot", ROBOT, "--rate", "0", "--loops", "8", "--seed", "2",
-                    "--connect", ep)
-        out, err = sim.communicate(timeout=300)
-        assert sim.returncode == 0, err
-        assert "all applied by the estimator" in out, out
-        counts = driver_counts(out, "sim")
-        inputs = counts["Odometry"] + counts["Observations"]
-        assert states.wait(lambda s: s.max_seq() >= inputs)
+        inputs = _flood(ep, states, seed=2)
         # the monitor checks every state, however far behind it fell: wait for the last
         assert _wait(lambda: _health_seq(ep) >= inputs, timeout=120), _health_seq(ep)
     finally:
@@ -145,14 +152,7 @@ def test_a_stalled_subscriber_and_ten_more_cost_the_flood_nothing(router) -> Non
     crowd = _probe(ep, "--subscribers", "10")
     states = States(ep)
     try:
-        sim = spawn("sim", "--robot", ROBOT, "--rate", "0", "--loops", "8", "--seed", "3",
-                    "--connect", ep)
-        out, err = sim.communicate(timeout=300)
-        assert sim.returncode == 0, err
-        assert "all applied by the estimator" in out, out
-        counts = driver_counts(out, "sim")
-        inputs = counts["Odometry"] + counts["Observations"]
-        assert states.wait(lambda s: s.max_seq() >= inputs)
+        inputs = _flood(ep, states, seed=3)
     finally:
         est_out, _ = stop(est)
         got_stalled = _probe_counts(stalled)
