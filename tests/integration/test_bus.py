@@ -7,17 +7,7 @@ import sys
 import time
 
 from common.session import BusSettings, build_config
-
-
-def _open_route(put, arrived, *, tries: int = 10) -> None:
-    """``put()`` a first sample until ``arrived()``: a route that matched may still drop
-    the first samples for a few hundred ms under load (zenoh 1.10, measured up to 0.3 s);
-    once one went through, the route is there."""
-    for _ in range(tries):
-        put()
-        if _wait(arrived, timeout=2.0):
-            return
-    raise AssertionError(f"no route after {tries} tries")
+from tests.routes import put_until_seen
 
 
 def _wait(predicate, timeout: float = 5.0) -> bool:
@@ -58,12 +48,10 @@ def test_samples_carry_the_publishing_sessions_clock(make_client) -> None:
         assert a.wait_for_subscriber(key)
         # a matched route may still drop the first samples for a few hundred ms under load
         # (zenoh 1.10): put a first one until it arrives, then the route is there
-        for _ in range(10):
-            pub.put(b"first")
-            if ch.recv(timeout=2.0) is not None:
-                break
-        else:
-            raise AssertionError("no route after 10 tries")
+        before = ch.received  # type: ignore[attr-defined]
+        put_until_seen(lambda p=pub: p.put(b"first"),
+                       lambda b=before: ch.received > b,  # type: ignore[attr-defined]
+                       what=f"the first sample on {key}", timeout_s=20.0)
     while ch.recv(timeout=0.5) is not None:  # a first one that arrived late
         pass
     for i in range(50):
@@ -145,7 +133,8 @@ def test_latest_wins_channel_drops_backlog(make_client) -> None:
     # is the subscriber side keeping only it (a latest-wins publisher may drop any sample)
     pub = a.publisher("t/frame")
     assert pub.wait_matched()  # type: ignore[attr-defined]
-    _open_route(lambda: pub.put(b"-1"), lambda: ch.received > 0)  # type: ignore[attr-defined]
+    put_until_seen(lambda: pub.put(b"-1"), lambda: ch.received > 0,  # type: ignore[attr-defined]
+                   what="the first frame", timeout_s=20.0)
     assert ch.recv(timeout=2.0) is not None
     base = ch.received  # type: ignore[attr-defined]
     for i in range(200):
@@ -248,7 +237,8 @@ def test_large_payloads_go_through_shared_memory_on_one_host(router_endpoint) ->
         assert pub_bus.wait_for_subscriber("t/big")
         pub = pub_bus.publisher("t/big", cache=4)
         # a small first sample until every route carried it (below the SHM threshold)
-        _open_route(lambda: pub.put(b"w"), lambda: len(firsts) >= 2)
+        put_until_seen(lambda: pub.put(b"w"), lambda: len(firsts) >= 2, what="the first sample",
+                       timeout_s=20.0)
         for ch in (got_local, got_remote):
             while (s := ch.recv(timeout=0.5)) is not None:
                 assert s.payload == b"w"

@@ -38,6 +38,7 @@ from services.registration.synthetic import (
 from services.slam.sim import Simulator
 from services.slam.world import load_world
 from tests.procs import spawn, stop
+from tests.routes import put_until_seen
 
 KEYS = Keys()
 ROBOT, CAMERA = "r1", "cam"
@@ -60,14 +61,8 @@ def deliver(publisher, payload: bytes, seen: Callable[[], object],
     matched, a route may still drop samples for a few hundred ms on a loaded machine:
     zenoh 1.10, measured up to 0.3 s); again only if it was not seen within 2 s."""
     assert publisher.wait_matched()
-    deadline = time.monotonic() + timeout
-    while True:
-        publisher.put(payload)
-        try:
-            wait_for(seen, timeout=2.0)
-            return
-        except AssertionError:
-            assert time.monotonic() < deadline, "the first sample never arrived"
+    put_until_seen(lambda: publisher.put(payload), seen, what="the first sample",
+                   timeout_s=timeout)
 
 
 class Inbox:

@@ -24,6 +24,7 @@ from common.messages import SlamState
 from services.visualiser.service import ViewerService
 from services.visualiser.settings import ViewerConfig
 from services.visualiser.web import WebServer
+from tests.routes import put_until_seen
 from tests.web_client import http, post_json
 
 KEYS = Keys()
@@ -143,17 +144,12 @@ def publish_state(make_client) -> Callable[..., None]:
         if not publishers:
             publishers.append(bus.publisher(KEYS.state(ROBOT)))
             assert publishers[0].wait_matched(10.0)
-        deadline = time.monotonic() + 30
-        while True:
+        if url is None:
             publishers[0].put(state(seq).to_bytes())
-            if url is None:
-                return
-            try:
-                wait_until(lambda: (status_of(url)["state"] or {}).get("seq") == seq,
-                           timeout=2.0)
-                return
-            except AssertionError:
-                assert time.monotonic() < deadline, f"state {seq} never reached {url}"
+            return
+        put_until_seen(lambda: publishers[0].put(state(seq).to_bytes()),
+                       lambda: (status_of(url)["state"] or {}).get("seq") == seq,
+                       what=f"state {seq} at {url}")
 
     return put
 

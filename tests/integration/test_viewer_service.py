@@ -23,6 +23,7 @@ from common.messages import CameraFrame, Health, Registration, SlamState, Violat
 from services.visualiser.service import ViewerService
 from services.visualiser.settings import ViewerConfig
 from services.visualiser.web import WebServer
+from tests.routes import put_until_seen
 
 KEYS = Keys()
 ROBOT, CAMERA = "robot1", "top"
@@ -191,16 +192,10 @@ def publisher(make_client, viewers: list[ViewerService]) -> Callable[[str, bytes
         assert pub.wait_matched(), key  # type: ignore[attr-defined]
         subscribed = [v for v in viewers if received_by(v, key) is not None]
         before = [received_by(v, key) for v in subscribed]
-        deadline = time.monotonic() + 15.0
-        while True:
-            pub.put(payload)  # type: ignore[attr-defined]
-            try:  # a second put only if the first did not arrive in 2 s
-                wait_until(lambda: all(received_by(v, key) > n  # type: ignore[operator]
-                                       for v, n in zip(subscribed, before, strict=True)),
-                           timeout=2.0)
-                return
-            except AssertionError:
-                assert time.monotonic() < deadline, f"nothing put on {key} reached the viewer"
+        put_until_seen(lambda: pub.put(payload),  # type: ignore[attr-defined]
+                       lambda: all(received_by(v, key) > n  # type: ignore[operator]
+                                   for v, n in zip(subscribed, before, strict=True)),
+                       what=f"the first sample on {key} at the viewer", timeout_s=15.0)
 
     return put
 
