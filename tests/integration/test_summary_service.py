@@ -17,6 +17,7 @@ from common.summary_pull import SummaryPuller, error_text
 from services.slam.settings import SummarySettings
 from services.slam.summary_service import SummaryService
 from tests.procs import spawn, stop, wait_for_line
+from tests.routes import put_until_seen
 from tests.unit.test_summary import consistent_state, oracle_pd
 
 KEYS = Keys()
@@ -51,7 +52,10 @@ def test_the_answer_is_the_newest_state_s_summary(make_client) -> None:
     service, halt, thread = _service(make_client)
     try:
         _, pub = _publish(make_client)
-        for seq in (1, 2, 3):
+        first = consistent_state(30, seq=1, seed=1).to_bytes()
+        put_until_seen(lambda: pub.put(first), lambda: service.received >= 1,
+                       what="the first state")
+        for seq in (2, 3):
             pub.put(consistent_state(30, seq=seq, seed=seq).to_bytes())
         _wait_received(service, 3)
         client = make_client()
@@ -77,8 +81,9 @@ def test_a_pull_waits_for_a_newer_state_and_gets_the_newest(make_client) -> None
     service, halt, thread = _service(make_client, hold_s=20.0)
     try:
         _, pub = _publish(make_client)
-        pub.put(consistent_state(12, seq=1).to_bytes())
-        _wait_received(service, 1)
+        first = consistent_state(12, seq=1).to_bytes()
+        put_until_seen(lambda: pub.put(first), lambda: service.received >= 1,
+                       what="the first state")
         got: list[int] = []
         puller = SummaryPuller(make_client(), KEYS.summary("r1"),
                                SummaryQuery(what="blocks"),
@@ -117,8 +122,9 @@ def test_bad_parameters_get_an_error_reply_and_the_service_goes_on(make_client) 
                           errors=errors) == []
         assert "no state of robot r1 yet" in error_text(errors[0])
         _, pub = _publish(make_client)
-        pub.put(consistent_state(12, seq=5).to_bytes())
-        _wait_received(service, 1)
+        first = consistent_state(12, seq=5).to_bytes()
+        put_until_seen(lambda: pub.put(first), lambda: service.received >= 1,
+                       what="the first state")
         errors.clear()
         assert client.get(KEYS.summary("r1") + "?feature=999", timeout=30.0,
                           errors=errors) == []
