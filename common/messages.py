@@ -18,9 +18,11 @@ Decisions where SPEC §7 is silent (also in ``docs/protocol.md``):
 
 from __future__ import annotations
 
+import contextlib
+import contextvars
 import dataclasses
 import math
-from collections.abc import Mapping
+from collections.abc import Callable, Iterator, Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Self
 
@@ -45,6 +47,14 @@ BIG_BINARY = 1 << 20
 _FIELDS: dict[type, tuple[dataclasses.Field[Any], ...]] = {}
 _PLANS: dict[type, tuple[tuple[Any, ...], ...]] = {}
 _DEFAULTS: dict[type, tuple[bool, ...]] = {}
+_FAST_PLANS: dict[type, tuple[dict[str, Any], dict[str, tuple[Any, ...]], int] | None] = {}
+_add_reduce = np.add.reduce
+#: a field default the decoder's fast path does not vouch for (it leaves the message to
+#: the full path)
+_NOT_VOUCHED = object()
+#: the one array a producer has proven finite (finite_by_construction), on this thread only
+_PROVEN_FINITE: contextvars.ContextVar[object] = contextvars.ContextVar(
+    "slamlens_proven_finite", default=None)
 STEPS = ("init", "predict", "update")
 VIOLATION_KINDS = ("pair", "feature", "symmetry", "psd", "correlation", "nees", "nis",
                    "prediction")
@@ -74,6 +84,22 @@ def _scalar(kind: str, doc: str, *, choices: tuple[str, ...] | None = None,
         meta["optional"] = True
         kw.setdefault("default", None)
     return field(metadata=meta, **kw)
+
+
+@contextlib.contextmanager
+def finite_by_construction(array: np.ndarray | None) -> Iterator[None]:
+    """Messages built in this block (on this thread) take ``array`` as finite without
+    reading it: its producer proves it finite by how it was made. Every other check (dtype,
+    shape, read-only) still runs, and every consumer's decode checks it in full.
+
+    For the estimator's own covariance, whose kernels refuse any step that would make it
+    non-finite (``ekf.Guard``, docs/estimator.md): summing a 32 MB matrix cost 1.5–3.4 ms
+    of every state at n = 1000 (docs/large_maps.md). ``None`` proves nothing."""
+    token = _PROVEN_FINITE.set(array)
+    try:
+        yield
+    finally:
+        _PROVEN_FINITE.reset(token)
 
 
 class Message:
@@ -145,8 +171,9 @@ class Message:
                     shown = ["n" if s is None else s for s in shape]
                     raise MessageError(self.TYPE, name, f"shape {shown}", str(list(dims)))
                 # the sum is finite iff every entry is (barring overflow, then check each)
-                if dtype.kind == "f" and array.size and not (
-                        math.isfinite(float(array.sum())) or np.isfinite(array).all()):
+                if dtype.kind == "f" and array.size and value is not _PROVEN_FINITE.get() \
+                        and not (math.isfinite(float(array.sum()))
+                                 or np.isfinite(array).all()):
                     raise MessageError(self.TYPE, name, "finite values", "NaN or infinity")
                 setattr_(self, name, array)
             elif value is None and optional:
@@ -210,7 +237,8 @@ class Message:
         raw = self._wire_dict(views=True)
         if not any(isinstance(v, dict) and isinstance(v.get("data"), (bytearray, memoryview))
                    and len(v["data"]) >= BIG_BINARY for v in raw.values()):
-            return [msgpack.packb(self.to_dict(), use_bin_type=True)]
+            # msgpack packs a bytearray or memoryview as the same bin value as bytes
+            return [msgpack.packb(raw, use_bin_type=True)]
         packer = msgpack.Packer(use_bin_type=True)
         parts: list[bytes | bytearray | memoryview] = []
         small: list[bytes] = [packer.pack_map_header(len(raw))]
@@ -242,13 +270,20 @@ class Message:
 
     @classmethod
     def from_bytes(cls, payload: bytes | bytearray | memoryview, **options: Any) -> Self:
+        return cls._decoded(payload, cls.from_dict, options)
+
+    @classmethod
+    def _decoded(cls, payload: bytes | bytearray | memoryview,
+                 build: Callable[..., Self], options: dict[str, Any]) -> Self:
+        """``build(map, **options)`` of the msgpack map in ``payload``; every failure one
+        MessageError (undecodable bytes, or a case the validators missed)."""
         try:
             raw = msgpack.unpackb(bytes(payload), raw=False, strict_map_key=False)
         except Exception as exc:  # msgpack raises several unrelated types
             raise MessageError(cls.TYPE, "<payload>", "a msgpack map",
                                f"undecodable bytes ({type(exc).__name__})") from None
         try:
-            return cls.from_dict(raw, **options)
+            return build(raw, **options)
         except MessageError:
             raise
         except Exception as exc:  # a case the validators missed: still one error type
@@ -257,6 +292,167 @@ class Message:
 
     @classmethod
     def from_dict(cls, raw: Any, **options: Any) -> Self:
+        """The message of a decoded msgpack map; raises MessageError naming the field.
+
+        A well-formed map (every value of its field's exact wire type, arrays as maps of
+        the field's own dtype) is accepted by a fast path in one pass; anything else it
+        does not vouch for goes through :meth:`_from_dict_full`, which then accepts or
+        rejects it as the only path would. The fast path only ever *accepts*, and only
+        what the full path accepts as the same message (tests/unit/test_decode_fast.py
+        holds the two to it on hostile payloads).
+        """
+        message = cls._from_dict_fast(raw, options)
+        if message is not None:
+            return message
+        return cls._from_dict_full(raw, **options)
+
+    @classmethod
+    def decode_reference(cls, payload: bytes | bytearray | memoryview,
+                         **options: Any) -> Self:
+        """:meth:`from_bytes` without the fast path: every message through the full
+        validation (what tests compare the fast path with)."""
+        return cls._decoded(payload, cls._from_dict_full, options)
+
+    @classmethod
+    def _fast_plan(cls) -> tuple[dict[str, Any], dict[str, tuple[Any, ...]], int] | None:
+        """What the fast path needs: the fields' defaults in field order (required ones
+        :data:`_NOT_VOUCHED`), per field name (kind, dtype, dtype string, itemsize, wire
+        shape, low, high, choices, whether the class has its own wire shape), and how
+        many fields are required; None if the class builds itself in ways the fast path
+        does not repeat."""
+        try:
+            return _FAST_PLANS[cls]
+        except KeyError:
+            pass
+        plan = None
+        # a class whose construction or wire hooks differ from Message's says how the
+        # fast path finishes it (_fast_finish), or it has none
+        owners = {next(k for k in cls.__mro__ if hook in k.__dict__)
+                  for hook in ("__post_init__", "_from_wire", "_wire_shape")}
+        if all(k is Message or "_fast_finish" in k.__dict__ for k in owners):
+            # the fields whose wire shape the class decides (_wire_shape): all arrays,
+            # unless the class that overrides it names them (_WIRE_SHAPED)
+            owner = next(k for k in cls.__mro__ if "_wire_shape" in k.__dict__)
+            shaped = (() if owner is Message else owner.__dict__.get("_WIRE_SHAPED"))
+            defaults: dict[str, Any] = {}
+            rows: dict[str, tuple[Any, ...]] = {}
+            for (name, kind, dtype, (shape, _, _), optional, (low, high), choices), f \
+                    in zip(cls._plan(), cls._fields(), strict=True):
+                if f.default_factory is not dataclasses.MISSING:
+                    default = f.default_factory()  # (empty containers: one is shared)
+                elif f.default is not dataclasses.MISSING:
+                    default = f.default
+                else:
+                    default = _NOT_VOUCHED  # required: missing is the full path's error
+                if default is not _NOT_VOUCHED and not _default_valid(
+                        kind, default, optional, low, high, choices):
+                    default = _NOT_VOUCHED
+                defaults[name] = default
+                rows[name] = (kind, dtype, None if dtype is None else dtype.str,
+                              0 if dtype is None else dtype.itemsize, shape, low, high,
+                              choices, kind == "array" and (shaped is None
+                                                            or name in shaped))
+            plan = (defaults, rows, sum(1 for v in defaults.values() if v is _NOT_VOUCHED))
+        _FAST_PLANS[cls] = plan
+        return plan
+
+    @classmethod
+    def _from_dict_fast(cls, raw: Any, options: Mapping[str, Any]) -> Self | None:
+        """The message, if every field is of its exact wire type and valid; else None
+        (the full path decides, and words any rejection). Never raises."""
+        plan = cls._fast_plan()
+        if plan is None or type(raw) is not dict or raw.get("schema") != SCHEMA:
+            return None
+        defaults, rows, required = plan
+        values = dict(defaults)  # field order; the wire's values replace the defaults
+        isfinite = math.isfinite
+        sums = 0.0  # of every float array: finite iff each entry is (barring overflow)
+        try:
+            for name, value in raw.items():
+                row = rows.get(name)
+                if row is None or value is None:  # not a field / nil: absent
+                    continue
+                kind, dtype, dstr, itemsize, shape, low, high, choices, own_shape = row
+                if kind == "array":
+                    # decode_array's own fast case, and the constructor's finiteness test
+                    if type(value) is not dict or value.get("dtype") != dstr:
+                        return None
+                    wire_shape, data = value.get("shape"), value.get("data")
+                    if type(data) is not bytes or type(wire_shape) is not list:
+                        return None
+                    if own_shape:
+                        shape = cls._wire_shape(name, raw, shape)
+                    if len(wire_shape) != len(shape):
+                        return None
+                    if len(shape) == 1:  # (most fields: one axis)
+                        count, w = wire_shape[0], shape[0]
+                        if type(count) is not int or count < 0 or (w is not None
+                                                                   and count != w):
+                            return None
+                    else:
+                        count = 1
+                        for d, w in zip(wire_shape, shape, strict=True):
+                            if type(d) is not int or d < 0 or (w is not None and d != w):
+                                return None
+                            count *= d
+                    if len(data) != count * itemsize:
+                        return None
+                    value = np.frombuffer(data, dtype=dtype)  # read-only: immutable bytes
+                    if len(wire_shape) != 1:  # (1-D: already the shape)
+                        value = value.reshape(wire_shape)
+                    if dtype.kind == "f" and count:
+                        sums += _add_reduce(value, None)
+                elif kind == "float":
+                    if type(value) is not float or not isfinite(value):
+                        return None
+                elif kind == "int":
+                    if type(value) is not int or not low <= value <= high:
+                        return None
+                elif kind == "str":
+                    if type(value) is not str or (choices is not None
+                                                  and value not in choices):
+                        return None
+                elif kind == "bool":
+                    if type(value) is not bool:
+                        return None
+                elif kind == "bytes":
+                    if type(value) is not bytes:
+                        return None
+                elif kind == "violations":
+                    if type(value) is not list:
+                        return None
+                    value = tuple(Violation.from_dict(v) for v in value)
+                elif kind == "stats":
+                    if type(value) is not dict:
+                        return None
+                    value = {str(k): check_finite(cls.TYPE, f"{name}.{k}", v)
+                             for k, v in value.items()}
+                else:
+                    return None
+                if values[name] is _NOT_VOUCHED:
+                    required -= 1
+                values[name] = value
+            if required or not isfinite(sums):  # a field missing; NaN, ∞ or an overflow
+                return None
+            for name, default in defaults.items():  # fresh containers, as the factories
+                if type(default) is dict and values[name] is default:
+                    values[name] = {}
+            message = object.__new__(cls)
+            message.__dict__.update(values)
+            cls._fast_finish(message, options)
+            message._check()
+        except Exception:  # whatever it is, the full path says it (or accepts it)
+            return None
+        return message
+
+    @classmethod
+    def _fast_finish(cls, message: Any, options: Mapping[str, Any]) -> None:
+        """What :meth:`_from_wire` and ``__post_init__`` add to the fields of a message
+        the fast path decoded (before ``_check``); may raise MessageError."""
+
+    @classmethod
+    def _from_dict_full(cls, raw: Any, **options: Any) -> Self:
+        """Decode with every field validated by the constructor (the reference path)."""
         if not isinstance(raw, Mapping):
             raise MessageError(cls.TYPE, "<payload>", "a msgpack map", type(raw).__name__)
         schema = raw.get("schema")
@@ -308,6 +504,23 @@ class Message:
     @classmethod
     def _from_wire(cls, kwargs: dict[str, Any], **options: Any) -> Self:
         return cls(**kwargs)
+
+
+def _default_valid(kind: str, value: Any, optional: bool, low: int, high: int,
+                   choices: tuple[str, ...] | None) -> bool:
+    """Whether the constructor accepts a field default as it is (the fast path then
+    uses it without the constructor's checks)."""
+    if value is None:
+        return optional or kind in ("array", "stats", "violations")
+    if kind == "float":
+        return type(value) is float and math.isfinite(value)
+    if kind == "int":
+        return type(value) is int and low <= value <= high
+    if kind == "str":
+        return type(value) is str and (choices is None or value in choices)
+    if kind == "bool":
+        return type(value) is bool
+    return (kind == "violations" and value == ()) or (kind == "stats" and value == {})
 
 
 def _count_check(message: str, name: str, array: np.ndarray | None, expected: int,
@@ -428,12 +641,15 @@ class SlamState(Message):
                                        "refused_updates, refused.<reason>); docs/protocol.md"})
 
     def __post_init__(self) -> None:
+        self._fill_defaults()
+        super().__post_init__()
+
+    def _fill_defaults(self) -> None:
         for name in ("observed_ids", "new_ids"):
             if getattr(self, name) is None:
                 object.__setattr__(self, name, frozen_array(np.zeros(0), "<i8"))
         if self.input_stamp is None:
             object.__setattr__(self, "input_stamp", self.stamp)
-        super().__post_init__()
 
     @property
     def n(self) -> int:
@@ -467,6 +683,9 @@ class SlamState(Message):
                 check_finite(self.TYPE, f"diagnostics.{key}", value)
 
     _FLAT = ("covariance",)
+    #: the fields whose wire shape _wire_shape decides (the decoder's fast path asks it
+    #: for these only)
+    _WIRE_SHAPED: ClassVar[tuple[str, ...]] = ("covariance",)
 
     @classmethod
     def _wire_shape(cls, name: str, raw: Mapping[str, Any],
@@ -492,6 +711,19 @@ class SlamState(Message):
             check_symmetric(cls.TYPE, "covariance", state.covariance,
                             rtol=options.get("symmetry_rtol", 1e-6))
         return state
+
+    @classmethod
+    def _fast_finish(cls, message: Any, options: Mapping[str, Any]) -> None:
+        cov = message.covariance
+        if cov.ndim == 1:  # as _from_wire
+            N = math.isqrt(cov.shape[0])
+            if N * N != cov.shape[0]:
+                raise MessageError(cls.TYPE, "covariance", "(3+2n)² entries", "not a square")
+            object.__setattr__(message, "covariance", cov.reshape(N, N))
+        message._fill_defaults()  # as __post_init__
+        if options.get("check_symmetry", True):
+            check_symmetric(cls.TYPE, "covariance", message.covariance,
+                            rtol=options.get("symmetry_rtol", 1e-6))
 
 
 _F4: dict[str, Any] = {"kind": "array", "dtype": "<f4"}

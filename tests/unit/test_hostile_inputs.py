@@ -7,12 +7,19 @@ from __future__ import annotations
 import dataclasses
 import functools
 import math
+import threading
 
 import numpy as np
 import pytest
 
-from common.errors import EstimationError
-from common.messages import Observations, Odometry, SlamState, Truth
+from common.errors import EstimationError, MessageError
+from common.messages import (
+    Observations,
+    Odometry,
+    SlamState,
+    Truth,
+    finite_by_construction,
+)
 from services.slam import ekf
 from services.slam.ekf import RefusedStepError
 from services.slam.estimator import Estimator
@@ -277,3 +284,63 @@ def test_settings_validation_still_applies_with_every_gate_off() -> None:
     est = Estimator(settings)
     with pytest.raises(EstimationError):
         est.predict(v=math.nan, w=0.0, dt=0.1, stamp=0.0)  # NaN is refused regardless
+
+
+@pytest.mark.parametrize("seed", [4, 8, 13])
+def test_every_state_the_guarded_filter_builds_is_finite_under_extreme_inputs(seed) -> None:
+    """The estimator's messages take its covariance as finite without summing it
+    (``finite_by_construction``: the guard's proof). Checked here independently, entry by
+    entry, after every step of a clean run with every gate off and extreme inputs mixed in
+    at random: magnitudes up to the guard's limits and past them."""
+    rng = np.random.default_rng(seed)
+    est = Estimator(EstimatorSettings(**NO_GATES))
+    stream = clean_stream()
+    states = 0
+    for i, message in enumerate(stream):
+        apply(est, message)
+        if i % 3 == 0:
+            t = float(message.stamp)
+            scale = 10.0 ** rng.uniform(0, 300)
+            bad = (odometry(t, v=float(rng.choice([-1, 1]) * scale), dt=float(rng.uniform(0, 5)))
+                   if rng.random() < 0.5 else
+                   batch(t, [int(rng.integers(1, 40))], [scale], [float(rng.uniform(-4, 4))]))
+            apply(est, bad)
+        state = est.to_state(seq=i + 1, stamp=float(message.stamp), step="update")
+        assert np.isfinite(state.covariance).all(), i
+        assert np.isfinite(state.pose).all() and np.isfinite(state.landmarks).all(), i
+        states += 1
+    assert states == len(stream) and sum(est.refusals.values()) > 0  # extreme steps were refused
+
+
+def test_a_proven_array_skips_only_its_own_finiteness_check() -> None:
+    bad = np.eye(3)
+    bad[1, 1] = np.nan
+    bad.flags.writeable = False
+    other = bad.copy()
+    other.flags.writeable = False
+
+    def state(cov: np.ndarray) -> SlamState:
+        return SlamState(robot="r1", seq=1, stamp=0.0, step="predict", pose=np.zeros(3),
+                         landmark_ids=np.zeros(0, np.int64), landmarks=np.zeros((0, 2)),
+                         covariance=cov)
+
+    with finite_by_construction(bad):
+        proven = state(bad)  # taken as proven (the producer's word), not read
+        with pytest.raises(MessageError, match="finite"):
+            state(other)  # another array is checked as ever
+        seen: list[BaseException] = []
+        worker = threading.Thread(target=lambda: _refused(state, bad, seen))
+        worker.start()
+        worker.join()
+        assert seen and "finite" in str(seen[0])  # other threads do not share the proof
+    with pytest.raises(MessageError, match="finite"):
+        state(bad)  # outside the block, checked
+    with pytest.raises(MessageError, match="finite"):
+        SlamState.from_bytes(proven.to_bytes())  # consumers check in full
+
+
+def _refused(build, cov, seen: list) -> None:
+    try:
+        build(cov)
+    except MessageError as exc:
+        seen.append(exc)
