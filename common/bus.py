@@ -37,7 +37,8 @@ import threading
 import time
 import weakref
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, Protocol
 
@@ -107,6 +108,58 @@ def payload_length(payload: Payload) -> int:
 
 class Publisher(Protocol):
     def put(self, payload: Payload) -> None: ...
+
+
+class BurstPuts:
+    """Puts held for the length of a burst and then made back to back, so Zenoh sends many
+    small payloads in a few batches instead of one write each (a put that finds the link
+    idle costs its publisher several times the CPU of one that joins a batch:
+    ``benchmarks/bench_put.py``; docs/delivery.md, "Bursts").
+
+    Outside :meth:`burst` every :meth:`put` goes out at once. Inside it, payloads under
+    ``below_bytes`` wait — at most ``limit`` of them — and go out in order when the limit
+    is reached, at :meth:`flush`, or when the burst ends; a larger one first sends what
+    waits, then itself. ``sent(tag)`` says which payload is out: before its own put for one
+    sent at once, after the group's puts (with the group's last tag) for held ones, so
+    whatever ``sent`` publishes (the answer to a ``get``) never runs ahead of the puts.
+    """
+
+    def __init__(self, publisher: Publisher, *, limit: int, sent: Callable[[Any], None],
+                 below_bytes: int | None = None) -> None:
+        self._publisher = publisher
+        self._limit = max(1, limit)
+        self._sent = sent
+        self._below = below_bytes
+        self._held: list[tuple[Payload, Any]] | None = None  #: None: not in a burst
+
+    @contextmanager
+    def burst(self) -> Iterator[None]:
+        self._held = []
+        try:
+            yield
+        finally:
+            self.flush()
+            self._held = None
+
+    def put(self, payload: Payload, tag: Any) -> None:
+        held = self._held
+        if held is not None and (self._below is None or payload_length(payload) < self._below):
+            held.append((payload, tag))
+            if len(held) >= self._limit:
+                self.flush()
+            return
+        self.flush()
+        self._sent(tag)
+        self._publisher.put(payload)
+
+    def flush(self) -> None:
+        """Put what waits, back to back, in order."""
+        held = self._held
+        if held:
+            for payload, _tag in held:
+                self._publisher.put(payload)
+            self._sent(held[-1][1])
+            held.clear()
 
 
 class Reply(Protocol):

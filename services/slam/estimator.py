@@ -19,7 +19,7 @@ import numpy as np
 
 from common.arrays import RecycledBuffers
 from common.errors import EstimationError
-from common.messages import SlamState
+from common.messages import SlamState, finite_by_construction
 from services.slam import association, ekf, faults
 from services.slam.plausibility import Bounds, ImplausibleInputError, InputGates
 from services.slam.settings import EstimatorSettings
@@ -348,11 +348,15 @@ class Estimator:
                 extra["gated_ids"] = report.gated_ids
                 extra["gated_observations"] = report.gated_observations
                 extra["gated_nis"] = report.gated_nis
-        return SlamState(robot=self.settings.robot, seq=seq, stamp=stamp, step=step,
-                         pose=self.pose, landmark_ids=self.landmark_ids,
-                         landmarks=self.landmarks, covariance=cov, epoch=epoch,
-                         input_stamp=input_stamp, origin_stamp=origin_stamp,
-                         diagnostics=self.diagnostics(), **extra)
+        # the guard refuses any step that would make P non-finite (|P_ij| ≤ 1e300, PSD to
+        # rounding: docs/estimator.md), so the message need not sum 32 MB to know it; a
+        # planted fault breaks PSD on purpose, and then the message checks P in full
+        with finite_by_construction(cov if self._guard.psd_rtol is not None else None):
+            return SlamState(robot=self.settings.robot, seq=seq, stamp=stamp, step=step,
+                             pose=self.pose, landmark_ids=self.landmark_ids,
+                             landmarks=self.landmarks, covariance=cov, epoch=epoch,
+                             input_stamp=input_stamp, origin_stamp=origin_stamp,
+                             diagnostics=self.diagnostics(), **extra)
 
     def diagnostics(self) -> dict[str, float]:
         """Running counts published in every state (docs/protocol.md ``diagnostics``):

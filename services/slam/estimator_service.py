@@ -8,6 +8,13 @@ them. After every event applied it publishes one ``SlamState`` through an advanc
 publisher with a cache (congestion control drop: a slow subscriber never slows it) and
 keeps its bytes as the answer to a ``get``. A liveliness token announces the estimator.
 
+Bursts: the worker takes everything queued at once. The small states of one burst (at most
+:data:`BURST_STATES`) are put back to back when it is applied, so Zenoh sends them in a few
+batches instead of one write each; a put on an idle link costs the publisher ~6× the CPU
+of one in a batch (``benchmarks/bench_put.py``). A state waits at most for the rest of its
+burst (≤ ``BURST_STATES`` events), and only when inputs queue up — in real time every burst
+is one input. Large states (a big map's, through shared memory) go out at once.
+
 Epochs: a map started from scratch gets a new ``epoch`` (the wall-clock nanoseconds at its
 start: unique in practice and increasing); with ``--checkpoint DIR`` the service saves its
 whole state there and, started again, resumes the same epoch and seq numbering, asking the
@@ -20,12 +27,13 @@ import dataclasses
 import logging
 import threading
 import time
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import msgpack
 import numpy as np
 
-from common.bus import Bus, Payload, Sample, joined
+from common.bus import BurstPuts, Bus, Payload, Sample, joined
 from common.drops import DropCounter
 from common.errors import EstimationError, MessageError
 from common.keys import Keys
@@ -40,6 +48,11 @@ from services.slam.settings import EstimatorSettings
 log = logging.getLogger("slamlens.estimator")
 
 _NOISE = ("sigma_v", "sigma_w", "sigma_range", "sigma_bearing")
+#: at most this many states of one burst of inputs wait to be put back to back
+BURST_STATES = 32
+#: states of this size and up are put at once (a batch holds 64 kB; a large map's states
+#: go through shared memory, and holding them back would only hold their memory)
+BURST_BELOW_BYTES = 32 << 10
 
 
 @dataclass
@@ -105,6 +118,9 @@ class EstimatorService:
             self._writer = ckpt.CheckpointWriter(settings.checkpoint)
         self._publisher = bus.publisher(keys.state(self.robot), cache=settings.state_cache,
                                         cache_bytes=int(settings.state_cache_mb * 2 ** 20))
+        #: a burst's small states put back to back; a get answers with the last one put
+        self._puts = BurstPuts(self._publisher, limit=BURST_STATES, sent=self._now_gettable,
+                               below_bytes=BURST_BELOW_BYTES)
         # The input channel is declared before the liveliness token, so a driver that
         # waits for the token never publishes into the void; after a resume it also asks
         # the drivers' caches for what was published while the estimator was down.
@@ -153,8 +169,10 @@ class EstimatorService:
             noise={k: float(getattr(self.settings, k)) for k in _NOISE})
 
     def _maybe_checkpoint(self) -> None:
+        """A checkpoint if one is due — after the states it covers were put."""
         if self._writer is not None and \
                 time.monotonic() - self._last_checkpoint >= self.settings.checkpoint_interval_s:
+            self._puts.flush()
             self._last_checkpoint = time.monotonic()
             self._writer.submit(self._checkpoint())
 
@@ -256,34 +274,52 @@ class EstimatorService:
                                         epoch=self.epoch, input_stamp=stamp,
                                         origin_stamp=self._origin_stamp)
         payload = state.wire_parts()  # the covariance copied once, by the publisher
-        header = self._header_of(state)
-        with self._lock:
-            self._latest, self._header = payload, header
-        self._publisher.put(payload)
+        self._puts.put(payload, (payload, self._header_of(state)))
         self.stats.states += 1
         return state
+
+    def _now_gettable(self, latest: tuple[Payload, bytes]) -> None:
+        """What a ``get`` answers with from now on (a state put, or about to be)."""
+        with self._lock:
+            self._latest, self._header = latest
 
     # -- the worker -----------------------------------------------------------------
     def ingest(self, sample: Sample | None) -> list[SlamState]:
         """One arrived sample (or None: only the gap timers) through decoding and the
         ordering; applies what is ready and returns the states published."""
-        ready: list[Input] = []
-        if sample is not None:
-            item = self.decode(sample)
-            if item is not None:
-                ready = self.order.offer(item)
-        ready.extend(self.order.expire())
-        out = [state for state in map(self.apply, ready) if state is not None]
+        return self.ingest_burst([] if sample is None else [sample])
+
+    def ingest_burst(self, samples: list[Sample]) -> list[SlamState]:
+        """Samples that arrived together, in arrival order, through decoding and the
+        ordering (then the gap timers); applies what is ready, puts the burst's states
+        back to back (module docstring) and returns them. A checkpoint due in the middle
+        is written then, after the states it covers were put."""
+        return list(self._applied(samples))
+
+    def _applied(self, samples: list[Sample]) -> Iterator[SlamState]:
+        """The states :meth:`ingest_burst` publishes, one at a time. The worker counts
+        them and keeps none: each holds its covariance, which the estimator recycles only
+        once nothing holds it (at n = 1000 a burst of 100 states held would be 3 GB, each
+        in a new buffer faulted in)."""
+        with self._puts.burst():
+            for sample in samples:
+                item = self.decode(sample)
+                if item is not None:
+                    yield from (s for s in map(self.apply, self.order.offer(item))
+                                if s is not None)
+                    self._maybe_checkpoint()
+            yield from (s for s in map(self.apply, self.order.expire()) if s is not None)
         self._maybe_checkpoint()
-        return out
 
     def step(self, timeout: float = 0.2) -> int:
-        """Take what arrived (waiting up to ``timeout`` s) and apply what is in order;
-        returns the number of states published."""
+        """Take what arrived (waiting up to ``timeout`` s for the first) and apply what is
+        in order; returns the number of states published."""
         deadline = self.order.next_deadline()
         if deadline is not None:
             timeout = max(0.0, min(timeout, deadline - time.monotonic()))
-        return len(self.ingest(self._inputs.recv(timeout=timeout)))
+        first = self._inputs.recv(timeout=timeout)
+        burst = [] if first is None else [first, *self._inputs.take_all()]
+        return sum(1 for _state in self._applied(burst))
 
     def status_line(self) -> str:
         o = self.order.stats

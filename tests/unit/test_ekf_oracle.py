@@ -285,14 +285,17 @@ def test_singular_innovation_leaves_state_untouched() -> None:
     assert np.array_equal(L, L0, equal_nan=True)
 
 
-@pytest.mark.parametrize("N", [1, 9, 128, 300])
+@pytest.mark.parametrize("N", [1, 9, 127, 128, 129, 300])
 def test_symmetric_materialises_lower_triangle(N: int) -> None:
     rng = np.random.default_rng(N)
     A = rng.normal(size=(N, N))
     P = A @ A.T
-    L = np.triu(np.full((N + 3, N + 3), 99.0), 1)
+    L = np.triu(np.full((N + 3, N + 3), 99.0), 1)  # the upper triangle is never read
     L[:N, :N] += np.tril(P)
     out = ekf.symmetric(L, N)
     assert out.shape == (N, N)
     assert np.array_equal(out, out.T)
     assert np.array_equal(np.tril(out), np.tril(P))
+    into = np.full((N, N), np.nan)  # into a given buffer: every entry written
+    assert ekf.symmetric(L, N, out=into) is into
+    assert np.array_equal(into, out)
