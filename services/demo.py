@@ -182,7 +182,7 @@ def run(command: str, args: argparse.Namespace) -> int:
                           "(docs/security.md)")
     setup_logging(args, "demo")
     s = settings_from_args(DemoSettings, args)
-    stop = stop_event()
+    stop = stop_event(grace_s=None)  # its own stop is bounded: services killed after 1.5 s
     keys = Keys(flags.prefix)
     endpoint = _router_endpoint(flags.listen)
     have_camera = importlib.util.find_spec("services.registration.service") is not None

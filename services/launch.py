@@ -319,5 +319,5 @@ def run(command: str, args: argparse.Namespace) -> int:
             after = f"  (after {', '.join(spec.after)})" if spec.after else ""
             print(f"  {spec.name}: {spec.shell()}{after}")
         return 0
-    stop = stop_event()
+    stop = stop_event(grace_s=None)  # its own stop is bounded: services killed after 1.5 s
     return Supervisor(plan, log_dir=s.log_dir).run(stop)

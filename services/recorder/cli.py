@@ -33,7 +33,7 @@ def _run_record(args: argparse.Namespace) -> int:
     settings = settings_from_args(RecordSettings, args)
     if settings.nice and hasattr(os, "nice"):
         os.nice(settings.nice)  # a background consumer: the live services go first
-    stop = stop_event()
+    stop = stop_event(grace_s=None)  # the file is finished however long that takes
     bus = open_bus(bus_settings(args))
     try:
         recorder = Recorder(bus, settings=settings, prefix=keys_from(args).prefix)
@@ -82,7 +82,7 @@ def _run_play(args: argparse.Namespace) -> int:
         applied = ""
         if settings.inputs_only and settings.rate == 0 and not stop.is_set():
             applied = (", all applied by the estimator" if player.drain(stop)
-                       else ", NOT all applied by the estimator within 10 s")
+                       else ", NOT all applied: the estimator applied nothing for 10 s")
         verb = "done" if player.finished else "stopped"
         print(f"play {verb}: {json.dumps(player.summary())} in {wall:.2f} s{applied}",
               flush=True)
