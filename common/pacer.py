@@ -90,8 +90,15 @@ class Pacer:
         self._pending.append(stamp)
 
     def drain(self, stop: threading.Event, *, timeout_s: float = 10.0) -> bool:
-        """Wait until the estimator applied everything published (or ``timeout_s``)."""
-        self._wait_below(0, stop, deadline=time.monotonic() + timeout_s)
+        """Wait until the estimator applied everything published, or until it applied
+        nothing for ``timeout_s``: a driver that exits takes its cache (the inputs the
+        estimator may still recover) with it, so an estimator slowed by a loaded machine is
+        waited for as long as it makes progress."""
+        while self._pending and not stop.is_set():
+            before = len(self._pending)
+            self._wait_below(0, stop, deadline=time.monotonic() + timeout_s)
+            if len(self._pending) >= before:  # nothing applied for timeout_s
+                break
         return not self._pending
 
     def close(self) -> None:

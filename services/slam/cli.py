@@ -133,7 +133,7 @@ def _finish(name: str, out: Any, stop: threading.Event, wall: float) -> None:
     applied = ""
     if out.pacer is not None and not stop.is_set():
         applied = (", all applied by the estimator" if out.pacer.drain(stop)
-                   else ", NOT all applied by the estimator within 10 s")
+                   else ", NOT all applied: the estimator applied nothing for 10 s")
     verb = "stopped" if stop.is_set() else "done"
     log.info("%s in %.2f s wall: %s", verb, wall, out.counts)
     print(f"{name} {verb}: {json.dumps(out.counts)} in {wall:.2f} s{applied}", flush=True)
