@@ -14,6 +14,9 @@ import colorsys
 import numpy as np
 from scipy.cluster.hierarchy import fcluster, linkage
 from scipy.optimize import linear_sum_assignment
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
 
 
 def cluster_labels(points_xy: np.ndarray, *, threshold_m: float = 0.6,
@@ -29,12 +32,20 @@ def cluster_labels(points_xy: np.ndarray, *, threshold_m: float = 0.6,
         return np.zeros(0, dtype=np.int64)
     if n == 1:
         return np.zeros(1, dtype=np.int64)
-    Z = linkage(pts, method="single", metric="euclidean")
     if count > 0:
+        Z = linkage(pts, method="single", metric="euclidean")
         raw = fcluster(Z, t=min(count, n), criterion="maxclust")
-    else:
-        # fcluster's "distance" merges at ≤ t; single linkage = components of the t-graph.
+    elif not np.isfinite(pts).all():  # (a KD-tree takes finite points only)
+        Z = linkage(pts, method="single", metric="euclidean")
         raw = fcluster(Z, t=threshold_m, criterion="distance")
+    else:
+        # single linkage cut at t (fcluster's "distance": merged at ≤ t) = the connected
+        # components of "closer than or at t": the pairs that close from a KD-tree, not
+        # all n(n−1)/2 distances (n = 1000 on a 1 m grid: ~1 ms instead of ~10)
+        close = cKDTree(pts).query_pairs(threshold_m, output_type="ndarray")
+        graph = coo_matrix((np.ones(len(close), np.int8), (close[:, 0], close[:, 1])),
+                           shape=(n, n))
+        _, raw = connected_components(graph, directed=False)
     # Renumber by first appearance so labels do not depend on scipy's numbering.
     _, first, inverse = np.unique(raw, return_index=True, return_inverse=True)
     order = np.argsort(np.argsort(first))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial.distance import cdist
 
@@ -183,3 +184,21 @@ def test_identities_stay_stable_as_a_1000_feature_map_grows() -> None:
         for centre, cid in zip((idx // 25).tolist(), stable.tolist(), strict=True):
             assert first_id.setdefault(centre, cid) == cid
     assert len(set(first_id.values())) == 40
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_threshold_labels_equal_the_dendrogram_cut_label_for_label(seed: int) -> None:
+    """The threshold cut (KD-tree + connected components) gives the labels that cutting
+    scipy's single-linkage dendrogram gives (both renumbered by first appearance), on
+    clustered and on grid-like maps up to n = 1000."""
+    from scipy.cluster.hierarchy import fcluster, linkage
+
+    rng = np.random.default_rng(seed)
+    n = (40, 300, 1000, 1000)[seed]
+    pts = (rng.uniform(0, 10, (n, 2)) if seed % 2 == 0 else
+           np.stack(np.meshgrid(np.arange(25), np.arange(40)), -1).reshape(-1, 2)[:n]
+           + rng.normal(0, 0.2, (n, 2)))
+    raw = fcluster(linkage(pts, method="single"), t=0.6, criterion="distance")
+    _, first, inverse = np.unique(raw, return_index=True, return_inverse=True)
+    want = np.argsort(np.argsort(first))[inverse]
+    np.testing.assert_array_equal(cluster_labels(pts, threshold_m=0.6), want)
