@@ -23,17 +23,21 @@ import dataclasses
 import logging
 import math
 from collections import Counter, deque
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from common.arrays import frozen_array
 from common.geometry import compose2, inverse2, transform2
 from common.messages import Health, SlamState, Truth, Violation
 from services.slam import monitor_checks as checks
 from services.slam.monitor_blame import Evidence, blame_weights
 from services.slam.monitor_stats import (
+    BlockTerms,
     FeatureWindows,
     WindowTest,
+    block_terms,
     feature_nees,
     match_ids,
     pose_nees,
@@ -47,6 +51,9 @@ log = logging.getLogger(__name__)
 #: Kinds that say the covariance theorems were broken (a fault onset); nees / nis are
 #: statistical and do not make suspects.
 BLAME_KINDS = ("pair", "feature", "prediction")
+_add_reduce, _max_reduce = np.add.reduce, np.maximum.reduce
+_NO_IDS = frozen_array(np.zeros(0), "<i8")  #: read-only: one for every Health without suspects
+_NO_PAIRS = frozen_array(np.zeros((0, 2)), "<i8")
 _TRUTH_BUFFER = 512  # truths kept for matching (≥ 25 s at 20 Hz)
 _PENDING = 64  # states kept waiting for a late truth
 
@@ -76,7 +83,21 @@ class _Pending:
     Pvv: np.ndarray
     ids: np.ndarray
     landmarks: np.ndarray
-    blocks: np.ndarray
+    terms: BlockTerms
+
+
+@dataclass(frozen=True)
+class _Screened:
+    """What the batched screen (``monitor_checks.screen_*``) proved clean for one state."""
+
+    state: SlamState  #: the state screened (held: its id keys the screen)
+    prev: SlamState | None  #: the previous state the pair tests assumed
+    structure: bool  #: no asymmetry, no |ρ| > 1
+    psd: bool  #: PSD within tolerance
+    #: against ``prev`` (same landmarks, same order): (map block unchanged, nothing grew,
+    #: predict-step tests pass); None: the per-state tests decide
+    pair: tuple[bool, bool, bool] | None
+    terms: BlockTerms  #: the features' own blocks, for their NEES
 
 
 class Monitor:
@@ -92,6 +113,7 @@ class Monitor:
         self._evidence = Evidence(half_life=s.evidence_half_life,
                                   suspect_score=s.suspect_score, suspect_ratio=s.suspect_ratio)
         self._truth_sigma2 = np.square(np.resize(np.asarray(s.truth_pose_sigma, float), 3))
+        self._truth_cov = np.diag(self._truth_sigma2)  #: added to Pvv for the pose NEES
         self._verdict = Verdict(clear_after=s.clear_after,
                                 max_listed=s.max_violations_per_kind)
         self.reset()
@@ -103,9 +125,10 @@ class Monitor:
         self._truth_stamps: list[float] = []
         self._truths: list[Truth] = []
         self._pending: deque[_Pending] = deque(maxlen=_PENDING)
+        self._pending_span = (math.inf, -math.inf)  #: bounds of the stamps waiting
         self._late: list[Violation] = []
-        self._id_match: tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]] | None = \
-            None
+        #: (the state's and the truth's landmark ids as bytes, their match_ids)
+        self._id_match: tuple[tuple[bytes, bytes], tuple[np.ndarray, np.ndarray]] | None = None
         self._nis.reset()
         self._nees_pose.reset()
         self._nees_features.reset()
@@ -118,10 +141,12 @@ class Monitor:
         self._gaps = 0
         self._restarts = 0
         self._onset: tuple[int, float] | None = None
+        self._screens: dict[int, _Screened] = {}
 
     def _restart(self) -> None:
         """A new run of the estimator: drop what belonged to the old one (not the counts)."""
         self._pending.clear()
+        self._pending_span = (math.inf, -math.inf)
         self._late = []
         self._nis.reset()
         self._nees_pose.reset()
@@ -198,15 +223,22 @@ class Monitor:
             del self._truth_stamps[0]
             del self._truths[0]
         tol = self.settings.truth_tolerance_s
+        lo, hi = self._pending_span
+        # no waiting state near: the stamps of those waiting lie in [lo, hi] and rounded
+        # subtraction is monotone, so no |p.stamp − stamp| ≤ tol (the loop's test) holds
+        if not self._pending or truth.stamp - hi > tol or lo - truth.stamp > tol:
+            return
         still: deque[_Pending] = deque(maxlen=_PENDING)
         for p in self._pending:
             if abs(p.stamp - truth.stamp) <= tol:
-                _, _, late = self._nees(p.pose, p.Pvv, p.ids, p.landmarks, p.blocks,
+                _, _, late = self._nees(p.pose, p.Pvv, p.ids, p.landmarks, p.terms,
                                         self._aligned(truth), seq=p.seq)
                 self._late.extend(late)
             else:
                 still.append(p)
         self._pending = still
+        self._pending_span = (min((p.stamp for p in still), default=math.inf),
+                              max((p.stamp for p in still), default=-math.inf))
 
     def _match_truth(self, stamp: float, *, aligned: bool = True) -> Truth | None:
         if not self._truths:
@@ -222,6 +254,84 @@ class Monitor:
             return None
         truth = self._truths[best[1]]
         return self._aligned(truth) if aligned else truth
+
+    # -- the batched screen -------------------------------------------------------------
+    def prepare(self, states: Sequence[SlamState]) -> None:
+        """Screen a burst of states at once, as stacks (``monitor_checks.screen_alone`` /
+        ``screen_pairs``): each is then :meth:`check` ed in this order and skips the
+        tests the screen found clean. A state checked without being prepared, or after
+        another previous state than the screen assumed, is screened on its own, so the
+        Health of a burst is the Health of the same states checked one by one."""
+        self._screens = {}
+        prev = self._prev
+        start = 0
+        for k in range(1, len(states) + 1):  # runs of one covariance size
+            if k == len(states) or states[k].covariance.shape != states[start].covariance.shape:
+                self._screen_run(prev, states[start:k])
+                prev = states[k - 1]
+                start = k
+
+    def _screen_run(self, prev: SlamState | None, run: Sequence[SlamState]) -> None:
+        s = self.settings
+        P = np.stack([x.covariance for x in run])
+        K, N = len(run), P.shape[1]
+        n = (N - 3) // 2
+        with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+            at = np.arange(n)
+            blocks = P[:, 3:, 3:].reshape(K, n, 2, n, 2)[:, at, :, at, :]  # [n, K, 2, 2]
+            terms = block_terms(blocks.transpose(1, 0, 2, 3),
+                                condition_max=s.nees_condition_max)
+            alone = checks.screen_alone(P, rtol_symmetry=s.rtol_symmetry,
+                                        rtol_correlation=s.rtol_correlation,
+                                        rtol_psd=s.rtol_psd, atol=s.atol_growth)
+            prevs = [prev, *run[:-1]]
+            # the same landmarks in the same order (int64 ids: equal iff their bytes are)
+            same = np.array([p is not None and p.landmark_ids.shape == x.landmark_ids.shape
+                             and p.landmark_ids.tobytes() == x.landmark_ids.tobytes()
+                             for p, x in zip(prevs, run, strict=True)], dtype=bool)
+            pairs = None
+            if same.any():
+                lead = (prev.covariance[None] if same[0] and prev is not None
+                        else np.zeros_like(P[:1]))
+                P_ext = np.concatenate([lead, P])
+                poses = np.stack([np.zeros(3) if p is None else p.pose
+                                  for p in [prevs[0], *run]])
+                predict = np.array([s.check_prediction and x.step == "predict"
+                                    and p is not None and x.seq == p.seq + 1
+                                    for p, x in zip(prevs, run, strict=True)], dtype=bool)
+                at = np.flatnonzero(same)
+                whole = at.size == K
+                pairs = checks.screen_pairs(
+                    P_ext[:-1] if whole else P_ext[at], P if whole else P[at],
+                    poses[:-1] if whole else poses[at], poses[1:] if whole else poses[at + 1],
+                    predict if whole else predict[at], rtol_growth=s.rtol_growth,
+                    atol_growth=s.atol_growth, rtol_prediction=s.rtol_prediction)
+                slot = np.full(K, -1)
+                slot[at] = np.arange(at.size)
+        structure, psd = alone.structure.tolist(), alone.psd.tolist()
+        found = None
+        if pairs is not None:
+            found = (slot.tolist(), pairs.unchanged.tolist(), pairs.growth.tolist(),
+                     pairs.prediction.tolist())
+        for k, x in enumerate(run):
+            pair = None
+            if found is not None and found[0][k] >= 0:
+                j = found[0][k]
+                pair = (found[1][j], found[2][j], found[3][j])
+            self._screens[id(x)] = _Screened(x, prevs[k], structure[k], psd[k], pair,
+                                             terms[k])
+
+    def _screened(self, state: SlamState, prev: SlamState | None) -> _Screened:
+        """The screen of ``state`` after ``prev`` (from :meth:`prepare`, else made now)."""
+        got = self._screens.pop(id(state), None)
+        if got is None or got.state is not state:
+            self._screen_run(prev, [state])
+            got = self._screens.pop(id(state))
+        if got.prev is not prev:  # checked after another state than the screen assumed
+            self._screen_run(prev, [state])
+            fresh = self._screens.pop(id(state))
+            got = dataclasses.replace(got, prev=prev, pair=fresh.pair)
+        return got
 
     # -- the check -----------------------------------------------------------------------
     def check(self, state: SlamState, *,
@@ -242,15 +352,16 @@ class Monitor:
         self._gaps += gap
         stats["gap"] = float(gap)
 
-        pairs = np.zeros((0, 2), dtype=np.int64)
+        pairs = _NO_PAIRS
         direct: list[int] = []
+        screened = self._screened(state, prev)
         # huge-but-finite covariances may overflow products: the comparisons still decide
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
-            found += self._check_alone(state)
+            found += self._check_alone(state, screened)
             if prev is not None:
-                pairs, direct, more = self._check_against(prev, state, stats)
+                pairs, direct, more = self._check_against(prev, state, stats, screened.pair)
                 found += more
-            found += self._statistics(state, stats)
+            found += self._statistics(state, stats, screened.terms)
         found += self._late
         self._late = []
 
@@ -270,7 +381,7 @@ class Monitor:
         self._states += 1
         verdict = self._verdict.update(state.seq, [_finite(v) for v in found], suspects)
         return Health(robot=state.robot, seq=state.seq, stamp=state.stamp, ok=not found,
-                      suspects=np.asarray(suspects, dtype=np.int64),
+                      suspects=frozen_array(suspects, "<i8") if suspects else _NO_IDS,
                       violations=tuple(_finite(v) for v in self._cap(found)),
                       statistics={k: v for k, v in stats.items() if math.isfinite(v)},
                       verdict=verdict, verdict_since=self._verdict.since,
@@ -290,7 +401,15 @@ class Monitor:
         return out
 
     # -- checks on one state ---------------------------------------------------------------
-    def _check_alone(self, state: SlamState) -> list[Violation]:
+    def _check_alone(self, state: SlamState, screened: _Screened) -> list[Violation]:
+        out: list[Violation] = []
+        if not screened.structure:
+            out += self._check_structure(state)
+        if not screened.psd:
+            out += self._check_psd(state)
+        return out
+
+    def _check_structure(self, state: SlamState) -> list[Violation]:
         s = self.settings
         P = state.covariance
         out: list[Violation] = []
@@ -313,6 +432,13 @@ class Monitor:
                 value=float(corr.value[k]), bound=float(corr.bound[k]), phase=state.step,
                 detail=f"{corr.count} entries with |ρ| > 1, worst {_name(ids, a)} / "
                        f"{_name(ids, b)}"))
+        return out
+
+    def _check_psd(self, state: SlamState) -> list[Violation]:
+        s = self.settings
+        P = state.covariance
+        out: list[Violation] = []
+        ids = state.landmark_ids
         neg = checks.min_eigenvalue_if_indefinite(P, rtol=s.rtol_psd, atol=s.atol_growth)
         if neg is not None:
             lam, tol, vec = neg
@@ -329,23 +455,35 @@ class Monitor:
         return out
 
     # -- checks against the previous received state --------------------------------------
-    def _check_against(self, prev: SlamState, state: SlamState, stats: dict[str, float]
+    def _check_against(self, prev: SlamState, state: SlamState, stats: dict[str, float],
+                       screened: tuple[bool, bool, bool] | None = None
                        ) -> tuple[np.ndarray, list[int], list[Violation]]:
         s = self.settings
         out: list[Violation] = []
         direct: list[int] = []
-        pos_prev, pos_cur = checks.common_landmarks(prev.landmark_ids, state.landmark_ids)
+        if screened is not None:  # the same landmarks in the same order, screened
+            pos_prev = pos_cur = np.arange(prev.n)
+            unchanged, no_growth, predicted = screened
+        else:
+            pos_prev, pos_cur = checks.common_landmarks(prev.landmark_ids,
+                                                        state.landmark_ids)
+            unchanged, no_growth, predicted = False, False, False
         removed = prev.n - pos_prev.shape[0]
         if removed:
             stats["landmarks_removed"] = float(removed)
         ids = prev.landmark_ids[pos_prev]
-        Pmm_prev = checks.map_block(prev.covariance, pos_prev)
-        Pmm_cur = checks.map_block(state.covariance, pos_cur)
-        pairs = np.zeros((0, 2), dtype=np.int64)
-        # cheap sufficient test: an untouched map block (every predict) cannot grow
-        unchanged = np.array_equal(Pmm_prev, Pmm_cur)
+        pairs = _NO_PAIRS
+        Pmm_prev = Pmm_cur = None
+        if screened is None:
+            Pmm_prev = checks.map_block(prev.covariance, pos_prev)
+            Pmm_cur = checks.map_block(state.covariance, pos_cur)
+            # cheap sufficient test: an untouched map block (every predict) cannot grow
+            unchanged = np.array_equal(Pmm_prev, Pmm_cur)
         feats = pair = None
-        if not unchanged:
+        if not unchanged and not no_growth:
+            if Pmm_prev is None or Pmm_cur is None:
+                Pmm_prev = checks.map_block(prev.covariance, pos_prev)
+                Pmm_cur = checks.map_block(state.covariance, pos_cur)
             delta = Pmm_prev - Pmm_cur
             feats = checks.feature_growth(Pmm_prev, Pmm_cur, rtol=s.rtol_growth,
                                           atol=s.atol_growth, delta=delta)
@@ -376,7 +514,7 @@ class Monitor:
                     detail=f"P_d of features {i}, {j} grew by {pair.value[k]:.3g} m²"))
         stats["growth_max"] = growth_max
         if (s.check_prediction and state.step == "predict"
-                and state.seq == prev.seq + 1):
+                and state.seq == prev.seq + 1 and not predicted):
             more, blamed = self._check_prediction(prev, state, pos_prev, pos_cur, ids,
                                                   map_unchanged=unchanged)
             out += more
@@ -422,7 +560,8 @@ class Monitor:
         return out, blamed
 
     # -- statistics ----------------------------------------------------------------------
-    def _statistics(self, state: SlamState, stats: dict[str, float]) -> list[Violation]:
+    def _statistics(self, state: SlamState, stats: dict[str, float], terms: BlockTerms
+                    ) -> list[Violation]:
         out: list[Violation] = []
         if state.innovations is not None and state.innovation_covariances is not None \
                 and state.innovations.shape[0]:
@@ -448,25 +587,25 @@ class Monitor:
             stats["nis_window_mean"] = self._nis.sliding_mean
             stats["nis_window_lo"], stats["nis_window_hi"] = self._nis.lo, self._nis.hi
 
-        n = state.n
-        blocks = state.covariance[3:, 3:].reshape(n, 2, n, 2)[np.arange(n), :, np.arange(n), :]
         truth = self._match_truth(state.stamp)
         if truth is None:
+            lo, hi = self._pending_span  # (still a bound when the oldest is pushed out)
+            self._pending_span = (min(lo, state.stamp), max(hi, state.stamp))
             self._pending.append(_Pending(state.seq, state.stamp, state.pose,
                                           state.covariance[:3, :3], state.landmark_ids,
-                                          state.landmarks, blocks))
+                                          state.landmarks, terms))
         else:
             nees_p, nees_f, more = self._nees(state.pose, state.covariance[:3, :3],
-                                              state.landmark_ids, state.landmarks, blocks,
+                                              state.landmark_ids, state.landmarks, terms,
                                               truth, seq=state.seq)
             out += more
             if nees_p is not None:
                 stats["nees_pose"] = nees_p
                 stats["nees_pose_lo"] = self._nees_pose.sample_lo
                 stats["nees_pose_hi"] = self._nees_pose.sample_hi
-            if nees_f.size:
-                stats["nees_features_mean"] = float(nees_f.mean())
-                stats["nees_features_max"] = float(nees_f.max())
+            if nees_f.size:  # (np.mean is this sum over the count: the same float)
+                stats["nees_features_mean"] = float(_add_reduce(nees_f) / nees_f.size)
+                stats["nees_features_max"] = float(_max_reduce(nees_f))
         if self._nees_pose.sliding_mean is not None:
             stats["nees_pose_window_mean"] = self._nees_pose.sliding_mean
             stats["nees_pose_window_lo"] = self._nees_pose.lo
@@ -474,27 +613,27 @@ class Monitor:
         return out
 
     def _nees(self, pose: np.ndarray, Pvv: np.ndarray, ids: np.ndarray, landmarks: np.ndarray,
-              blocks: np.ndarray, truth: Truth, *, seq: int
+              terms: BlockTerms, truth: Truth, *, seq: int
               ) -> tuple[float | None, np.ndarray, list[Violation]]:
         s = self.settings
         out: list[Violation] = []
-        nees_p = pose_nees(pose, Pvv + np.diag(self._truth_sigma2), truth.pose,
+        nees_p = pose_nees(pose, Pvv + self._truth_cov, truth.pose,
                            condition_max=s.nees_condition_max)
         if nees_p is not None:
-            for r in self._nees_pose.add([nees_p]):
-                if r.failed:
-                    out.append(Violation(
-                        kind="nees", ids=(), step=seq, value=r.mean, bound=_side(r),
-                        detail=f"mean pose NEES {r.mean:.3g} over {r.samples} states outside "
-                               f"[{r.lo:.3g}, {r.hi:.3g}]"))
+            r = self._nees_pose.add_one(nees_p)
+            if r is not None and r.failed:
+                out.append(Violation(
+                    kind="nees", ids=(), step=seq, value=r.mean, bound=_side(r),
+                    detail=f"mean pose NEES {r.mean:.3g} over {r.samples} states outside "
+                           f"[{r.lo:.3g}, {r.hi:.3g}]"))
+        # the id sets change rarely: reuse the last match (cheaper than intersect1d); int64
+        # arrays are equal exactly when their bytes are
+        key = (ids.tobytes(), truth.landmark_ids.tobytes())
         cache = self._id_match
-        if cache is None or not (np.array_equal(cache[0], ids)
-                                 and np.array_equal(cache[1], truth.landmark_ids)):
-            # the id sets change rarely: reuse the last match (cheaper than intersect1d)
-            cache = (ids, truth.landmark_ids, match_ids(ids, truth.landmark_ids))
+        if cache is None or cache[0] != key:
+            cache = (key, match_ids(ids, truth.landmark_ids))
             self._id_match = cache
-        fids, nees_f = feature_nees(ids, landmarks, blocks, truth.landmarks, cache[2],
-                                    condition_max=s.nees_condition_max)
+        fids, nees_f = feature_nees(ids, landmarks, terms, truth.landmarks, cache[1])
         for fid, r in self._nees_features.add(fids, nees_f):
             if r.failed:
                 out.append(Violation(

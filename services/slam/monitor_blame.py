@@ -64,7 +64,10 @@ class Evidence:
 
         ``present``: ids still in the map; evidence of features that left it is dropped.
         """
-        keep = None if present is None else set(int(i) for i in present)
+        if not self.scores and not weights:  # nothing to age, nothing to add
+            return
+        keep = None if present is None else set(
+            present.tolist() if isinstance(present, np.ndarray) else (int(i) for i in present))
         aged = {}
         for f, s in self.scores.items():
             s *= self._decay

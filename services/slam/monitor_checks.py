@@ -255,3 +255,154 @@ def prediction_residuals(P_prev: np.ndarray, P_cur: np.ndarray, pose_prev: np.nd
         return map_changed, cross_wrong, None
     lam = float(np.linalg.eigvalsh(0.5 * (Q + Q.T))[0])
     return map_changed, cross_wrong, (lam if lam < -tol_q else None)
+
+
+# -- batched screens ------------------------------------------------------------------------
+# A monitor that takes a burst of states checks them all at once: the tests above, as array
+# operations over stacks [K, N, N] of consecutive covariances, decide for each state whether
+# it is *clean* (nothing to report). Every comparison is the one the per-state test makes,
+# entry for entry (elementwise arithmetic does not depend on the stack's size), so a state
+# screened clean is one the per-state test finds clean; a state not screened clean goes
+# through the per-state tests above, which say what is wrong. The monitor screens one state
+# as a stack of one, so checking a burst and checking one by one give the same Health.
+
+
+@dataclass(frozen=True)
+class Screen:
+    """Per state of a stack: which tests a batched pass found clean."""
+
+    structure: np.ndarray  #: bool [K]: no asymmetric entry, no |ρ| > 1 (:func:`structure`)
+    psd: np.ndarray  #: bool [K]: sym(P) + tol·I has a Cholesky factor (PSD within tol)
+
+
+@dataclass(frozen=True)
+class PairScreen:
+    """Per consecutive pair (same landmarks, same order) of two stacks."""
+
+    unchanged: np.ndarray  #: bool [K]: P_mm bit-equal (every predict of a correct filter)
+    growth: np.ndarray  #: bool [K]: no feature P_ii and no pair P_d grew (beyond tolerance)
+    prediction: np.ndarray  #: bool [K]: the predict-step tests pass (where asked for)
+
+
+def screen_alone(P: np.ndarray, *, rtol_symmetry: float, rtol_correlation: float,
+                 rtol_psd: float, atol: float) -> Screen:
+    """:func:`structure` and :func:`min_eigenvalue_if_indefinite` for a stack P [K, N, N].
+
+    The PSD test is one batched Cholesky (numpy's LAPACK) of sym(P) + tol·I; if any matrix
+    of the stack has none, or has non-finite entries, the whole stack is left to the
+    per-state test (a fault that breaks PSD is rare and then costs what it did before).
+    """
+    K, N, _ = P.shape
+    if N == 0 or K == 0:
+        return Screen(np.ones(K, bool), np.ones(K, bool))
+    idx = np.arange(N)
+    PT = P.transpose(0, 2, 1)
+    diag = np.diagonal(P, axis1=1, axis2=2)
+    d = np.sqrt(np.abs(diag))
+    # the same operations as |P − Pᵀ| > rtol·(d_a·d_b) + atol, in two reused buffers
+    value = np.subtract(P, PT)
+    np.abs(value, out=value)
+    bound = np.multiply(d[:, :, None], d[:, None, :])
+    bound *= rtol_symmetry
+    bound += atol
+    bad = np.greater(value, bound)
+    clean = ~bad.any(axis=(1, 2))
+    S = P + PT
+    S *= 0.5  # sym(P); |sym(P)| is the correlation test's 0.5·|P + Pᵀ| (0.5 is exact)
+    dpos = np.sqrt(np.maximum(diag, 0.0))
+    # |sym(P)| > (dpos_a·dpos_b)·(1 + rtol_correlation) + atol
+    np.abs(S, out=value)
+    np.multiply(dpos[:, :, None], dpos[:, None, :], out=bound)
+    bound *= 1.0 + rtol_correlation
+    bound += atol
+    np.greater(value, bound, out=bad)
+    bad[:, idx, idx] = False  # a = b is |ρ| = 1 by definition
+    clean &= ~bad.any(axis=(1, 2))
+    tol = rtol_psd * np.abs(np.diagonal(S, axis1=1, axis2=2)).max(axis=1) + atol
+    psd = np.isfinite(S.sum(axis=(1, 2))) & np.isfinite(tol)
+    if psd.any():
+        S[:, idx, idx] += tol[:, None]
+        try:
+            np.linalg.cholesky(S[psd] if not psd.all() else S)
+        except np.linalg.LinAlgError:  # some matrix of the stack has none: test each
+            psd[:] = False
+    return Screen(clean, psd)
+
+
+def screen_pairs(P_prev: np.ndarray, P_cur: np.ndarray, pose_prev: np.ndarray,
+                 pose_cur: np.ndarray, predict: np.ndarray, *, rtol_growth: float,
+                 atol_growth: float, rtol_prediction: float) -> PairScreen:
+    """:func:`feature_growth`, :func:`pair_growth` and :func:`prediction_residuals` for
+    stacks of consecutive covariances [K, N, N] whose landmarks are the same, in the same
+    order; ``predict`` [K] says where the predict-step tests apply (poses [K, 3])."""
+    K, N, _ = P_cur.shape
+    m = (N - 3) // 2
+    Mp, Mc = P_prev[:, 3:, 3:], P_cur[:, 3:, 3:]
+    unchanged = (Mp == Mc).all(axis=(1, 2))
+    growth = np.ones(K, bool)
+    changed = np.flatnonzero(~unchanged)
+    if changed.size and m:
+        D = Mp[changed] - Mc[changed]
+        xx, yy, xy, yx = D[:, 0::2, 0::2], D[:, 1::2, 1::2], D[:, 0::2, 1::2], D[:, 1::2, 0::2]
+        dxx = np.diagonal(xx, axis1=1, axis2=2)
+        dyy = np.diagonal(yy, axis1=1, axis2=2)
+        dxy = 0.5 * (np.diagonal(xy, axis1=1, axis2=2) + np.diagonal(yx, axis1=1, axis2=2))
+        dp = np.abs(np.diagonal(Mp[changed], axis1=1, axis2=2))
+        t = dp[:, 0::2] + dp[:, 1::2]
+        lam = min_eig_2x2(dxx, dxy, dyy)
+        ok = ~(lam < -(rtol_growth * t + atol_growth)).any(axis=1)
+        if m >= 2:
+            a = dxx[:, :, None] + dxx[:, None, :] - 2.0 * xx
+            c = dyy[:, :, None] + dyy[:, None, :] - 2.0 * yy
+            b = dxy[:, :, None] + dxy[:, None, :] - (xy + yx)
+            lam2 = min_eig_2x2(a, b, c)
+            tol2 = rtol_growth * (t[:, :, None] + t[:, None, :]) + atol_growth
+            upper = np.triu(np.ones((m, m), bool), 1)  # i < j, as pair_growth reads them
+            ok &= ~((lam2 < -tol2) & upper).any(axis=(1, 2))
+        growth[changed] = ok
+    prediction = np.ones(K, bool)
+    which = np.flatnonzero(predict)
+    if which.size:
+        prediction[which] = _screen_prediction(
+            P_prev[which], P_cur[which], pose_prev[which], pose_cur[which],
+            unchanged[which], rtol=rtol_prediction, atol=atol_growth)
+    return PairScreen(unchanged, growth, prediction)
+
+
+def _screen_prediction(P_prev: np.ndarray, P_cur: np.ndarray, pose_prev: np.ndarray,
+                       pose_cur: np.ndarray, unchanged: np.ndarray, *, rtol: float,
+                       atol: float) -> np.ndarray:
+    """Stacked :func:`prediction_residuals`: True where all three of its tests pass (a
+    changed map block is left to the per-state test, which weighs the change)."""
+    dx = (pose_cur[:, 0] - pose_prev[:, 0])[:, None]
+    dy = (pose_cur[:, 1] - pose_prev[:, 1])[:, None]
+    floor = atol / max(rtol, 1e-300)
+    ok = unchanged.copy()
+    if P_cur.shape[1] > 3:
+        Pvm_prev = P_prev[:, :3, 3:]
+        resid = P_cur[:, :3, 3:] - Pvm_prev
+        resid[:, 0] += dy * Pvm_prev[:, 2]
+        resid[:, 1] -= dx * Pvm_prev[:, 2]
+        np.abs(resid, out=resid)
+        dm = np.abs(np.diagonal(P_prev, axis1=1, axis2=2)[:, 3:])
+        dv = np.maximum(np.abs(np.diagonal(P_prev, axis1=1, axis2=2)[:, :3]),
+                        np.abs(np.diagonal(P_cur, axis1=1, axis2=2)[:, :3]))
+        resid /= np.sqrt(dv[:, :, None] * dm[:, None, :]) + floor
+        ok &= ~(resid > rtol).any(axis=(1, 2))
+    # Q = Pvv − Fx·Pvv(prev)·Fxᵀ with Fx = I + u·e_θᵀ, u = (−Δy, Δx, 0), written out
+    V = P_prev[:, :3, :3]
+    u = np.concatenate([-dy, dx, np.zeros_like(dx)], axis=1)  # [K, 3]
+    col = V[:, :, 2]  # Pvv(prev)·e_θ
+    row = V[:, 2, :]  # e_θᵀ·Pvv(prev)
+    FPF = V + u[:, :, None] * row[:, None, :] + col[:, :, None] * u[:, None, :] \
+        + (u[:, :, None] * u[:, None, :]) * V[:, 2, 2][:, None, None]
+    Pvv = P_cur[:, :3, :3]
+    Q = Pvv - FPF
+    tol = rtol * np.abs(np.diagonal(Pvv, axis1=1, axis2=2)).sum(axis=1) + atol
+    Q = 0.5 * (Q + Q.transpose(0, 2, 1))
+    a, b, c = Q[:, 0, 0] + tol, Q[:, 0, 1], Q[:, 0, 2]
+    d, e, f = Q[:, 1, 1] + tol, Q[:, 1, 2], Q[:, 2, 2] + tol
+    # Q + tol·I positive definite (Sylvester's leading minors) ⇒ λ_min(Q) > −tol
+    ok &= (a > 0) & (a * d - b * b > 0) & (
+        a * (d * f - e * e) - b * (b * f - c * e) + c * (b * e - c * d) > 0)
+    return ok

@@ -5,6 +5,8 @@ simulator truth and the camera-tracked pose, in the order they arrive; a state m
 congestion or a link cut comes back from the estimator's cache — and publishes one
 ``Health`` per state through an advanced publisher (a viewer that joins late or missed one
 recovers it). The channel's callback only queues: the monitor never slows the estimator.
+The Healths of a burst of states are put back to back, at most :data:`BURST_HEALTHS` at a
+time (one Zenoh batch for many; docs/delivery.md, "Bursts").
 
 Every state is checked, in order. If the monitor ever falls behind, the states waiting
 are counted and said in every Health (statistic ``behind``) and in the log, never
@@ -24,7 +26,7 @@ import logging
 import threading
 import time
 
-from common.bus import Bus
+from common.bus import BurstPuts, Bus, Sample
 from common.drops import DropCounter
 from common.errors import MessageError
 from common.keys import Keys
@@ -39,6 +41,11 @@ log = logging.getLogger("slamlens.monitor")
 HEALTH_CACHE = 10_000
 #: from this many states waiting, the monitor says it is behind
 BEHIND_REPORT = 50
+#: samples decoded and screened together (a burst taken from the queue, in pieces)
+BURST = 256
+#: at most this many Healths of a burst wait to be put back to back (one Zenoh batch for
+#: many instead of a write each: benchmarks/bench_put.py, docs/delivery.md "Bursts")
+BURST_HEALTHS = 32
 
 
 class MonitorService:
@@ -64,7 +71,13 @@ class MonitorService:
         self._latest: bytes | None = None
         self._lock = threading.Lock()
         self._said_behind = 0.0
+        self._waiting = 0  #: samples of the burst being checked still to come
+        #: CPU seconds of the checking thread (decode, check, Health) in :meth:`run`; the
+        #: rest of the process's CPU is Zenoh's (receiving, queueing, publishing)
+        self.worker_cpu_s = 0.0
         self._publisher = bus.publisher(keys.health(robot), cache=HEALTH_CACHE)
+        #: a burst's Healths put back to back; a get answers with the last one put
+        self._puts = BurstPuts(self._publisher, limit=BURST_HEALTHS, sent=self._now_gettable)
         # one ordered queue for what it checks, each key subscribed on its own (the router
         # sends nothing else: not the estimator's inputs, not our own health)
         self._inputs = bus.channel(keys.state(robot), recover=True,
@@ -82,21 +95,36 @@ class MonitorService:
 
     @property
     def behind(self) -> int:
-        """Samples received and not yet checked."""
-        return self._inputs.backlog
+        """Samples received and not yet checked (in the queue, or in the burst taken)."""
+        return self._inputs.backlog + self._waiting
 
     def handle(self, key: str, payload: bytes) -> Health | None:
+        """Decode and check (or keep, a truth) one sample."""
+        return self._apply(key, self._decode(key, payload))
+
+    def _decode(self, key: str, payload: bytes) -> SlamState | Truth | MessageError | None:
+        """The message of one sample; a rejection is returned, to be counted in its turn."""
         leaf = "tracked" if "/tracked/" in key else self.keys.leaf_of(key)
         try:
             if leaf in ("truth", "tracked"):
-                self.monitor.add_truth(Truth.from_bytes(payload))
-                return None
+                return Truth.from_bytes(payload)
             if leaf != "state":
                 return None
-            state = SlamState.from_bytes(payload, check_symmetry=False)
+            return SlamState.from_bytes(payload, check_symmetry=False)
         except MessageError as exc:
-            self.drops.drop(exc.message_type, f"on {key}: {exc}")
+            return exc
+
+    def _apply(self, key: str, item: SlamState | Truth | MessageError | None
+               ) -> Health | None:
+        if item is None:
             return None
+        if isinstance(item, MessageError):
+            self.drops.drop(item.message_type, f"on {key}: {item}")
+            return None
+        if isinstance(item, Truth):
+            self.monitor.add_truth(item)
+            return None
+        state = item
         if state.robot != self.robot:
             self.drops.drop("robot", f"state of robot {state.robot!r} on {self.robot!r}'s key")
             return None
@@ -130,10 +158,13 @@ class MonitorService:
                             "; ".join(v.detail or v.kind for v in health.violations[:3]),
                             [int(i) for i in health.suspects])
         payload_out = health.to_bytes()
-        with self._lock:
-            self._latest = payload_out
-        self._publisher.put(payload_out)
+        self._puts.put(payload_out, payload_out)
         return health
+
+    def _now_gettable(self, payload: bytes) -> None:
+        """What a ``get`` answers with from now on (a Health put, or about to be)."""
+        with self._lock:
+            self._latest = payload
 
     def _service_statistics(self) -> dict[str, float]:
         """What the service knows and the core does not: backlog, losses, restarts."""
@@ -156,28 +187,52 @@ class MonitorService:
     def run(self, stop: threading.Event, *, status_every_s: float = 10.0) -> None:
         """Check states until ``stop`` is set."""
         last = time.monotonic()
-        while not stop.is_set():
-            self.step(timeout=0.2)
-            if time.monotonic() - last >= status_every_s:
-                last = time.monotonic()
-                log.info("%s", self.status_line())
+        cpu = time.thread_time()
+        try:
+            while not stop.is_set():
+                self.step(timeout=0.2)
+                if time.monotonic() - last >= status_every_s:
+                    last = time.monotonic()
+                    log.info("%s", self.status_line())
+        finally:
+            self.worker_cpu_s += time.thread_time() - cpu
 
     def step(self, timeout: float = 0.2) -> int:
-        """Check the next sample waiting (up to ``timeout`` s for one); if what still
-        waits is beyond ``sample_above_mb``, jump to the newest state. Returns the number
-        of samples handled (0: nothing came)."""
-        sample = self._inputs.recv(timeout=timeout)
-        if sample is None:
+        """Check what waits (up to ``timeout`` s for a first sample): everything queued is
+        taken as one burst and checked in order, BURST samples at a time, their states
+        screened together (:meth:`Monitor.prepare`: the same Health as one by one). If
+        what waits is beyond ``sample_above_mb``, jump to the newest state. Returns the
+        number of samples handled (0: nothing came)."""
+        first = self._inputs.recv(timeout=timeout)
+        if first is None:
             return 0
-        self.handle(sample.key, sample.payload)
-        if self._inputs.backlog_bytes > self._sample_above:
-            return 1 + self._sample()
-        return 1
+        burst = [first, *self._inputs.take_all()]
+        if sum(len(s.payload) for s in burst[1:]) > self._sample_above:
+            self.handle(first.key, first.payload)
+            return 1 + self._sample(burst[1:])
+        for start in range(0, len(burst), BURST):
+            self._check_burst(burst[start:start + BURST], after=len(burst) - start)
+        return len(burst)
 
-    def _sample(self) -> int:
+    def _check_burst(self, samples: list[Sample], *, after: int) -> None:
+        """Decode ``samples``, screen their states at once, apply each in order (``after``:
+        samples of the whole burst from the first of these on, for ``behind``)."""
+        items = [self._decode(s.key, s.payload) for s in samples]
+        self.monitor.prepare([x for x in items
+                              if isinstance(x, SlamState) and x.robot == self.robot])
+        try:
+            with self._puts.burst():
+                for k, (sample, item) in enumerate(zip(samples, items, strict=True)):
+                    self._waiting = after - k - 1
+                    self._apply(sample.key, item)
+        finally:
+            self._waiting = 0
+
+    def _sample(self, waiting: list[Sample] | None = None) -> int:
         """Too far behind on a large map: take everything waiting, keep the truths, check
         only the newest state (the comparison with the last one checked stays valid)."""
-        waiting = self._inputs.take_all()
+        if waiting is None:
+            waiting = self._inputs.take_all()
         states = [s for s in waiting if s.key.endswith("/state")]
         skipped = max(0, len(states) - 1)
         self.sampled_out += skipped
@@ -202,4 +257,4 @@ class MonitorService:
                 "suspects": [int(i) for i in s.suspects], "lost": self._inputs.lost,
                 "sampled_out": self.sampled_out,
                 "duplicates": self.duplicates, "restarts": self.restarts,
-                "dropped": self.drops.total}
+                "dropped": self.drops.total, "worker_cpu_s": round(self.worker_cpu_s, 2)}

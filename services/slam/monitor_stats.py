@@ -51,16 +51,20 @@ def pose_nees(pose: np.ndarray, Pvv: np.ndarray, true_pose: np.ndarray, *,
     condition number, exceeds ``condition_max`` (e.g. the first steps from a zero initial
     covariance: rank-deficient, error dominated by linearisation) or it is not PD.
     """
-    (a, b, c), (_, d, e_), (_, _, f) = (0.5 * (Pvv + Pvv.T)).tolist()
+    # sym(Pvv) in Python floats: the same IEEE operations as numpy's 0.5 * (P + Pᵀ)
+    (p00, p01, p02), (p10, p11, p12), (p20, p21, p22) = Pvv.tolist()
+    a, b, c = 0.5 * (p00 + p00), 0.5 * (p01 + p10), 0.5 * (p02 + p20)
+    d, e_, f = 0.5 * (p11 + p11), 0.5 * (p12 + p21), 0.5 * (p22 + p22)
     A, B, C = d * f - e_ * e_, c * e_ - b * f, b * e_ - c * d  # adjugate (symmetric)
     D, E, F = a * f - c * c, b * c - a * e_, a * d - b * b
     det = a * A + b * B + c * C
     tr = a + d + f
     if not (a > 0 and F > 0 and det > 0) or tr ** 3 > condition_max * det:
         return None
-    x = float(pose[0] - true_pose[0])
-    y = float(pose[1] - true_pose[1])
-    t = float(wrap_angle(float(pose[2] - true_pose[2])))
+    (x0, y0, t0), (x1, y1, t1) = np.asarray(pose).tolist(), np.asarray(true_pose).tolist()
+    x = x0 - x1
+    y = y0 - y1
+    t = float(wrap_angle(t0 - t1))
     q = A * x * x + D * y * y + F * t * t + 2.0 * (B * x * y + C * x * t + E * y * t)
     return q / det
 
@@ -71,24 +75,58 @@ def match_ids(ids: np.ndarray, true_ids: np.ndarray) -> tuple[np.ndarray, np.nda
     return i_est, i_true
 
 
-def feature_nees(ids: np.ndarray, landmarks: np.ndarray, blocks: np.ndarray,
-                 true_landmarks: np.ndarray, matched: tuple[np.ndarray, np.ndarray], *,
-                 condition_max: float) -> tuple[np.ndarray, np.ndarray]:
-    """(ids, NEES) of the features that have a truth and a well-conditioned P_ii (2 dof).
+@dataclass(frozen=True)
+class BlockTerms:
+    """What each feature's own 2×2 block P_ii = [[a, b], [b, c]] gives its NEES, for all
+    features of a state (or a stack of states: leading axes): entries, determinant, and
+    whether it is usable (positive definite and condition number ≤ ``condition_max``)."""
 
-    ``matched`` is :func:`match_ids` of the state's and the truth's landmark ids.
+    a: np.ndarray
+    b: np.ndarray
+    c: np.ndarray
+    det: np.ndarray
+    usable: np.ndarray  #: bool
+    #: [..., n, 5]: a, b, c, det and usable (1.0 / 0.0) side by side (one gather a state)
+    packed: np.ndarray
+
+    def __getitem__(self, k: int) -> BlockTerms:
+        """The terms of state ``k`` of a stack."""
+        return BlockTerms(self.a[k], self.b[k], self.c[k], self.det[k], self.usable[k],
+                          self.packed[k])
+
+
+def block_terms(blocks: np.ndarray, *, condition_max: float) -> BlockTerms:
+    """:class:`BlockTerms` of blocks [..., n, 2, 2] (b symmetrised, as NIS and NEES use it)."""
+    a, c = blocks[..., 0, 0], blocks[..., 1, 1]
+    b = 0.5 * (blocks[..., 0, 1] + blocks[..., 1, 0])
+    det = a * c - b * b
+    r = np.hypot(0.5 * (a - c), b)
+    lo, hi = 0.5 * (a + c) - r, 0.5 * (a + c) + r
+    usable = (a > 0) & (det > 0) & (lo > 0) & (hi <= condition_max * lo)
+    return BlockTerms(a, b, c, det, usable, np.stack([a, b, c, det, usable], axis=-1))
+
+
+def feature_nees(ids: np.ndarray, landmarks: np.ndarray, terms: BlockTerms,
+                 true_landmarks: np.ndarray, matched: tuple[np.ndarray, np.ndarray]
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """(ids, NEES) of the features that have a truth and a usable P_ii (2 dof): eᵀP_ii⁻¹e
+    in closed form, as :func:`quadratic_forms_2x2`.
+
+    ``matched`` is :func:`match_ids` of the state's and the truth's landmark ids; ``terms``
+    the state's :func:`block_terms`.
     """
     i_est, i_true = matched
     if i_est.size == 0:
         return np.zeros(0, dtype=np.int64), np.zeros(0)
-    S = blocks[i_est]
     e = landmarks[i_est] - true_landmarks[i_true]
-    q = quadratic_forms_2x2(e, S)
-    a, c = S[:, 0, 0], S[:, 1, 1]
-    b = 0.5 * (S[:, 0, 1] + S[:, 1, 0])
-    r = np.hypot(0.5 * (a - c), b)
-    lo, hi = 0.5 * (a + c) - r, 0.5 * (a + c) + r
-    keep = np.isfinite(q) & (lo > 0) & (hi <= condition_max * lo)
+    t = terms.packed[i_est]
+    a, b, c = t[:, 0], t[:, 1], t[:, 2]
+    e0, e1 = e[:, 0], e[:, 1]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        q = (c * e0 ** 2 - 2.0 * b * e0 * e1 + a * e1 ** 2) / t[:, 3]
+    keep = (t[:, 4] != 0.0) & np.isfinite(q)
+    if keep.all():  # (the usual case: no copies)
+        return ids[i_est], q
     return ids[i_est][keep], q[keep]
 
 
@@ -125,32 +163,43 @@ class WindowTest:
         self._recent: deque[float] = deque(maxlen=window)
         self._sum = 0.0
         self._count = 0
+        self._mean: float | None = None  #: sliding_mean, until a sample comes
 
     def reset(self) -> None:
         self._recent.clear()
         self._sum = 0.0
         self._count = 0
+        self._mean = None
 
     def add(self, values: np.ndarray | list[float]) -> list[WindowResult]:
         """Add samples; returns the windows they completed (usually none or one)."""
         done: list[WindowResult] = []
-        for v in np.asarray(values, dtype=float).reshape(-1):
-            if not math.isfinite(v):
-                continue
-            self._recent.append(float(v))
-            self._sum += float(v)
-            self._count += 1
-            if self._count == self.window:
-                done.append(WindowResult(self._sum / self.window, self.lo, self.hi,
-                                         self.window))
-                self._sum = 0.0
-                self._count = 0
+        for v in np.asarray(values, dtype=float).reshape(-1).tolist():
+            result = self.add_one(v)
+            if result is not None:
+                done.append(result)
         return done
+
+    def add_one(self, v: float) -> WindowResult | None:
+        """Add one sample (a Python float); the window it completed, if it did."""
+        if not math.isfinite(v):
+            return None
+        self._recent.append(v)
+        self._mean = None
+        self._sum += v
+        self._count += 1
+        if self._count == self.window:
+            self._sum, total = 0.0, self._sum
+            self._count = 0
+            return WindowResult(total / self.window, self.lo, self.hi, self.window)
+        return None
 
     @property
     def sliding_mean(self) -> float | None:
         """Mean of the last ``window`` samples (None before the first sample)."""
-        return sum(self._recent) / len(self._recent) if self._recent else None
+        if self._mean is None and self._recent:
+            self._mean = sum(self._recent) / len(self._recent)
+        return self._mean
 
 
 class FeatureWindows:
