@@ -78,13 +78,17 @@ class SummaryPuller:
             self._query = query
 
     def selector(self) -> str:
+        return self._request()[0]
+
+    def _request(self) -> tuple[str, SummaryQuery, tuple[int, int] | None]:
+        """(selector, the answer asked for, the (epoch, seq) it waits to be newer than)."""
         with self._lock:
             q, have = self._query, self._have
         if have is not None:
             q = replace(q, epoch=have[0], after=have[1])
         else:
             q = replace(q, epoch=None, after=None)
-        return f"{self.key}?{q.selector()}"
+        return f"{self.key}?{q.selector()}", q.answer_key(), have
 
     def start(self) -> None:
         self._thread = threading.Thread(target=self._loop, name=self._name, daemon=True)
@@ -100,8 +104,9 @@ class SummaryPuller:
     def pull_once(self) -> bytes | None:
         """One query: the answer's payload (also given to ``on_summary``), or None."""
         errors: list[bytes] = []
+        selector, asked, had = self._request()
         try:
-            replies = self.bus.get(self.selector(), timeout=self.timeout_s, errors=errors)
+            replies = self.bus.get(selector, timeout=self.timeout_s, errors=errors)
         except Exception as exc:  # the session closing, a router away: try again
             self.drops.drop("query", f"get on {self.key} failed: {exc}")
             return None
@@ -121,7 +126,9 @@ class SummaryPuller:
             self.drops.drop("summary", f"no seq in the answer: {exc}")
             return None
         with self._lock:
-            again, self._have = have == self._have, have
+            again = had is not None and have == had  # the hold ran out: the same state
+            if self._query.answer_key() == asked:  # (else: asked again at once, anew)
+                self._have = have
         self.received += 1
         self.bytes += len(payload)
         if again:  # the hold ran out without a newer state: the robot is idle

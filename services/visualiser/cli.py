@@ -7,6 +7,7 @@ services/cli.py).
 from __future__ import annotations
 
 import argparse
+import json
 import logging
 
 from common.cli import bus_settings, keys_from, setup_logging, stop_event
@@ -64,8 +65,19 @@ def run(command: str, args: argparse.Namespace) -> int:
         print(f"viewer ready {url if config.token_file else web.url_with_token}",
               flush=True)
         stop.wait()
+        print(f"viewer stopped: {json.dumps(_final(service.api.status()))}", flush=True)
     finally:
         web.stop()
         service.stop()
         bus.close()
     return 0
+
+
+def _final(status: dict) -> dict:
+    """What the viewer did, for its last line: each robot's last state, what it refused."""
+    return {"robots": {r["name"]: {"seq": (r["state"] or {}).get("seq"),
+                                   "epoch": (r["state"] or {}).get("epoch"),
+                                   "restarts": r["restarts"]} for r in status["robots"]},
+            "cameras": [c["name"] for c in status["cameras"]],
+            "clients": status["clients"], "bad_messages": status["bad_messages"],
+            "failures": status["failures"]}

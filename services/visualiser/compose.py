@@ -152,6 +152,25 @@ class Composer:
             return placeholder(eye, f"cannot draw state seq {state.seq}: "
                                     f"{type(exc).__name__}", settings)
 
+    def prepare(self, frame: Frame | None, robot: str, state: SlamState,
+                settings: ViewSettings, health: Health | None) -> None:
+        """Before the render thread takes ``state`` in (``viewer-prepare``): its scene
+        under ``settings`` and — one robot over a camera — its layers through each eye of
+        ``frame`` (the last render cycle's; a camera or notes changed meanwhile are drawn
+        again by the render thread), so that thread only puts them over camera frames."""
+        renderer = self.histories.get(robot).renderer
+        renderer.prepare(state, settings, health)
+        if (frame is None or len(frame.robots) != 1 or frame.robots[0].name != robot
+                or not renderer.layered(state)):
+            return
+        for eye in frame.eyes:
+            model, _ = eye.model_for(robot)
+            if eye.image is None or model is None:
+                continue
+            height, width = eye.image.shape[:2]
+            renderer.layers(state, model.resized(width, height), settings, health,
+                            self._notes(frame, frame.robots[0]))
+
     def _notes(self, frame: Frame, robot: RobotInputs) -> list[LegendRow]:
         rows: list[LegendRow] = []
         if robot.name in frame.restarted:

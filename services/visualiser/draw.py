@@ -3,9 +3,22 @@
 Every function draws onto a BGR uint8 image in place. Coordinates go to OpenCV as int32
 with ``SHIFT`` fractional bits, so sub-pixel positions survive. Items whose projection
 fails (behind the camera) are skipped or clipped at the near plane, never drawn wrongly.
+
+A *layer* (:func:`new_layer`) is a BGRA picture to draw on instead, once, and put over
+many camera frames (:class:`Overlay`): its BGR is what was drawn, already weighted by its
+coverage, and its 4th channel how much of the picture below still shows (255: all, 0:
+none). Every drawing step is a blend ``dst·(1 − α) + colour·α`` with the same α on every
+channel, and OpenCV draws a 3-component colour on 4 channels as (b, g, r, 0): the 4th
+channel ends as 255 × the product of (1 − α) over the steps, so frame × it / 255 + BGR is
+the picture drawn over that frame (the same to ±3 levels of OpenCV's integer rounding on
+anti-aliased edges; exact where nothing, or something opaque, was drawn). Text is the
+exception (OpenCV's anti-aliased text does not blend the 4th channel so):
+:func:`put_text` draws it through a coverage mask on a layer.
 """
 
 from __future__ import annotations
+
+from functools import lru_cache
 
 import cv2
 import numpy as np
@@ -257,8 +270,87 @@ class ShadedEllipses:
         cv2.polylines(img, [polygon], True, colour, thickness, cv2.LINE_AA, SHIFT)
 
 
+# -- layers -----------------------------------------------------------------------------
+def new_layer(height: int, width: int) -> np.ndarray:
+    """An empty layer (module docstring): nothing drawn, the picture below shows."""
+    layer = np.zeros((height, width, 4), np.uint8)
+    layer[:, :, 3] = 255
+    return layer
+
+
+def is_layer(img: np.ndarray) -> bool:
+    return img.ndim == 3 and img.shape[2] == 4
+
+
+class Overlay:
+    """A finished layer, ready to be put over pictures of its size (module docstring).
+
+    Only the rows and columns where something was drawn are kept and blended."""
+
+    def __init__(self, layer: np.ndarray) -> None:
+        self.shape = layer.shape[:2]
+        alpha = cv2.extractChannel(layer, 3)
+        drawn = cv2.threshold(alpha, 254, 255, cv2.THRESH_BINARY_INV)[1]  # alpha < 255
+        x, y, w, h = cv2.boundingRect(drawn)
+        if w == 0 or h == 0:
+            self.box: tuple[int, int, int, int] | None = None
+            self._keep: np.ndarray = np.zeros((0, 0, 3), np.uint8)
+            self._add: np.ndarray = self._keep
+            return
+        self.box = (y, y + h, x, x + w)
+        self._keep = cv2.cvtColor(alpha[y:y + h, x:x + w], cv2.COLOR_GRAY2BGR)
+        self._add = cv2.cvtColor(layer[y:y + h, x:x + w], cv2.COLOR_BGRA2BGR)
+
+    @property
+    def nbytes(self) -> int:
+        return self._keep.nbytes + self._add.nbytes
+
+    def put_over(self, img: np.ndarray) -> None:
+        """Blend onto ``img`` (BGR uint8 of the layer's size) in place."""
+        if self.box is None:
+            return
+        y0, y1, x0, x1 = self.box
+        out = cv2.multiply(img[y0:y1, x0:x1], self._keep, scale=1.0 / 255.0)
+        cv2.add(out, self._add, dst=out)
+        img[y0:y1, x0:x1] = out
+
+
+def _blend_mask(roi: np.ndarray, mask: np.ndarray, colour: BGR) -> None:
+    """``colour`` over ``roi`` (a layer's) with coverage ``mask`` (0–255), in place."""
+    m = mask.astype(np.uint16)[:, :, None]
+    paint = np.array([*colour, 0], np.uint16)
+    roi[:] = ((roi.astype(np.uint16) * (255 - m) + paint * m + 127) // 255).astype(np.uint8)
+
+
 # -- text -------------------------------------------------------------------------------
 FONT = cv2.FONT_HERSHEY_SIMPLEX
+
+
+@lru_cache(maxsize=4096)
+def text_size(message: str, scale: float, thickness: int = 1,
+              font: int = FONT) -> tuple[tuple[int, int], int]:
+    """``cv2.getTextSize`` (remembered: a legend asks for the same texts every picture)."""
+    (w, h), base = cv2.getTextSize(message, font, scale, thickness)
+    return (w, h), base
+
+
+def put_text(img: np.ndarray, message: str, org: tuple[int, int], scale: float,
+             colour: BGR, thickness: int = 1, font: int = FONT) -> None:
+    """``cv2.putText`` (anti-aliased), onto a picture or a layer (module docstring)."""
+    if not is_layer(img):
+        cv2.putText(img, message, org, font, scale, colour, thickness, cv2.LINE_AA)
+        return
+    (w, h), base = text_size(message, scale, thickness, font)
+    pad = thickness + 2
+    x0, y0 = max(org[0] - pad, 0), max(org[1] - h - pad, 0)
+    x1 = min(org[0] + w + pad, img.shape[1])
+    y1 = min(org[1] + base + pad, img.shape[0])
+    if x1 <= x0 or y1 <= y0:
+        return
+    mask = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    cv2.putText(mask, message, (org[0] - x0, org[1] - y0), font, scale, 255, thickness,
+                cv2.LINE_AA)
+    _blend_mask(img[y0:y1, x0:x1], mask, colour)
 
 
 def text(img: np.ndarray, message: str, org: tuple[int, int], *, scale: float,
@@ -267,9 +359,8 @@ def text(img: np.ndarray, message: str, org: tuple[int, int], *, scale: float,
     x, y = org
     # Halo by shifted copies: a thicker stroke would also widen OpenCV's glyph advance.
     for dx, dy in ((-1, 0), (1, 0), (0, -1), (0, 1), (-1, -1), (1, 1), (-1, 1), (1, -1)):
-        cv2.putText(img, message, (x + dx, y + dy), FONT, scale, (0, 0, 0), thickness,
-                    cv2.LINE_AA)
-    cv2.putText(img, message, org, FONT, scale, colour, thickness, cv2.LINE_AA)
+        put_text(img, message, (x + dx, y + dy), scale, (0, 0, 0), thickness)
+    put_text(img, message, org, scale, colour, thickness)
 
 
 def text_box(img: np.ndarray, rows: list[list[tuple[str, BGR | None]]], *,
@@ -277,15 +368,15 @@ def text_box(img: np.ndarray, rows: list[list[tuple[str, BGR | None]]], *,
     """A translucent dark box of text rows; a row is [(text, swatch colour or None), …]."""
     if not rows:
         return
-    (_, th), base = cv2.getTextSize("Ag", FONT, scale, 1)
+    (_, th), base = text_size("Ag", scale)
     line_h = th + base + 6
     swatch = th + 2
     widths = []
     for row in rows:
         w = 0
         for message, colour in row:
-            w += (swatch + 4 if colour is not None else 0) + cv2.getTextSize(
-                message, FONT, scale, 1)[0][0] + 10
+            w += (swatch + 4 if colour is not None else 0) + text_size(
+                message, scale)[0][0] + 10
         widths.append(w)
     x0, y0 = origin
     x1 = min(img.shape[1] - 1, x0 + max(widths) + 10)
@@ -293,7 +384,8 @@ def text_box(img: np.ndarray, rows: list[list[tuple[str, BGR | None]]], *,
     if x1 <= x0 or y1 <= y0:
         return
     roi = img[y0:y1, x0:x1]
-    roi[:] = (roi.astype(np.uint16) * 2 // 7).astype(np.uint8)  # darken to ~30 %
+    # darken to ~30 % (on a layer: its drawing and what shows through it alike)
+    roi[:] = (roi.astype(np.uint16) * 2 // 7).astype(np.uint8)
     y = y0 + 6 + th
     for row in rows:
         x = x0 + 8
@@ -301,6 +393,6 @@ def text_box(img: np.ndarray, rows: list[list[tuple[str, BGR | None]]], *,
             if colour is not None:
                 cv2.rectangle(img, (x, y - th), (x + swatch, y + 2), colour, -1)
                 x += swatch + 4
-            cv2.putText(img, message, (x, y), FONT, scale, (235, 235, 235), 1, cv2.LINE_AA)
-            x += cv2.getTextSize(message, FONT, scale, 1)[0][0] + 10
+            put_text(img, message, (x, y), scale, (235, 235, 235))
+            x += text_size(message, scale)[0][0] + 10
         y += line_h

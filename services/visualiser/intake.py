@@ -4,10 +4,14 @@ A Zenoh callback only stores the raw payload and its receipt time and wakes the 
 (O(1), no decoding), so a slow viewer never slows the estimator or the camera. State,
 frames and registrations are kept latest-wins (:class:`~common.latest.Latest`); health
 verdicts in a bounded FIFO (:class:`Queue`: every verdict feeds the plots). Frames are
-decoded on the ``viewer-decode`` thread as they arrive; everything else when the render
-thread calls :meth:`Intake.ingest`. A bad payload is logged (the first few of each kind,
-then one line in a hundred: :class:`~common.drops.DropCounter`), counted and dropped; so
-is a registration no camera model can be made of (or larger than ``max_frame_pixels``),
+decoded on the ``viewer-decode`` thread as they arrive; states on ``viewer-prepare``
+(newest first), which hands each to ``prepare`` (the viewer computes its scenes) and then
+to the render thread — a state's callback keeps only a getter of its payload
+(``Bus.subscribe_lazy``), so only the newest is copied out of Zenoh's buffer when that
+thread takes it, and the states it skips are never copied; everything else when the
+render thread calls :meth:`Intake.ingest`. A bad payload is logged (the first few of
+each kind, then one line in a hundred: :class:`~common.drops.DropCounter`), counted and
+dropped; so is a registration no camera model can be made of (or larger than ``max_frame_pixels``),
 and a frame whose JPEG header (read without decoding) claims another size than its message
 or more pixels than allowed (a decode bomb).
 
@@ -28,6 +32,7 @@ overlay in the wrong frame.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import threading
 import time
@@ -63,6 +68,28 @@ class Raw:
 
     payload: bytes
     received: float  #: time.monotonic() at receipt, s
+
+
+@dataclass(frozen=True)
+class LazyRaw:
+    """A state as it arrived, not copied yet (``Bus.subscribe_lazy``): a 32 MB state at
+    n = 1000 stays in Zenoh's buffer (shared memory) until it is the newest one the
+    viewer decodes; the others are dropped uncopied."""
+
+    fetch: Callable[[], bytes]
+    received: float  #: time.monotonic() at receipt, s
+
+    def load(self) -> Raw:
+        return Raw(self.fetch(), self.received)
+
+
+def _store_lazy(slot: Latest[Raw | LazyRaw]) -> Callable[[str, Callable[[], bytes]], None]:
+    """A lazy bus callback that only stores the payload's getter (no copy, no decoding)."""
+
+    def callback(_key: str, fetch: Callable[[], bytes]) -> None:
+        slot.put(LazyRaw(fetch, time.monotonic()))
+
+    return callback
 
 
 #: registration events kept for the page (start, new map, requested, refused)
@@ -179,9 +206,12 @@ class _Robot:
 
     name: str
     index: int  #: order of arrival (its colour)
-    state_slot: Latest[Raw]
+    state_slot: Latest[Raw | LazyRaw]  #: the newest state, copied out only when decoded
     tracked_slot: Latest[Raw]
     health_queue: Queue
+    #: decoded (and prepared) states for the render thread: (receipt time, state or None
+    #: if bad)
+    prepared: Latest[tuple[float, SlamState | None]] = field(default_factory=Latest)
     state: SlamState | None = None
     state_received: float | None = None
     state_version: int = 0
@@ -296,13 +326,18 @@ class Intake:
                  cameras: tuple[str, ...], fps: float, late_join_timeout_s: float,
                  on_input: Callable[[], None], drops: DropCounter,
                  discover: bool = False, max_frame_pixels: int = 16_777_216,
-                 source: str = "state", summary_query: SummaryQuery | None = None) -> None:
+                 source: str = "state", summary_query: SummaryQuery | None = None,
+                 prepare: Callable[[str, SlamState], None] | None = None) -> None:
         self.bus = bus
+        #: called on the ``viewer-prepare`` thread with each decoded state before the render
+        #: thread takes it in (the viewer computes its pictures' scenes there)
+        self._prepare = prepare
+        self._prepare_wake = threading.Event()
         #: "state": subscribe to each robot's full state; "summary": pull its summary
         #: stream instead (docs/remote_viewers.md); either fills the robot's state slot
         self.source = source
         self._summary_query = summary_query or SummaryQuery(what="clusters")
-        self._pullers: list[SummaryPuller] = []
+        self._puller_of: dict[str, SummaryPuller] = {}  #: by robot
         self.max_frame_pixels = max_frame_pixels  #: frames claiming more are not decoded
         self.keys = keys
         self.bad = drops  #: malformed input messages, by input
@@ -342,6 +377,22 @@ class Intake:
     def discovering(self) -> bool:
         return self._discover
 
+    def summary_selection(self, robot: str | None, *, feature: int | None = None,
+                          cluster: int | None = None) -> None:
+        """``--source summary``: ask ``robot``'s summary (None: every robot's) for the pairs
+        of a selected feature or cluster (``what=pairs``, docs/protocol.md) from its next
+        query on; neither: for the clusters again. The other robots keep the clusters."""
+        base = self._summary_query
+        if feature is not None or cluster is not None:
+            wanted = dataclasses.replace(base, what="pairs", feature=feature,
+                                         cluster=None if feature is not None else cluster)
+        else:
+            wanted = base
+        with self._lock:
+            pullers = dict(self._puller_of)
+        for name, puller in pullers.items():
+            puller.set_query(wanted if robot in (None, name) else base)
+
     # -- life cycle ---------------------------------------------------------------
     def start(self) -> None:
         """Subscribe, fetch the latest state and registrations (late join), start decoding
@@ -351,6 +402,7 @@ class Intake:
         for robot in self._named:
             self.add_robot(robot)
         self._start_thread("viewer-decode", self._decode_loop)
+        self._start_thread("viewer-prepare", self._prepare_loop)
         if self._discover:
             self._start_thread("viewer-discover", self._discover_loop)
 
@@ -366,8 +418,9 @@ class Intake:
         with self._lock:
             if robot in self._robots:
                 return False
-            r = _Robot(robot, len(self._robots), Latest(on_put=self._on_input), Latest(),
-                       Queue("health", self._on_input))
+            r = _Robot(robot, len(self._robots), Latest(on_put=self._prepare_wake.set),
+                       Latest(), Queue("health", self._on_input),
+                       prepared=Latest(on_put=self._on_input))
             regs = {c.name: _RegistrationInput(Latest(on_put=self._on_input))
                     for c in self._cameras.values()}
         puller = None
@@ -376,9 +429,10 @@ class Intake:
                                    lambda p, t: r.state_slot.put(Raw(p, t)),
                                    name=f"viewer-summary-{robot}")
             with self._lock:
-                self._pullers.append(puller)
+                self._puller_of[robot] = puller
         else:
-            self.bus.subscribe(k.state(robot), _store(r.state_slot))
+            # the newest state only is ever decoded: the others are never copied out
+            self.bus.subscribe_lazy(k.state(robot), _store_lazy(r.state_slot))
         self.bus.subscribe(k.health(robot), lambda _key, p: r.health_queue.offer(p))
         self.bus.subscribe(k.tracked(robot), _store(r.tracked_slot))
         for name, reg in regs.items():
@@ -400,8 +454,9 @@ class Intake:
         timeout = self._late_join_timeout_s
         if timeout <= 0:
             return
-        wanted = ([] if self.source == "summary"  # the first pull is answered at once
-                  else [(self.keys.state(robot.name), robot.state_slot)])
+        wanted: list[tuple[str, Latest[Any]]] = (
+            [] if self.source == "summary"  # the first pull is answered at once
+            else [(self.keys.state(robot.name), robot.state_slot)])
         wanted += [(self.keys.registration(c, robot.name), reg.slot) for c, reg in regs.items()]
         for key, slot in wanted:
             try:
@@ -438,8 +493,9 @@ class Intake:
     def stop(self) -> None:
         self._stop.set()
         self._decode_wake.set()
+        self._prepare_wake.set()
         with self._lock:
-            pullers = list(self._pullers)
+            pullers = list(self._puller_of.values())
         for puller in pullers:  # all told first; a query in flight ends with the bus
             puller.stop(timeout=0.0)
         for puller in pullers:
@@ -448,6 +504,44 @@ class Intake:
             thread.join(timeout=5.0)
 
     # -- decoding -----------------------------------------------------------------
+    def _prepare_loop(self) -> None:
+        """States: decoded here, newest first (latest wins), handed to ``prepare`` and
+        then to the render thread, which meanwhile draws the previous state (issue 13:
+        at n = 1000 a state's decoding and scenes cost as much as drawing it)."""
+        while not self._stop.is_set():
+            self._prepare_wake.wait(0.5)
+            self._prepare_wake.clear()
+            with self._lock:
+                robots = list(self._robots.values())
+            for r in robots:
+                taken = r.state_slot.take()
+                if taken is None:
+                    continue
+                try:
+                    raw = taken.load() if isinstance(taken, LazyRaw) else taken
+                except Exception as exc:  # e.g. the session closing under it
+                    self.bad.drop("state", f"payload unreadable ({exc!r:.200})")
+                    continue
+                state = self._decode_state(r, raw)
+                del raw  # the decoded state holds what it needs of the payload
+                if state is not None and self._prepare is not None:
+                    try:
+                        self._prepare(r.name, state)
+                    except Exception:  # preparing is an optimisation: the render draws
+                        log.exception("preparing state seq %d failed", state.seq)
+                r.prepared.put((taken.received, state))
+
+    def _decode_state(self, r: _Robot, raw: Raw) -> SlamState | None:
+        # symmetry is the monitor's business: the viewer shows what the estimator sent
+        state = decode("state", raw, decode_summary_state if self.source == "summary"
+                       else lambda b: SlamState.from_bytes(b, check_symmetry=False),
+                       self.bad)
+        if state is not None and state.robot != r.name:
+            self.bad.drop("state", f"SlamState.robot: expected {r.name!r}, "
+                          f"got {state.robot!r}")
+            return None
+        return state
+
     def _decode_loop(self) -> None:
         # decode no faster than the render cap: a 60 Hz camera under a 30 fps cap would
         # otherwise spend half its decoding on frames nobody draws (latest wins meanwhile)
@@ -600,18 +694,11 @@ class Intake:
         return reg
 
     def _ingest_state(self, r: _Robot) -> tuple[SlamState | None, bool]:
-        raw = r.state_slot.take()
-        if raw is None:
+        item = r.prepared.take()  # decoded on the viewer-prepare thread
+        if item is None:
             return None, False
-        # symmetry is the monitor's business: the viewer shows what the estimator sent
-        state = decode("state", raw, decode_summary_state if self.source == "summary"
-                       else lambda b: SlamState.from_bytes(b, check_symmetry=False),
-                       self.bad)
+        received, state = item
         if state is None:
-            return None, False
-        if state.robot != r.name:
-            self.bad.drop("state", f"SlamState.robot: expected {r.name!r}, "
-                          f"got {state.robot!r}")
             return None, False
         with self._lock:
             restarted = is_new_map(r.state, state)
@@ -620,9 +707,9 @@ class Intake:
                 log.warning("robot %s: map restarted (epoch %d → %d, seq %d → %d): the old "
                             "map's path, plots and registration are dropped", r.name,
                             r.state.epoch, state.epoch, r.state.seq, state.seq)
-                r.epoch_started, r.restarted_at = raw.received, time.monotonic()
+                r.epoch_started, r.restarted_at = received, time.monotonic()
                 r.restarts += 1
-            r.state, r.state_received = state, raw.received
+            r.state, r.state_received = state, received
             r.state_version += 1
         r.state_rate.tick()
         return state, restarted

@@ -50,6 +50,9 @@ class RenderPipeline:
         self._listeners: list[Callable[[], None]] = []
         self._threads: list[threading.Thread] = []
         self.render_ms: deque[float] = deque(maxlen=120)  #: render + encode time per picture
+        #: the inputs of the last render cycle (the next state's layers are drawn for its
+        #: eyes before the render thread takes that state in)
+        self.last_frame: Frame | None = None
 
     def wake(self) -> None:
         """Something changed (an input arrived, a view appeared): render soon."""
@@ -110,6 +113,7 @@ class RenderPipeline:
         if not views:
             return False
         frame = self.composer.frame()
+        self.last_frame = frame
         default = self.clients.default_settings
         contended = views[0].settings == default  # somebody looks at the default view
         self.budget.refill(time.monotonic())

@@ -8,7 +8,10 @@ Drawing order:
 3. overlays that must never be hidden: health outlines and rings, labels, the legend.
 
 Each step draws on a :class:`Canvas`: the picture, its camera, the state and its scene,
-the settings and the line width unit, shared by every step of one picture.
+the settings and the line width unit, shared by every step of one picture. Over a camera
+picture the steps draw on two layers once per state (:meth:`Renderer.layers`: steps 1–2,
+and 3 but the camera-tracked pose, which is drawn between them on each frame), which are
+then put over every camera frame until the next state (:mod:`draw`, layers).
 
 ``Renderer`` keeps only what needs history: the robot's path (reset when the robot changes
 or ``seq`` goes backwards) and the cluster trackers that keep cluster ids and colours stable
@@ -17,11 +20,13 @@ from frame to frame. Use one ``Renderer`` per robot; it may be shared by threads
 
 from __future__ import annotations
 
+import dataclasses
 import math
 import threading
-from collections import OrderedDict
-from collections.abc import Sequence
+from collections import Counter, OrderedDict
+from collections.abc import Hashable, Sequence
 from dataclasses import dataclass
+from typing import Generic, TypeVar
 
 import cv2
 import numpy as np
@@ -36,8 +41,16 @@ from services.visualiser.scene import ROLE_NAMES, ROLE_PAIR, Scene, build_scene,
 from services.visualiser.settings import ViewSettings
 from services.visualiser.summary_view import SummarisedState, summary_scene
 
+T = TypeVar("T")
+
 MAX_PATH_POINTS = 20_000  #: beyond this the older path is thinned (every other point)
 _MAX_TRACKERS = 8  # one per distinct clustering setting in use, oldest dropped
+_MAX_SCENES = 16  # scenes kept per state (distinct settings of open views)
+_STATES_KEPT = 2  # states whose scenes and cluster ids are kept: drawn, being prepared
+_MAX_LAYERS = 4  # drawn layers kept per state (distinct settings and cameras of open views)
+#: states of at least this many features are drawn onto layers over a camera (below, a
+#: state is cheap to draw and usually comes faster than camera frames: drawn straight)
+LAYERS_FROM_N = 200
 _AA_LINES_LIMIT = 400  # anti-aliased pair lines up to this many, plain beyond (frame time)
 _AA_GLYPH_LIMIT = 400  # same for the inner shading layers of glyphs
 #: "min" / "mean" / "max" labels up to this many glyphs (beyond: the legend says where)
@@ -73,10 +86,47 @@ class _Glyphs:
     shaded: draw.ShadedEllipses | None  #: None when ellipsoids are off or there are none
 
 
+class _PerState(Generic[T]):
+    """Values computed from a state, kept for the :data:`_STATES_KEPT` newest states (the
+    one drawn, the one being prepared) and at most ``per_state`` keys of each, oldest out
+    first (``touch``: a key used again counts as new). States are held, not only their
+    ids, so an id is never reused while it is a key. The caller holds the renderer's lock.
+    """
+
+    def __init__(self, per_state: int, *, touch: bool = False) -> None:
+        self._per_state = per_state
+        self._touch = touch
+        self._states: OrderedDict[int, tuple[SlamState, OrderedDict[Hashable, T]]] = \
+            OrderedDict()
+
+    def get(self, state: SlamState, key: Hashable) -> T | None:
+        held = self._states.get(id(state))
+        if held is None or held[0] is not state or key not in held[1]:
+            return None
+        if self._touch:
+            held[1].move_to_end(key)
+        return held[1][key]
+
+    def put(self, state: SlamState, key: Hashable, value: T) -> None:
+        held = self._states.get(id(state))
+        if held is None or held[0] is not state:
+            held = self._states[id(state)] = (state, OrderedDict())
+            while len(self._states) > _STATES_KEPT:  # older states are done
+                self._states.popitem(last=False)
+        held[1][key] = value
+        while len(held[1]) > self._per_state:
+            held[1].popitem(last=False)
+
+    def clear(self) -> None:
+        self._states.clear()
+
+
 class Renderer:
     """Draws ``SlamState`` (and ``Health``) over a picture; see the module docstring."""
 
-    def __init__(self) -> None:
+    def __init__(self, *, layers_from_n: int = LAYERS_FROM_N) -> None:
+        #: over a camera, states of at least this many features are drawn onto layers
+        self.layers_from_n = layers_from_n
         self._lock = threading.Lock()
         self._path: list[tuple[float, float]] = []
         self._path_robot: str | None = None
@@ -87,12 +137,28 @@ class Renderer:
         self._cluster_of: dict[tuple[float, int], tuple[np.ndarray, np.ndarray]] = {}
         #: the overview note of the last picture per selection/budget (for the web page)
         self._overviews: OrderedDict[tuple[object, ...], str] = OrderedDict()
+        #: the scenes of the two newest states (the one drawn, the one being prepared),
+        #: per settings and flagged pairs: a picture of the same state again (a new
+        #: camera frame, another tab) reuses its scene
+        self._scenes: _PerState[Scene] = _PerState(_MAX_SCENES, touch=True)
+        #: the stable cluster ids of the two newest states per clustering (one tracker
+        #: update per state, however many pictures are drawn of it)
+        self._clustered: dict[tuple[float, int], OrderedDict[
+            int, tuple[SlamState, np.ndarray]]] = {}
+        self.scenes_built = 0  #: scenes computed (the rest were reused)
+        #: the two newest states drawn as layers, per settings, camera, health and notes
+        self._layers: _PerState[Layers] = _PerState(_MAX_LAYERS)
+        self.layers_built = 0  #: states drawn onto layers (the rest were reused)
+        #: the same, by the name of the thread that drew them (the viewer draws them on
+        #: viewer-prepare, so that viewer-render only puts them over camera frames)
+        self.layers_built_on: Counter[str] = Counter()
 
     # -- history --------------------------------------------------------------------
     def reset_path(self) -> None:
         with self._lock:
             self._path = []
             self._path_seq = -1
+            self._layers.clear()  # they show the old path
 
     def new_map(self) -> None:
         """A new map began (another epoch): forget the path and the cluster identities."""
@@ -100,6 +166,9 @@ class Renderer:
             self._path, self._path_seq, self._path_epoch = [], -1, None
             self._trackers.clear()
             self._cluster_of.clear()
+            self._clustered.clear()
+            self._scenes.clear()
+            self._layers.clear()
 
     @property
     def path_xy(self) -> np.ndarray:
@@ -134,10 +203,16 @@ class Renderer:
         return np.array(self._path, dtype=float).reshape(-1, 2)
 
     def cluster_ids(self, state: SlamState, settings: ViewSettings) -> np.ndarray:
-        """Stable cluster id per landmark of ``state`` under ``settings``' clustering."""
+        """Stable cluster id per landmark of ``state`` under ``settings``' clustering (the
+        same state asked again: the same ids, clustered once)."""
+        key = (settings.cluster_threshold_m, settings.cluster_count)
+        with self._lock:
+            kept = self._clustered.get(key)
+            held = None if kept is None else kept.get(id(state))
+            if held is not None and held[0] is state:
+                return held[1]
         labels = cluster_labels(state.landmarks, threshold_m=settings.cluster_threshold_m,
                                 count=settings.cluster_count)
-        key = (settings.cluster_threshold_m, settings.cluster_count)
         with self._lock:
             tracker = self._trackers.get(key)
             if tracker is None:
@@ -147,6 +222,10 @@ class Renderer:
             self._trackers.move_to_end(key)
             stable = tracker.update(state.landmark_ids, labels)
             self._cluster_of[key] = (np.asarray(state.landmark_ids), stable)
+            kept = self._clustered.setdefault(key, OrderedDict())
+            kept[id(state)] = (state, stable)  # (the state held: its id is not reused)
+            while len(kept) > _STATES_KEPT:
+                kept.popitem(last=False)
             return stable
 
     def known_cluster_ids(self, settings: ViewSettings
@@ -161,6 +240,44 @@ class Renderer:
         glyph budget), or "" — for the web page's note."""
         with self._lock:
             return self._overviews.get(_overview_key(settings), "")
+
+    def scene(self, state: SlamState, settings: ViewSettings,
+              violating: frozenset[tuple[int, int]] = frozenset()) -> Scene:
+        """What ``state`` shows under ``settings`` (pairs, glyphs, the overview): computed
+        once per state, settings and flagged pairs, then reused for every picture of that
+        state (the camera's frames come faster than states; issue 13)."""
+        key = (settings, violating)
+        with self._lock:
+            kept = self._scenes.get(state, key)
+        if kept is not None:
+            return kept
+        if isinstance(state, SummarisedState):  # --source summary: the robot's picture
+            scene = summary_scene(state, settings, violating)
+        else:
+            n = state.n
+            # the clusters: for the clustered modes, a selected cluster, and the glyph
+            # budget (a mode whose pairs exceed it draws the min/mean/max overview instead)
+            over_budget = (settings.glyph_budget > 0 and settings.mode == "all"
+                           and n * (n - 1) // 2 > settings.glyph_budget
+                           and settings.selected_feature is None
+                           and settings.selected_cluster is None)
+            clustered = (settings.mode in ("inter", "minmeanmax") or over_budget
+                         or settings.selected_cluster is not None)
+            cluster_ids = self.cluster_ids(state, settings) if clustered else None
+            plan = plan_overview(state, settings, cluster_ids)
+            scene = build_scene(state, settings, cluster_ids=cluster_ids,
+                                violating_pairs=violating, plan=plan)
+        with self._lock:
+            self._scenes.put(state, key, scene)
+            self.scenes_built += 1
+        return scene
+
+    def prepare(self, state: SlamState, settings: ViewSettings,
+                health: Health | None = None) -> None:
+        """Compute the scene a picture of ``state`` under ``settings`` will draw (off the
+        render thread: the viewer's ``viewer-prepare``)."""
+        violating = _health_sets(health, state)[0] if settings.health else frozenset()
+        self.scene(state, settings, violating)
 
     # -- drawing --------------------------------------------------------------------
     def _floor_image(self, camera: CameraModel,
@@ -193,14 +310,69 @@ class Renderer:
         joined to the estimate of the same instant (``reference_estimate``; the state's own
         pose if not given), with the position error written beside it. ``notes`` are extra
         legend rows (e.g. "map restarted").
+
+        Over a camera picture a state of ``layers_from_n`` features or more is drawn once
+        onto two layers (:mod:`draw`: under and over the reference pose, which moves with
+        every camera frame) and put over each new frame of the same state, settings and
+        camera (issue 13: at n = 1000 drawing 1000 cones and the overview per camera frame
+        cost more than the frames are apart); a smaller one is drawn straight.
         """
-        img, camera = self.background(image_bgr, camera, settings)
-        drawn = self.draw(img, state=state, camera=camera, settings=settings, health=health,
-                          reference_pose=reference_pose, reference_estimate=reference_estimate)
-        if settings.legend:
-            _draw_legend(drawn.canvas, health=health, glyphs_shown=drawn.glyphs_shown,
-                         notes=[*rejected_legend(state, settings), *notes])
+        if image_bgr is None or not self.layered(state):
+            img, camera = self.background(image_bgr, camera, settings)
+            drawn = self.draw(img, state=state, camera=camera, settings=settings,
+                              health=health, reference_pose=reference_pose,
+                              reference_estimate=reference_estimate)
+            if settings.legend:
+                _draw_legend(drawn.canvas, health=health, glyphs_shown=drawn.glyphs_shown,
+                             notes=[*rejected_legend(state, settings), *notes])
+            return img
+        img, camera = _bgr_copy(image_bgr, camera)
+        layers = self.layers(state, camera, settings, health, notes)
+        layers.under.put_over(img)
+        if settings.robot and reference_pose is not None:
+            c = Canvas(img, camera, state, layers.scene, settings,
+                       px=max(1, round(camera.height / 720)))
+            estimate = state.pose if reference_estimate is None else reference_estimate
+            _draw_reference(c, estimate=np.asarray(estimate, float),
+                            reference=np.asarray(reference_pose, float))
+        layers.over.put_over(img)
         return img
+
+    def layered(self, state: SlamState) -> bool:
+        """Whether a picture of ``state`` over a camera is put together from its layers."""
+        return state.n >= self.layers_from_n
+
+    def layers(self, state: SlamState, camera: CameraModel, settings: ViewSettings,
+               health: Health | None = None, notes: Sequence[LegendRow] = ()) -> Layers:
+        """The state drawn under ``settings`` through ``camera`` (fitted to the picture's
+        size) as two layers (:meth:`render`): drawn once per state, settings, camera,
+        health drawn and notes, then reused (the ``viewer-prepare`` thread draws them
+        before the render thread needs them)."""
+        violating, suspects = _health_sets(health, state) if settings.health else (
+            frozenset(), np.zeros(0, np.int64))
+        shown_health = (summary_text(health) if settings.health and health is not None
+                        else None)
+        key = (settings, _camera_key(camera), violating, suspects.tobytes(), shown_health,
+               tuple(tuple(row) for row in notes))
+        with self._lock:
+            kept = self._layers.get(state, key)
+        if kept is not None:
+            return kept
+        scene, c_under, path = self._canvas(draw.new_layer(camera.height, camera.width),
+                                            state, camera, settings, violating)
+        lines, glyphs = _draw_under(c_under, path)
+        c_over = dataclasses.replace(c_under, img=draw.new_layer(camera.height, camera.width))
+        rejected = _draw_over(c_over, glyphs=glyphs, lines=lines, suspects=suspects)
+        if settings.legend:
+            _draw_legend(c_over, health=health, glyphs_shown=len(glyphs.shown),
+                         notes=[*rejected_legend(state, settings), *notes])
+        out = Layers(draw.Overlay(c_under.img), draw.Overlay(c_over.img), scene,
+                     len(glyphs.shown), rejected)
+        with self._lock:
+            self._layers.put(state, key, out)
+            self.layers_built += 1
+            self.layers_built_on[threading.current_thread().name] += 1
+        return out
 
     def background(self, image_bgr: np.ndarray | None, camera: CameraModel,
                    settings: ViewSettings) -> tuple[np.ndarray, CameraModel]:
@@ -209,33 +381,14 @@ class Renderer:
         return (self._floor_image(camera, settings) if image_bgr is None
                 else _bgr_copy(image_bgr, camera))
 
-    def draw(self, img: np.ndarray, *, state: SlamState, camera: CameraModel,
-             settings: ViewSettings, health: Health | None = None,
-             reference_pose: np.ndarray | None = None,
-             reference_estimate: np.ndarray | None = None) -> Drawn:
-        """Draw the state onto ``img`` in place (everything but the legend): one robot of a
-        picture that may show several, each with its own renderer and camera."""
+    def _canvas(self, img: np.ndarray, state: SlamState, camera: CameraModel,
+                settings: ViewSettings, violating: frozenset[tuple[int, int]]
+                ) -> tuple[Scene, Canvas, np.ndarray]:
+        """The scene, a canvas on ``img`` and the path, for drawing ``state``."""
         camera = camera.resized(img.shape[1], img.shape[0])
         with self._lock:
             path = self._update_path(state)
-        # the clusters: for the clustered modes, a selected cluster, and the glyph budget
-        # (a mode whose pairs exceed it draws the min/mean/max overview instead)
-        n = state.n
-        violating, suspects = _health_sets(health, state) if settings.health else (
-            frozenset(), np.zeros(0, np.int64))
-        if isinstance(state, SummarisedState):  # --source summary: the robot's picture
-            scene = summary_scene(state, settings, violating)
-        else:
-            over_budget = (settings.glyph_budget > 0 and settings.mode == "all"
-                           and n * (n - 1) // 2 > settings.glyph_budget
-                           and settings.selected_feature is None
-                           and settings.selected_cluster is None)
-            clustered = (settings.mode in ("inter", "minmeanmax") or over_budget
-                         or settings.selected_cluster is not None)
-            cluster_ids = self.cluster_ids(state, settings) if clustered else None
-            plan = plan_overview(state, settings, cluster_ids)
-            scene = build_scene(state, settings, cluster_ids=cluster_ids,
-                                violating_pairs=violating, plan=plan)
+        scene = self.scene(state, settings, violating)
         with self._lock:
             key = _overview_key(settings)
             self._overviews[key] = scene.overview
@@ -243,35 +396,72 @@ class Renderer:
             while len(self._overviews) > 64:
                 self._overviews.popitem(last=False)
         c = Canvas(img, camera, state, scene, settings, px=max(1, round(camera.height / 720)))
+        return scene, c, path
 
-        # 1. floor layer
-        # outlines: every cluster (or overview group) in the clustered pictures; in "all"
-        # pairs only a selected cluster's
-        pairwise = settings.mode == "all" and scene.mode == "all"
-        outlined = None if pairwise else scene.cluster_ids
-        if pairwise and scene.cluster_ids is not None and \
-                settings.selected_cluster is not None:
-            outlined = np.where(scene.cluster_ids == settings.selected_cluster,
-                                settings.selected_cluster, -1)
-        lines = _draw_floor_layer(c, path_xy=path, cluster_ids=outlined)
-        # 2. glyphs and cones, far to near
-        glyphs = _draw_objects(c)
-        # 3. overlays
+    def draw(self, img: np.ndarray, *, state: SlamState, camera: CameraModel,
+             settings: ViewSettings, health: Health | None = None,
+             reference_pose: np.ndarray | None = None,
+             reference_estimate: np.ndarray | None = None) -> Drawn:
+        """Draw the state onto ``img`` in place (everything but the legend): one robot of a
+        picture that may show several, each with its own renderer and camera."""
+        violating, suspects = _health_sets(health, state) if settings.health else (
+            frozenset(), np.zeros(0, np.int64))
+        _, c, path = self._canvas(img, state, camera, settings, violating)
+        lines, glyphs = _draw_under(c, path)
         if settings.robot and reference_pose is not None:
             estimate = state.pose if reference_estimate is None else reference_estimate
             _draw_reference(c, estimate=np.asarray(estimate, float),
                             reference=np.asarray(reference_pose, float))
-        rejected = rejected_observations(state) if settings.rejected else np.zeros((0, 2))
-        if len(rejected):
-            _draw_rejected(c, rejected)
-        if settings.health:
-            _draw_health(c, glyphs=glyphs, lines=lines, suspects=suspects)
-        if settings.labels and settings.features:
-            _draw_labels(c)
-        if (glyphs.shaded is not None and scene.mode == "minmeanmax"
-                and len(glyphs.shown) <= MAX_ROLE_LABELS):
-            _draw_roles(c, glyphs)
-        return Drawn(c, len(glyphs.shown), len(rejected))
+        rejected = _draw_over(c, glyphs=glyphs, lines=lines, suspects=suspects)
+        return Drawn(c, len(glyphs.shown), rejected)
+
+
+def _draw_under(c: Canvas, path: np.ndarray) -> tuple[_Lines, _Glyphs]:
+    """Steps 1 and 2 (module docstring): the floor layer, then glyphs and cones."""
+    settings, scene = c.settings, c.scene
+    # outlines: every cluster (or overview group) in the clustered pictures; in "all"
+    # pairs only a selected cluster's
+    pairwise = settings.mode == "all" and scene.mode == "all"
+    outlined = None if pairwise else scene.cluster_ids
+    if pairwise and scene.cluster_ids is not None and \
+            settings.selected_cluster is not None:
+        outlined = np.where(scene.cluster_ids == settings.selected_cluster,
+                            settings.selected_cluster, -1)
+    lines = _draw_floor_layer(c, path_xy=path, cluster_ids=outlined)
+    return lines, _draw_objects(c)
+
+
+def _draw_over(c: Canvas, *, glyphs: _Glyphs, lines: _Lines, suspects: np.ndarray) -> int:
+    """Step 3 but the reference pose and the legend: rejected observations, health,
+    labels, roles; returns the number of rejected observations drawn."""
+    settings, scene = c.settings, c.scene
+    rejected = rejected_observations(c.state) if settings.rejected else np.zeros((0, 2))
+    if len(rejected):
+        _draw_rejected(c, rejected)
+    if settings.health:
+        _draw_health(c, glyphs=glyphs, lines=lines, suspects=suspects)
+    if settings.labels and settings.features:
+        _draw_labels(c)
+    if (glyphs.shaded is not None and scene.mode == "minmeanmax"
+            and len(glyphs.shown) <= MAX_ROLE_LABELS):
+        _draw_roles(c, glyphs)
+    return len(rejected)
+
+
+@dataclass(frozen=True, eq=False)
+class Layers:
+    """One state drawn for one picture size, settings and camera (:meth:`Renderer.layers`)."""
+
+    under: draw.Overlay  #: floor layer, glyphs and cones
+    over: draw.Overlay  #: rejected observations, health, labels, roles, the legend
+    scene: Scene
+    glyphs_shown: int
+    rejected_shown: int
+
+
+def _camera_key(camera: CameraModel) -> tuple[object, ...]:
+    return (camera.width, camera.height, camera.K.tobytes(), camera.dist.tobytes(),
+            camera.T_camera_from_map.tobytes())
 
 
 #: a legend row: [(text, swatch colour or None), …]
@@ -549,8 +739,8 @@ def _draw_reference(c: Canvas, *, estimate: np.ndarray, reference: np.ndarray) -
                draw.SHIFT)
     error_cm = 100.0 * float(np.hypot(*(reference[:2] - estimate[:2])))
     u, v = (int(x) for x in uv[0])
-    cv2.putText(c.img, f"tracked: {error_cm:.1f} cm", (u + 12 * px, v - 12 * px),
-                cv2.FONT_HERSHEY_SIMPLEX, 0.45 * px, REFERENCE_COLOUR, px, cv2.LINE_AA)
+    draw.put_text(c.img, f"tracked: {error_cm:.1f} cm", (u + 12 * px, v - 12 * px),
+                  0.45 * px, REFERENCE_COLOUR, px)
 
 
 REJECTED_COLOUR = (170, 170, 170)  # BGR grey: an observation the filter did not use

@@ -3,21 +3,35 @@ cluster pair, and the monitor's statistics (NEES, NIS and their bounds).
 
 Samples are decimated in wall-clock time (one state and one health sample per
 ``min_interval_s`` at most) so a fixed number of samples covers minutes, whatever the
-estimator's event rate. Each state sample keeps the size of P_d for *every* pair, so the
-plot of any pair can be drawn after the fact, not only from when somebody asked for it.
+estimator's event rate. Each state sample of a map of up to ``DENSE_PAIRS`` pairs keeps the
+size of P_d for *every* pair, so the plot of any pair can be drawn after the fact, not only
+from when somebody asked for it.
+
+Large maps (issue 13; more than ``DENSE_PAIRS`` pairs, n > 200): every pair's size is still
+computed per sample (:func:`all_pair_sizes`, whole-matrix float32 passes, no per-pair
+gathers), but only the newest sample keeps all of them (what ``default_pairs`` ranks); the
+history keeps, per sample, the ``KEEP_LARGEST`` largest pairs and the pairs plotted
+recently (``to_json`` asked for them: up to ``WATCHED`` pairs), so a pair's plot begins when
+it was first among the largest or first plotted (before: null). At n = 1000 every sample
+of every pair would be 2 MB, 1.2 GB for the 600 samples. The cluster min / mean / max of a
+large map come from the whole-matrix kernel (``common.overview.group_min_mean_max``), and
+a sample is taken at most every ``COST_FACTOR`` × its own computing time (the plots take at
+most 1/20 of the viewer's time, whatever n).
 """
 
 from __future__ import annotations
 
 import math
 import threading
-from collections import deque
+import time
+from collections import OrderedDict, deque
 from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
 
+from common import overview
 from common.geometry import all_relative_covariances, pd_size_m
 from common.messages import Health, SlamState
 
@@ -37,8 +51,19 @@ class StateSample:
     stamp: float
     seq: int
     landmark_ids: np.ndarray  #: int64[n]
-    sizes: np.ndarray  #: float32[n(n−1)/2], triu order
+    sizes: np.ndarray  #: float32[n(n−1)/2], triu order (or of ``kept`` only)
     clusters: dict[tuple[int, int], tuple[float, float, float]]  #: (A, B) → min, mean, max
+    #: large maps: the triu positions (sorted) of the pairs ``sizes`` holds; None: all
+    kept: np.ndarray | None = None
+
+    def size(self, k: int) -> float | None:
+        """The size of the pair at triu position ``k``, or None (not kept)."""
+        if self.kept is None:
+            return float(self.sizes[k])
+        at = int(np.searchsorted(self.kept, k))
+        if at < len(self.kept) and int(self.kept[at]) == k:
+            return float(self.sizes[at])
+        return None
 
 
 @dataclass(frozen=True)
@@ -56,6 +81,50 @@ def _clean(values: Iterable[float | None]) -> list[float | None]:
 #: above this many cluster pairs a sample keeps no cluster min/mean/max (a map of n = 1000
 #: mostly singletons has ~500 000: a dict of them per sample, 600 samples, is gigabytes)
 MAX_CLUSTER_PAIRS = 2000
+#: above this many pairs a sample keeps only some pairs (module docstring)
+DENSE_PAIRS = overview.FAST_PAIRS
+KEEP_LARGEST = 1000  #: a large map's sample keeps this many of its largest pairs …
+WATCHED = 64  #: … and the pairs of the last this many plotted
+COST_FACTOR = 20.0  #: a large map is sampled at most every 20 × the sample's computing time
+
+
+def all_pair_sizes(P: np.ndarray, n: int, *, chunk: int = 256) -> np.ndarray:
+    """√λmax of P_d for every pair i < j (triu order), float32: the same values as
+    ``pd_size_m(all_relative_covariances(P, n)[2])`` to float32 rounding, from strided
+    views of P (X = P[x_i, x_j], Y, and the cross terms) in row blocks — no per-pair
+    gathers of P (about 3× faster at n = 1000)."""
+    N = 3 + 2 * n
+    X, Y, Z = P[3:N:2, 3:N:2], P[4:N:2, 4:N:2], P[3:N:2, 4:N:2]
+    f4 = np.float32
+    dx, dy, dz = (np.diagonal(M).astype(f4) for M in (X, Y, Z))
+    lam = np.empty((n, n), f4)
+    for i0 in range(0, n, chunk):
+        i1 = min(n, i0 + chunk)
+        a = X[i0:i1].astype(f4)
+        a *= -2.0
+        a += dx[i0:i1, None]
+        a += dx[None, :]
+        c = Y[i0:i1].astype(f4)
+        c *= -2.0
+        c += dy[i0:i1, None]
+        c += dy[None, :]
+        b = Z[i0:i1].astype(f4)
+        b += Z[:, i0:i1].T  # P_xy(i, j) + P_yx(i, j) = P_xy(i, j) + P_xy(j, i)
+        np.subtract(dz[i0:i1, None] + dz[None, :], b, out=b)
+        h = a - c
+        h *= 0.5
+        h *= h
+        b *= b
+        h += b
+        np.sqrt(h, out=h)
+        a += c
+        a *= 0.5
+        a += h
+        lam[i0:i1] = a
+    first, second = np.triu_indices(n, k=1)
+    out = lam.reshape(-1).take(first * n + second)
+    np.maximum(out, 0.0, out=out)
+    return np.sqrt(out, out=out)
 
 
 class SeriesStore:
@@ -72,6 +141,10 @@ class SeriesStore:
         self.size_name = size_name
         self._last_state = -math.inf
         self._last_health = -math.inf
+        self._interval = min_interval_s  #: the interval now (large maps: by their cost)
+        self._latest: tuple[np.ndarray, np.ndarray] | None = None  #: newest ids, all sizes
+        #: pairs plotted recently (ids, smaller first): a large map's samples keep them
+        self._watched: OrderedDict[tuple[int, int], None] = OrderedDict()
         self._epoch: int | None = None  #: epoch of the map sampled
         self._pending: dict[str, float] = {}  #: newest statistics since the last sample
         self._lock = threading.Lock()
@@ -81,24 +154,49 @@ class SeriesStore:
             self._states.clear()
             self._health.clear()
             self._last_state = self._last_health = -math.inf
+            self._interval = self._min_interval
+            self._latest = None
             self._epoch = None
             self._pending = {}
 
     # -- filling ------------------------------------------------------------------
+    @property
+    def interval_s(self) -> float:
+        """The sampling interval now (a large map's: by its cost), s."""
+        with self._lock:
+            return self._interval
+
+    def due(self, now: float) -> bool:
+        """Whether a state at ``now`` would be sampled (the interval has passed)."""
+        return now - self._last_state >= self._interval
+
     def add_state(self, state: SlamState, *, now: float) -> bool:
-        """Sample ``state`` unless one was sampled less than ``min_interval_s`` ago."""
-        if now - self._last_state < self._min_interval:
+        """Sample ``state`` unless one was sampled less than ``min_interval_s`` ago (for a
+        large map: less than ``COST_FACTOR`` × the last sample's computing time)."""
+        if not self.due(now):
             return False
+        t0 = time.perf_counter()
         n = state.n
-        if n >= 2:
+        pairs = n * (n - 1) // 2
+        large = pairs > DENSE_PAIRS and self._size_of is pd_size_m
+        kept: np.ndarray | None = None
+        if large:
+            full = all_pair_sizes(np.asarray(state.covariance), n)
+            clusters = self._cluster_stats_large(state) if self._cluster is not None else {}
+            kept = self._kept(full, np.asarray(state.landmark_ids))
+            sizes = full[kept]
+        elif n >= 2:
             _, _, Pd = all_relative_covariances(state.covariance, n)
             sizes = np.asarray(self._size_of(Pd), dtype=float)
+            clusters = self._cluster_stats(state, Pd, sizes) if self._cluster is not None \
+                else {}
+            full = sizes
         else:
-            Pd = np.zeros((0, 2, 2))
-            sizes = np.zeros(0)
-        clusters = self._cluster_stats(state, Pd, sizes) if self._cluster is not None else {}
+            sizes = full = np.zeros(0)
+            clusters = {}
         sample = StateSample(float(state.stamp), int(state.seq), np.array(state.landmark_ids),
-                             sizes.astype(np.float32), clusters)  # float32: half the memory
+                             sizes.astype(np.float32), clusters,  # float32: half the memory
+                             kept)
         with self._lock:
             new_map = self._epoch is not None and state.epoch != self._epoch
             if new_map or (state.epoch == 0 and self._states
@@ -109,8 +207,47 @@ class SeriesStore:
                 return False  # the same map replayed from a checkpoint: already plotted
             self._epoch = int(state.epoch)
             self._states.append(sample)
+            self._latest = (sample.landmark_ids, np.asarray(full, np.float32))
             self._last_state = now
+            spent = time.perf_counter() - t0
+            self._interval = max(self._min_interval, COST_FACTOR * spent) if large \
+                else self._min_interval
         return True
+
+    def _kept(self, full: np.ndarray, ids: np.ndarray) -> np.ndarray:
+        """Triu positions (sorted) a large map's sample keeps: its ``KEEP_LARGEST``
+        largest pairs and the watched pairs present in the map."""
+        n = len(ids)
+        k = min(KEEP_LARGEST, len(full))
+        largest = np.argpartition(-full, k - 1)[:k] if k else np.zeros(0, np.int64)
+        with self._lock:
+            watched = list(self._watched)
+        index = {int(v): i for i, v in enumerate(ids.tolist())}
+        extra = []
+        for a, b in watched:
+            i, j = index.get(a), index.get(b)
+            if i is not None and j is not None and i != j:
+                extra.append(pair_index(min(i, j), max(i, j), n))
+        return np.unique(np.r_[largest, np.array(extra, np.int64)].astype(np.int64))
+
+    def _cluster_stats_large(self, state: SlamState
+                             ) -> dict[tuple[int, int], tuple[float, float, float]]:
+        """Cluster min / mean / max of a large map from the whole-matrix kernel."""
+        assert self._cluster is not None
+        labels = np.asarray(self._cluster(np.asarray(state.landmarks),
+                                          np.asarray(state.landmark_ids)))
+        groups = np.unique(labels).size
+        if groups < 2 or groups * (groups - 1) // 2 > MAX_CLUSTER_PAIRS:
+            return {}
+        P = np.asarray(state.covariance)
+        gp = overview.group_min_mean_max(P, labels)
+        low = pd_size_m(overview.pair_relative_covariances(P, gp.min_pair[:, 0],
+                                                           gp.min_pair[:, 1]))
+        high = pd_size_m(overview.pair_relative_covariances(P, gp.max_pair[:, 0],
+                                                            gp.max_pair[:, 1]))
+        means = pd_size_m(gp.mean_Pd)
+        return {(int(a), int(b)): (float(mn), float(me), float(mx)) for (a, b), mn, me, mx
+                in zip(gp.groups.tolist(), low, means, high, strict=True)}
 
     def _cluster_stats(self, state: SlamState, Pd: np.ndarray,
                        sizes: np.ndarray) -> dict[tuple[int, int], tuple[float, float, float]]:
@@ -159,12 +296,11 @@ class SeriesStore:
 
     # -- reading ------------------------------------------------------------------
     def latest_sizes(self) -> tuple[np.ndarray, np.ndarray] | None:
-        """(landmark_ids, sizes) of the newest state sample."""
+        """(landmark_ids, sizes of every pair) of the newest state sample."""
         with self._lock:
-            if not self._states:
+            if not self._states or self._latest is None:
                 return None
-            s = self._states[-1]
-        return s.landmark_ids, s.sizes
+            return self._latest
 
     def default_pairs(self, *, selected: int | None = None, flagged: Sequence[tuple[int, int]] = (),
                       limit: int = 6) -> list[tuple[int, int]]:
@@ -189,6 +325,12 @@ class SeriesStore:
         with self._lock:
             states = list(self._states)
             health = list(self._health)
+            for a, b in pairs:  # a large map's next samples keep these pairs
+                key = (min(a, b), max(a, b))
+                self._watched[key] = None
+                self._watched.move_to_end(key)
+            while len(self._watched) > WATCHED:
+                self._watched.popitem(last=False)
         pair_values: list[list[float | None]] = [[] for _ in pairs]
         for s in states:
             index = {int(v): k for k, v in enumerate(s.landmark_ids)}
@@ -199,7 +341,7 @@ class SeriesStore:
                     values.append(None)
                     continue
                 i, j = min(i, j), max(i, j)
-                values.append(float(s.sizes[pair_index(i, j, n)]))
+                values.append(s.size(pair_index(i, j, n)))
         labels = sorted({k for s in states for k in s.clusters})
         clusters = []
         for a, b in labels:
@@ -219,3 +361,59 @@ class SeriesStore:
                        "stats": {k: _clean(h.statistics.get(k) for h in health)
                                  for k in stat_names}},
         }
+
+
+class PlotSampler:
+    """Samples large maps' states for the plots on a thread of its own (``viewer-plots``),
+    newest first: the render thread hands a state over (O(1)) and never waits for a sample;
+    a state handed over while one is being sampled replaces any not yet taken.
+    ``on_error(state, exc)`` is told of a sample that failed (the plots are optional)."""
+
+    def __init__(self, on_error: Callable[[SlamState, Exception], None]) -> None:
+        self._on_error = on_error
+        self._lock = threading.Lock()
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._next: tuple[SeriesStore, SlamState, float] | None = None
+        self._thread: threading.Thread | None = None
+        self.sampled = 0  #: states sampled
+        self.sampled_event = threading.Event()  #: set after each sample taken
+        self.replaced = 0  #: states handed over and replaced by a newer one before sampling
+
+    def offer(self, store: SeriesStore, state: SlamState, now: float) -> None:
+        with self._lock:
+            if self._next is not None:
+                self.replaced += 1
+            self._next = (store, state, now)
+        self._wake.set()
+
+    def idle(self) -> bool:
+        """Nothing handed over waits to be sampled."""
+        with self._lock:
+            return self._next is None
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._loop, name="viewer-plots", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(timeout=1.0)
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            self._wake.wait(0.5)
+            self._wake.clear()
+            with self._lock:
+                job, self._next = self._next, None
+            if job is None:
+                continue
+            store, state, now = job
+            try:
+                if store.add_state(state, now=now):
+                    self.sampled += 1
+                    self.sampled_event.set()
+            except Exception as exc:  # the plots are optional; the viewer goes on
+                self._on_error(state, exc)

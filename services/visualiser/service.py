@@ -3,7 +3,11 @@
 It is assembled from parts a reader can name, each in its own module:
 
 * :class:`~services.visualiser.intake.Intake` — subscriptions, late join, decoding
-  (thread ``viewer-decode`` decodes camera frames as they arrive);
+  (thread ``viewer-decode`` decodes camera frames as they arrive; ``viewer-prepare``
+  decodes states and computes the open views' scenes of them, :meth:`_prepare`, before
+  the render thread takes them in);
+* :class:`~services.visualiser.series.PlotSampler` — thread ``viewer-plots`` samples
+  large maps for the plots;
 * :class:`~services.visualiser.pipeline.RenderPipeline` — thread ``viewer-render`` takes
   in state / registration / health / tracked pose and renders every *active* view whose
   inputs changed, at most ``fps`` times a second; thread ``viewer-encode`` JPEG-encodes;
@@ -32,7 +36,7 @@ from common.clusters import ClusterTracker, cluster_labels
 from common.drops import DropCounter
 from common.errors import ConfigError
 from common.keys import Keys
-from common.messages import CameraControl
+from common.messages import CameraControl, SlamState
 from common.summary import SummaryQuery
 from services.visualiser.api import ViewerApi
 from services.visualiser.clients import ClientRegistry
@@ -42,7 +46,7 @@ from services.visualiser.pipeline import RenderPipeline
 from services.visualiser.recording import MB, Recorder, recording_name
 from services.visualiser.render import Renderer
 from services.visualiser.robots import RobotHistories
-from services.visualiser.series import SeriesStore
+from services.visualiser.series import DENSE_PAIRS, PlotSampler, SeriesStore
 from services.visualiser.settings import ViewerConfig, ViewSettings
 from services.visualiser.summary_view import SummarisedState
 from services.visualiser.views import EyeChooser
@@ -78,7 +82,8 @@ class ViewerService:
                              summary_query=SummaryQuery(
                                  what="clusters", budget=config.summary_budget,
                                  threshold_m=ViewSettings().cluster_threshold_m,
-                                 count=ViewSettings().cluster_count))
+                                 count=ViewSettings().cluster_count),
+                             prepare=self._prepare)
         self.composer = Composer(self.intake, eyes=self.eyes, histories=self.histories,
                                  failures=self.failures,
                                  restart_note_s=config.restart_note_s)
@@ -91,6 +96,11 @@ class ViewerService:
                              recordings_dir=config.recordings_dir,
                              restart_note_s=config.restart_note_s,
                              reregister=self.reregister)
+        #: a large map's plot samples are taken off the render thread (series.py)
+        self.plots = PlotSampler(lambda state, exc: self.failures.drop(
+            "plots", f"state seq {state.seq}: {exc!r}"))
+        #: --source summary: the selection whose pairs the summary queries ask for
+        self._summary_selection: tuple[str | None, int | None, int | None] | None = None
         self.started = time.monotonic()
 
     @property
@@ -133,6 +143,7 @@ class ViewerService:
     def start(self) -> None:
         """Subscribe, fetch the latest state and registrations (late join), start threads."""
         self.intake.start()
+        self.plots.start()
         self.pipeline.start()
         cameras = self.intake.camera_names
         robots = ("every robot whose estimator is alive" if self.config.discover
@@ -143,12 +154,15 @@ class ViewerService:
     def stop(self) -> None:
         self.intake.stop()
         self.pipeline.stop()
+        self.plots.stop()
         self.clients.stop_recordings()
 
     # -- the render thread's intake step ------------------------------------------
     def _ingest(self) -> None:
         """Take in what arrived; hand it to the parts that keep a history of it."""
         now = time.monotonic()
+        if self.config.source == "summary":
+            self._select_summary()
         new = self.intake.ingest()
         for arrived in new.robots:
             history = self.histories.get(arrived.robot)
@@ -162,7 +176,12 @@ class ViewerService:
                 history.renderer.track(state.robot, state.seq, state.pose[:2], state.epoch)
                 history.tracked.add_estimate(state.stamp, state.pose)
                 try:
-                    if not isinstance(state, SummarisedState):  # no cross terms: no P_d
+                    if isinstance(state, SummarisedState):  # no cross terms: no P_d
+                        pass
+                    elif state.n * (state.n - 1) // 2 > DENSE_PAIRS:  # a large map
+                        if history.series.due(now):  # off this thread: it only hands over
+                            self.plots.offer(history.series, state, now)
+                    else:
                         history.series.add_state(state, now=now)
                 except Exception as exc:  # the plots are optional; the picture is not
                     self.failures.drop("plots", f"state seq {state.seq}: {exc!r}")
@@ -170,6 +189,36 @@ class ViewerService:
                 history.tracked.set_tracked(arrived.tracked)
             for health in arrived.healths:
                 history.series.add_health(health, now=now)
+
+    def _prepare(self, robot: str, state: SlamState) -> None:
+        """On the ``viewer-prepare`` thread, before the render thread takes ``state`` in:
+        the scenes of the views looked at (clusters, the overview, glyphs: the per-state
+        half of a picture at n = 1000) and, over a camera, the state drawn on layers
+        (:meth:`Composer.prepare`), so the render thread only puts them over camera frames
+        — of the previous state, meanwhile. One robot only (several draw under per-robot
+        settings)."""
+        if len(self.intake.robot_names) != 1:
+            return
+        health = next((r.health for r in self.intake.snapshot().robots if r.name == robot),
+                      None)
+        frame = self.pipeline.last_frame
+        for view in self.clients.looked_at():
+            self.composer.prepare(frame, robot, state, view.settings, health)
+
+    def _select_summary(self) -> None:
+        """``--source summary``: the summary queries ask for the pairs of the selection
+        (a feature or a cluster) of the open view touched last that has one (issue 13
+        item 3: full detail from the robot), else for the clusters."""
+        selected = [v for v in self.clients.looked_at()
+                    if v.settings.selected_feature is not None
+                    or v.settings.selected_cluster is not None]
+        choice: tuple[str | None, int | None, int | None] = (None, None, None)
+        if selected:
+            s = max(selected, key=lambda v: v.touched).settings
+            choice = (s.selected_robot, s.selected_feature, s.selected_cluster)
+        if choice != self._summary_selection:
+            self._summary_selection = choice
+            self.intake.summary_selection(choice[0], feature=choice[1], cluster=choice[2])
 
     # -- requests -----------------------------------------------------------------
     def reregister(self, robot: str | None) -> dict[str, Any]:

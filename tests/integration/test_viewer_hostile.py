@@ -150,10 +150,15 @@ def test_a_decode_bomb_on_the_frame_key_is_refused_before_decoding(viewer, make_
 
     peak = memory_mb(proc.pid)["VmHWM"]
     assert peak <= 1.5 * idle, f"peak {peak:.0f} MB against {idle:.0f} MB idle"
-    _, err = stop(proc)
+    out, err = stop(proc)
     for reason in reasons:
         assert sum(reason in line for line in err.splitlines()) == 1, (reason, err[-2000:])
     assert "Traceback" not in err
+    # its last line says what it did: the bombs counted against the camera
+    last = out.strip().splitlines()[-1]
+    assert last.startswith("viewer stopped: "), out[-500:]
+    final = json.loads(last.removeprefix("viewer stopped: "))
+    assert final["cameras"] == [CAMERA] and final["bad_messages"] == {f"frame {CAMERA}": 3}
 
 
 async def _oversized_websocket_message(url: str) -> aiohttp.WSMessage:

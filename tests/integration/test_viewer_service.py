@@ -671,3 +671,23 @@ def test_the_reregister_button_asks_the_registration_service_by_a_query(start_vi
     _, map_url = start_viewer()
     status, _, body = http(map_url + "/api/reregister", data={})
     assert status == 400 and "no camera" in json.loads(body)["error"]
+
+
+def test_each_state_is_drawn_on_layers_before_the_render_thread_takes_it_in(
+        start_viewer, publisher) -> None:
+    """Over a camera, ``viewer-prepare`` draws each new state onto its layers (issue 13),
+    so the render thread only puts them over the frames: of five states it draws at most
+    the first itself (before any picture, the eyes are not known yet)."""
+    service, url = start_viewer(camera=CAMERA)
+    service.histories.get(ROBOT).renderer.layers_from_n = 0  # (6 features: straight else)
+    publisher(KEYS.registration(CAMERA, ROBOT), make_registration().to_bytes())
+    publisher(KEYS.frame(CAMERA), make_frame(1).to_bytes())
+    for seq in range(1, 6):
+        publisher(KEYS.state(ROBOT), make_state(seq).to_bytes())
+        wait_until(lambda seq=seq: snapshot(url)[1]["X-State-Seq"] == str(seq))
+    image, _ = snapshot(url)
+    assert red_pixels(image, midpoint(0, 1)) >= 40  # drawn, over the camera's picture
+    assert np.abs(image[HEIGHT - 20, WIDTH - 20].astype(int) - BACKGROUND_BGR).max() <= 8
+    built = service.renderer.layers_built_on
+    assert built["viewer-prepare"] >= 4, built
+    assert built["viewer-render"] <= 1, built
