@@ -60,7 +60,7 @@ from services.cli import COMMANDS, command_parser
 READY_LINES = {"router": "router ready", "estimator": "estimator ready",
                "monitor": "monitor ready", "registration": "registration ready",
                "viewer": "viewer ready", "serial": "serial ready", "sim": "sim ready",
-               "replay": "replay ready"}
+               "replay": "replay ready", "summary": "summary ready"}
 #: commands that are not services (they do not run under a launch)
 NOT_SERVICES = ("launch", "demo", "certs", "calibrate", "figures")
 _LAUNCH_KEYS = ("command", "after", "ready", "respawn", "required", "args")

@@ -52,7 +52,7 @@ SECTIONS = ("Install", "One machine, without a camera", "Two machines",
 READY = {"router": "router ready", "estimator": "estimator ready",
          "monitor": "monitor ready", "registration": "registration ready",
          "viewer": "viewer ready", "sim": "sim ready", "replay": "replay ready",
-         "serial": "serial ready", "launch": " services ready"}
+         "serial": "serial ready", "summary": "summary ready", "launch": " services ready"}
 SERVICES = (*READY, "demo")
 
 
@@ -249,7 +249,8 @@ def _two_machines(section: str, hosts: Hosts, clone: Path) -> tuple[Reader, dict
         status = next(out for command, out in reader.outputs.items()
                       if command.startswith("slamlens status"))
         assert sorted(_services_listed(status)) == ["estimator", "monitor", "registration",
-                                                    "router", "router", "sim", "viewer"], status
+                                                    "router", "router", "sim", "summary",
+                                                    "viewer"], status
         _the_viewer_shows_the_run(hosts.workstation)
     finally:
         done = reader.stop_all()

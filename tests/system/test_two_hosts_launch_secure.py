@@ -53,7 +53,7 @@ def test_the_paper_run_with_the_secure_launch_files(two_hosts: Hosts, tmp_path: 
     try:
         workstation.wait_for_line("[launch] all 3 services ready", timeout=120)
         robot = _launch(h.robot, "robot_secure", h.workstation_ip, home, "--set", "rate=0")
-        robot.wait_for_line("[launch] all 4 services ready", timeout=120)
+        robot.wait_for_line("[launch] all 5 services ready", timeout=120)
         done = robot.wait_for_line("[driver] sim done: ", timeout=180)
         assert "all applied by the estimator" in done
         counts = json.loads(done.split("sim done: ", 1)[1].split(" in ")[0])

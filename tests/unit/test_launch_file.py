@@ -153,7 +153,7 @@ def test_a_missing_or_broken_file_is_named(tmp_path: Path) -> None:
 def test_the_shipped_launch_files_check(name: str) -> None:
     plan = load_launch(DEPLOY / f"{name}.toml", values=["workstation=10.1.2.3"])
     commands = {s.command for s in plan.services}
-    assert commands == ({"router", "estimator", "monitor", "sim"} if name == "robot"
+    assert commands == ({"router", "estimator", "monitor", "summary", "sim"} if name == "robot"
                         else {"router", "registration", "viewer"})
     router = plan.service("router")
     listen = [router.argv[i + 1] for i, a in enumerate(router.argv) if a == "--listen"]
@@ -210,7 +210,7 @@ def test_check_prints_the_commands_in_start_order() -> None:
                          text=True, timeout=60)
     assert out.returncode == 0, out.stderr
     lines = out.stdout.splitlines()
-    assert lines[0] == "deploy/robot.toml: 4 services, in start order:"
+    assert lines[0] == "deploy/robot.toml: 5 services, in start order:"
     assert lines[1].startswith("  router: slamlens router --listen tcp/127.0.0.1:7447 "
                                "--connect tcp/10.1.2.3:7447")
     assert lines[-1].startswith("  driver: slamlens sim --config deploy/sim_paper.toml")
