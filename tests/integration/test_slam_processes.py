@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import json
-import threading
 import time
 
 import msgpack
@@ -13,20 +12,22 @@ import zenoh
 
 from common.keys import Keys
 from common.messages import SlamState
+from tests.collect import StateCollector
 from tests.procs import spawn, stop, wait_for_line
 
 KEYS = Keys()
 
 
-class _Collector:
-    def __init__(self) -> None:
-        self.states: list[SlamState] = []
-        self.lock = threading.Lock()
+class _Collector(StateCollector):
+    """Every state, as a recorder gets them: states go out with congestion control *drop*
+    (SPEC §7a), so a consumer that needs all of them recovers what a loaded machine drops."""
 
-    def __call__(self, key: str, payload: bytes) -> None:
-        state = SlamState.from_bytes(payload)
-        with self.lock:
-            self.states.append(state)
+    def __init__(self, endpoint: str) -> None:
+        self.states: list[SlamState] = []
+        super().__init__(endpoint, KEYS.state("r1"), history_s=30.0)
+
+    def take(self, payload: bytes) -> None:
+        self.states.append(SlamState.from_bytes(payload))
 
 
 @pytest.fixture
@@ -38,10 +39,10 @@ def estimator(router_endpoint):
     assert proc.returncode == 0, err
 
 
-def test_paper_run_every_state_received_in_order(router_endpoint, make_client, estimator):
-    client = make_client()
-    got = _Collector()
-    client.subscribe(KEYS.state("r1"), got)
+def test_paper_run_every_state_received_in_order(router_endpoint, make_client, estimator,
+                                                 request):
+    got = _Collector(router_endpoint)
+    request.addfinalizer(got.close)
     assert make_client().wait_for_subscriber(KEYS.state("r1"))  # ours reached the router
     sim = spawn("sim", "--robot", "r1", "--rate", "0", "--loops", "1", "--seed", "3",
                 "--connect", router_endpoint)
@@ -50,9 +51,7 @@ def test_paper_run_every_state_received_in_order(router_endpoint, make_client, e
     assert "sim done" in out
     counts = json.loads(out.split("sim done: ", 1)[1].split(" in ")[0])
     expected = counts["Odometry"] + counts["Observations"]
-    deadline = time.monotonic() + 20
-    while len(got.states) < expected and time.monotonic() < deadline:
-        time.sleep(0.05)
+    got.wait(lambda g: len([s for s in g.states if s.step != "init"]) >= expected, timeout=20)
     states = [s for s in got.states if s.step != "init"]
     assert len(states) == expected
     seqs = [s.seq for s in states]
@@ -131,10 +130,10 @@ def test_third_party_client_from_spec_only(router_endpoint, estimator):
         session.close()
 
 
-def test_estimator_survives_garbage(router_endpoint, make_client, estimator):
+def test_estimator_survives_garbage(router_endpoint, make_client, estimator, request):
     client = make_client()
-    got = _Collector()
-    client.subscribe(KEYS.state("r1"), got)
+    got = _Collector(router_endpoint)
+    request.addfinalizer(got.close)
     probe = make_client()
     assert probe.wait_for_subscriber(KEYS.state("r1"))  # ours reached the router
     assert probe.wait_for_subscriber(KEYS.odometry("r1"))  # and the estimator's
@@ -151,11 +150,10 @@ def test_estimator_survives_garbage(router_endpoint, make_client, estimator):
          "bearings": [0.0, 0.1]}))
     odo.put(msgpack.packb({"schema": 1, "robot": "r1", "stamp": 1.1, "dt": 0.1, "v": 0.1,
                            "w": 0.0}))
-    deadline = time.monotonic() + 10
-    while not got.states and time.monotonic() < deadline:
-        time.sleep(0.02)
-    assert [s.step for s in got.states] == ["predict"]
-    assert got.states[0].seq == 1
+    got.wait(lambda g: any(s.step != "init" for s in g.states), timeout=10)
+    applied = [s for s in got.states if s.step != "init"]
+    assert [s.step for s in applied] == ["predict"]
+    assert applied[0].seq == 1
     out, err = stop(estimator)
     assert "dropped bad Odometry (1 so far)" in err
     assert "dropped bad Observations (1 so far)" in err

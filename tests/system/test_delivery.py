@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 import signal
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -20,6 +19,7 @@ import pytest
 from common.keys import Keys
 from common.messages import SlamState, peek_fields
 from common.session import BusSettings, free_tcp_endpoint, open_bus
+from tests.collect import StateCollector
 from tests.procs import REPO, Service, spawn, stop
 
 KEYS = Keys()
@@ -39,40 +39,20 @@ def driver_counts(out: str, name: str) -> dict:
     return json.loads(line.split(": ", 1)[1].split(" in ")[0])
 
 
-class States:
-    """Every state on the robot's key, through a recovering channel (as a recorder)."""
+class States(StateCollector):
+    """Every state on the robot's key (as a recorder): its seq, epoch and step, and the last."""
 
     def __init__(self, endpoint: str) -> None:
-        self.bus = open_bus(BusSettings(connect=(endpoint,)))
-        self.channel = self.bus.channel(KEYS.state(ROBOT), recover=True, history_s=30.0)
         self.heads: list[dict] = []
         self.last: bytes | None = None
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
+        super().__init__(endpoint, KEYS.state(ROBOT), history_s=30.0)
 
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            sample = self.channel.recv(timeout=0.2)
-            if sample is not None:
-                self.heads.append(peek_fields(sample.payload, ("seq", "epoch", "step")))
-                self.last = sample.payload
-
-    def wait(self, predicate, timeout: float = 60.0) -> bool:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if predicate(self):
-                return True
-            time.sleep(0.05)
-        return predicate(self)
+    def take(self, payload: bytes) -> None:
+        self.heads.append(peek_fields(payload, ("seq", "epoch", "step")))
+        self.last = payload
 
     def max_seq(self) -> int:
         return max((h["seq"] for h in self.heads), default=-1)
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=2)
-        self.bus.close()
 
 
 @pytest.fixture

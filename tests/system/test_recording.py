@@ -15,7 +15,6 @@ import base64
 import json
 import math
 import struct
-import threading
 import time
 import urllib.request
 from pathlib import Path
@@ -33,6 +32,7 @@ from common.keys import Keys
 from common.messages import SlamState, peek_fields
 from common.session import BusSettings, free_tcp_endpoint, open_bus
 from services.recorder.reading import Recording, valid_payload
+from tests.collect import StateCollector
 from tests.mcap_check import protobuf_class, validate
 from tests.procs import Service, spawn, stop
 
@@ -40,36 +40,18 @@ KEYS = Keys()
 ROBOT = "robot1"
 
 
-class Collected:
-    """Every state on a bus, in order, through a recovering channel with history."""
+class Collected(StateCollector):
+    """Every state on a bus by seq (as a recorder, with the history of the last 120 s)."""
 
     def __init__(self, endpoint: str) -> None:
-        self.bus = open_bus(BusSettings(connect=(endpoint,)))
-        self.channel = self.bus.channel(KEYS.state(ROBOT), recover=True, history_s=120.0)
         self.states: dict[int, bytes] = {}
-        self._stop = threading.Event()
-        self._thread = threading.Thread(target=self._run, daemon=True)
-        self._thread.start()
+        super().__init__(endpoint, KEYS.state(ROBOT), history_s=120.0)
 
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            sample = self.channel.recv(timeout=0.2)
-            if sample is not None:
-                seq = int(peek_fields(sample.payload, ("seq",))["seq"])
-                self.states[seq] = sample.payload
+    def take(self, payload: bytes) -> None:
+        self.states[int(peek_fields(payload, ("seq",))["seq"])] = payload
 
     def wait_for(self, seq: int, timeout: float = 120.0) -> bool:
-        deadline = time.monotonic() + timeout
-        while time.monotonic() < deadline:
-            if seq in self.states:
-                return True
-            self._stop.wait(0.05)
-        return seq in self.states
-
-    def close(self) -> None:
-        self._stop.set()
-        self._thread.join(timeout=2)
-        self.bus.close()
+        return self.wait(lambda c: seq in c.states, timeout)
 
 
 def _router() -> tuple[Service, str]:
