@@ -10,12 +10,16 @@
 2. **A stalled consumer costs nothing.** The paper run at ``--rate 0`` (paced on the
    estimator) with and without a subscriber whose callback sleeps 1 s per sample plus 10
    extra ordinary subscribers. Target: throughput with them ≥ 0.95× without (median of
-   ``--repeats`` alternating runs).
+   ``--repeats`` alternating runs). With ``--two-host``, as it is deployed: the robot (its
+   router, the estimator, the simulator) on one core and the workstation (its own router,
+   the subscribers) on the other, the routers linked; the baseline there keeps one
+   ordinary subscriber on the workstation, the lab's viewer (see
+   :func:`stalled_two_host`).
 3. **Crash recovery.** An estimator with ``--checkpoint`` is SIGKILLed in the middle of a
    run and started again: seconds from the new process's start to its first new state
    (seq beyond the checkpoint). Target ≤ 3 s.
 
-Run: ``.venv/bin/python benchmarks/bench_delivery.py [--repeats 3] [--only 1,2,3]``
+Run: ``.venv/bin/python benchmarks/bench_delivery.py [--repeats 3] [--only 1,2,3] [--two-host]``
 """
 
 from __future__ import annotations
@@ -23,6 +27,7 @@ from __future__ import annotations
 import argparse
 import json
 import statistics
+import subprocess
 import sys
 import tempfile
 import threading
@@ -35,7 +40,8 @@ sys.path.insert(0, str(REPO))
 from common.keys import Keys  # noqa: E402
 from common.messages import peek_fields  # noqa: E402
 from common.session import BusSettings, free_tcp_endpoint, open_bus  # noqa: E402
-from tests.procs import Service, spawn, stop  # noqa: E402
+from tests.collect import StateCollector  # noqa: E402
+from tests.procs import Service, slamlens_cmd, spawn, stop  # noqa: E402
 
 KEYS = Keys()
 ROBOT = "robot1"
@@ -49,30 +55,18 @@ def _router() -> tuple[Service, str]:
     return proc, ep
 
 
-class Recorder:
+class Recorder(StateCollector):
     """Every state through a recovering channel (what a recorder does), on a thread."""
 
     def __init__(self, ep: str) -> None:
-        self.bus = open_bus(BusSettings(connect=(ep,)))
-        self.ch = self.bus.channel(KEYS.state(ROBOT), recover=True, history_s=30.0)
         self.seqs: set[int] = set()
         self.last = -1
-        self._stop = threading.Event()
-        self._t = threading.Thread(target=self._run, daemon=True)
-        self._t.start()
+        super().__init__(ep, KEYS.state(ROBOT), history_s=30.0)
 
-    def _run(self) -> None:
-        while not self._stop.is_set():
-            s = self.ch.recv(timeout=0.2)
-            if s is not None:
-                seq = int(peek_fields(s.payload, ("seq",))["seq"])
-                self.seqs.add(seq)
-                self.last = max(self.last, seq)
-
-    def close(self) -> None:
-        self._stop.set()
-        self._t.join(2)
-        self.bus.close()
+    def take(self, payload: bytes) -> None:
+        seq = int(peek_fields(payload, ("seq",))["seq"])
+        self.seqs.add(seq)
+        self.last = max(self.last, seq)
 
 
 def _health_seq(bus) -> int:
@@ -155,6 +149,15 @@ def _dataset_span() -> tuple[float, float]:
     return _SPAN
 
 
+def _sim_done(sim: Service) -> tuple[int, float]:
+    """The inputs a simulator at ``--rate 0`` published and its wall seconds, from its
+    final line, once it has ended."""
+    out, _ = sim.communicate(timeout=600)
+    counts = _final_json(out, "sim done: ")
+    wall = float(out.split(" in ", 1)[1].split(" s")[0].rsplit(" ", 1)[-1])
+    return counts["Odometry"] + counts["Observations"], wall
+
+
 def stalled(*, with_load: bool, loops: int, stalled: bool = True, extra_subs: int = 10
             ) -> float:
     """States per second of a paced full-speed paper run (with the load: a subscriber
@@ -164,10 +167,15 @@ def stalled(*, with_load: bool, loops: int, stalled: bool = True, extra_subs: in
     est = spawn("estimator", "--robot", ROBOT, "--connect", ep)
     est.wait_for_line("estimator ready")
     extra = []
+    # zenoh-python drains a closed subscriber's queue through its callback before the
+    # process may exit: once measured, the stalled client stops sleeping (else the
+    # benchmark hung for an hour after printing, one second per state queued)
+    measured = threading.Event()
     if with_load:
         if stalled:
             slow = open_bus(BusSettings(connect=(ep,)))
-            slow.subscribe(KEYS.state(ROBOT), lambda k, p: time.sleep(1.0))
+            slow.subscribe(KEYS.state(ROBOT),
+                           lambda k, p: None if measured.is_set() else time.sleep(1.0))
             extra.append(slow)
         for _ in range(extra_subs):
             b = open_bus(BusSettings(connect=(ep,)))
@@ -180,15 +188,73 @@ def stalled(*, with_load: bool, loops: int, stalled: bool = True, extra_subs: in
     try:
         sim = spawn("sim", "--robot", ROBOT, "--rate", "0", "--loops", str(loops), "--seed",
                     "1", "--connect", ep)
-        out, _ = sim.communicate(timeout=600)
-        counts = _final_json(out, "sim done: ")
-        wall = float(out.split(" in ", 1)[1].split(" s")[0].rsplit(" ", 1)[-1])
-        return (counts["Odometry"] + counts["Observations"]) / wall
+        states, wall = _sim_done(sim)
+        return states / wall
     finally:
+        measured.set()
         for b in extra:
             b.close()
         stop(est)
         stop(router)
+
+
+ROBOT_CPU, WORKSTATION_CPU = "0", "1"
+
+
+def _pinned(cpu: str, *args: str) -> Service:
+    """A slamlens service started on one CPU (``taskset`` execs it: same pid, every thread
+    it will ever make inherits the mask)."""
+    return Service(["taskset", "-c", cpu, *slamlens_cmd(*args)])
+
+
+def stalled_two_host(*, with_load: bool, loops: int, viewers: int = 1) -> dict:
+    """Target 2 as it is deployed (deploy/README.md): the robot's router, estimator and
+    simulator on one core, the workstation's router and its subscribers (their own
+    process) on the other, the two routers linked over loopback. The workstation always
+    has one ordinary subscriber (the viewer a lab runs); with the load a 1 s/sample one
+    and ten more ordinary ones join it. ``viewers=0`` leaves the workstation without any
+    subscriber (then the estimator's puts never leave its session). Returns the
+    estimator's states/s and its CPU ms per state over the simulator's run."""
+    ep_r = free_tcp_endpoint()
+    robot_router = _pinned(ROBOT_CPU, "router", "--listen", ep_r)
+    robot_router.wait_for_line("router ready")
+    ep_w = free_tcp_endpoint()
+    ws_router = _pinned(WORKSTATION_CPU, "router", "--listen", ep_w, "--connect", ep_r)
+    ws_router.wait_for_line("router ready")
+    est = _pinned(ROBOT_CPU, "estimator", "--robot", ROBOT, "--connect", ep_r)
+    est.wait_for_line("estimator ready")
+    subs = None
+    try:
+        if with_load or viewers:
+            extra = viewers + 10 if with_load else viewers
+            subs = subprocess.Popen(
+                ["taskset", "-c", WORKSTATION_CPU, sys.executable,
+                 str(REPO / "benchmarks" / "_workstation_subscribers.py"), "--connect", ep_w,
+                 "--robot", ROBOT, "--extra", str(extra),
+                 *(() if with_load else ("--no-stalled",))],
+                stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+            assert subs.stdout is not None and subs.stdout.readline().strip() == "subscribed"
+            probe = open_bus(BusSettings(connect=(ep_r,)))  # they reached the robot's router
+            while not probe.wait_for_subscriber(KEYS.state(ROBOT), timeout=5):
+                pass
+            probe.close()
+        cpu0 = est.cpu_seconds() or 0.0
+        sim = _pinned(ROBOT_CPU, "sim", "--robot", ROBOT, "--rate", "0", "--loops",
+                      str(loops), "--seed", "1", "--connect", ep_r)
+        states, wall = _sim_done(sim)
+        cpu = (est.cpu_seconds() or 0.0) - cpu0
+        result = {"states_per_s": states / wall, "est_cpu_ms_per_state": 1e3 * cpu / states}
+        if subs is not None:
+            out_subs, _ = subs.communicate("", timeout=30)  # stdin closed: counts, exit
+            result["received"] = json.loads(out_subs.strip().splitlines()[-1])
+            result["states"] = states
+        return result
+    finally:
+        if subs is not None and subs.poll() is None:
+            subs.kill()
+        stop(est)
+        stop(ws_router)
+        stop(robot_router)
 
 
 def recovery() -> float:
@@ -225,6 +291,8 @@ def main() -> None:
     ap.add_argument("--repeats", type=int, default=3)
     ap.add_argument("--only", default="1,2,3")
     ap.add_argument("--loops", type=int, default=20, help="paper loops for target 2")
+    ap.add_argument("--two-host", action="store_true",
+                    help="target 2 as deployed: robot and workstation on a core each")
     args = ap.parse_args()
     parts = {int(p) for p in args.only.split(",")}
     if 1 in parts:
@@ -238,11 +306,32 @@ def main() -> None:
                   f"real time; replay done after {r['replay_s']:.1f} s; all applied "
                   f"{r['all_applied']}; recorded {r['recorded']}/{r['inputs'] + 1}; checked up "
                   f"to seq {r['checked_up_to']}; monitor lost {r['monitor']['lost']}; CPU s "
-                  f"{_cpu(r)}")
+                  f"{_cpu(r)} (monitor's checking thread "
+                  f"{r['monitor'].get('worker_cpu_s', float('nan')):.1f})")
         med = statistics.median(r["realtime_x"] for r in runs)
         print(f"target 1: median {med:.1f}x real time (target >= 30x); "
               f"ratio to the estimator alone {med / base['realtime_x']:.2f}")
-    if 2 in parts:
+    if 2 in parts and args.two_host:
+        runs_a, runs_b, runs_0 = [], [], []
+        for _ in range(args.repeats):  # alternating
+            runs_a.append(stalled_two_host(with_load=False, loops=args.loops))
+            runs_b.append(stalled_two_host(with_load=True, loops=args.loops))
+            runs_0.append(stalled_two_host(with_load=False, loops=args.loops, viewers=0))
+        a = statistics.median(r["states_per_s"] for r in runs_a)
+        b = statistics.median(r["states_per_s"] for r in runs_b)
+        ca = statistics.median(r["est_cpu_ms_per_state"] for r in runs_a)
+        cb = statistics.median(r["est_cpu_ms_per_state"] for r in runs_b)
+        z = statistics.median(r["states_per_s"] for r in runs_0)
+        print(f"target 2, two hosts (robot on CPU {ROBOT_CPU}, workstation on CPU "
+              f"{WORKSTATION_CPU}): {a:.0f} states/s with one viewer on the workstation, "
+              f"{b:.0f} with a 1 s/sample subscriber and 10 more beside it: ratio {b / a:.3f} "
+              f"(target >= 0.95); with no subscriber at all {z:.0f} (the estimator's puts "
+              f"never leave its session; ratio of the loaded run to it {b / z:.3f});"
+              f" estimator CPU {ca:.3f} -> {cb:.3f} ms per state (ratio {cb / ca:.3f}); "
+              f"runs {[round(r['states_per_s']) for r in runs_a]} / "
+              f"{[round(r['states_per_s']) for r in runs_b]}; received by the subscribers "
+              f"(of the states) {[(r['received'], r['states']) for r in runs_b]}")
+    elif 2 in parts:
         without, with_ = [], []
         for _ in range(args.repeats):
             without.append(stalled(with_load=False, loops=args.loops))
