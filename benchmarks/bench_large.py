@@ -25,8 +25,11 @@ CPU seconds per process over the window and the load average are printed too.
 Zenoh session, shared memory on): where a state's time goes (EKF update, materialising the
 covariance, encoding, the shared-memory copy, the publish), and the publish path as it was
 before issue 13 (msgpack.packb of a freshly materialised state) timed on the same states.
+``--profile-viewer`` profiles the viewer's state → picture path in this process at
+n = 1000 (:func:`profile_viewer`); ``--profile-only`` skips the pipeline runs.
 
-Run: ``.venv/bin/python benchmarks/bench_large.py [--window 20] [--repeats 1] [--profile]``
+Run: ``.venv/bin/python benchmarks/bench_large.py [--window 20] [--repeats 1] [--profile]
+[--profile-viewer] [--profile-only]``
 (about 5 min per repeat on the shared 2-core machine).
 """
 
@@ -106,6 +109,7 @@ class Mjpeg(threading.Thread):
         self.conn = http.client.HTTPConnection(host, port, timeout=30)
         self.parts: list[tuple[float, int | None]] = []
         self.stopped = threading.Event()
+        self.error: str | None = None  #: why the stream ended before stop() (a dead reader)
 
     def run(self) -> None:
         self.conn.request("GET", "/stream.mjpg?client=bench")
@@ -122,8 +126,9 @@ class Mjpeg(threading.Thread):
                 response.read(int(headers["content-length"]))
                 seq = headers.get("x-state-seq")
                 self.parts.append((time.monotonic(), int(seq) if seq else None))
-        except (OSError, ValueError, KeyError, AttributeError):
-            pass  # closed
+        except (OSError, ValueError, KeyError, AttributeError) as exc:
+            if not self.stopped.is_set():  # not our own close: say so in the results
+                self.error = f"{type(exc).__name__}: {exc}"[:200]
 
     def stop(self) -> None:
         self.stopped.set()
@@ -246,8 +251,24 @@ def run(endpoint: str, world: str, *, full: bool, window_s: float, seed: int) ->
             "monitor_behind_max": max((r[3] for r in in_window), default=0.0),
             "monitor_sampled_total": health.rows[-1][2] if health.rows else 0.0,
             "status_start": status_start is not None,
+            "mjpeg_error": reader.error,
+            "mjpeg_parts_in_window": sum(1 for t, _ in reader.parts if t0 <= t <= t1),
         })
     return out
+
+
+def _fill_to_1000(est, events) -> None:
+    """Feed ``events`` (an iterator: what is left goes on from there) straight into the
+    filter ``est`` until its map has 1000 landmarks."""
+    from common.messages import Observations, Odometry
+
+    for m in events:
+        if isinstance(m, Odometry):
+            est.predict(v=m.v, w=m.w, dt=m.dt, stamp=m.stamp)
+        elif isinstance(m, Observations):
+            est.observe(ids=m.ids, ranges=m.ranges, bearings=m.bearings, stamp=m.stamp)
+        if est.n >= 1000:
+            break
 
 
 def profile_estimator(events: int = 300) -> None:
@@ -272,13 +293,7 @@ def profile_estimator(events: int = 300) -> None:
     service = EstimatorService(bus, keys=KEYS, settings=EstimatorSettings(robot=ROBOT))
     stream = Simulator(load_world("large"), loops=2, seed=0).events()
     est = service.estimator
-    for m in stream:  # the first loop straight into the filter: the map, unpublished
-        if isinstance(m, Odometry):
-            est.predict(v=m.v, w=m.w, dt=m.dt, stamp=m.stamp)
-        elif isinstance(m, Observations):
-            est.observe(ids=m.ids, ranges=m.ranges, bearings=m.bearings, stamp=m.stamp)
-        if est.n >= 1000:
-            break
+    _fill_to_1000(est, stream)  # the first loop straight into the filter: the map, unpublished
     items = [Input("odometry" if isinstance(m, Odometry) else "observations", m)
              for m in stream if isinstance(m, (Odometry, Observations))][:events + 20]
     for item in items[:20]:  # warm: the shared-memory pool is made on first use
@@ -341,6 +356,116 @@ def profile_estimator(events: int = 300) -> None:
         b.close()
 
 
+def profile_viewer(repeats: int = 9) -> None:
+    """The viewer's state → picture path in this process at n = 1000 (a real state of the
+    ``large`` world): thread CPU ms per picture of a new state and per camera frame of the
+    same state, the plot sample, decoding; baselines in the same run: the scene computed
+    for every picture (a fresh ``Renderer`` each time, as before issue 13's viewer work)
+    and the plot sample as before (every pair's P_d gathered, then its size)."""
+    import cProfile
+    import dataclasses
+    import pstats
+
+    import cv2
+    import numpy as np
+
+    from common.geometry import all_relative_covariances, pd_size_m
+    from common.messages import SlamState
+    from services.slam.estimator import Estimator
+    from services.slam.settings import EstimatorSettings
+    from services.slam.sim import Simulator
+    from services.slam.world import load_world
+    from services.visualiser.camera_model import CameraModel
+    from services.visualiser.render import Renderer, _draw_legend, rejected_legend
+    from services.visualiser.series import SeriesStore
+    from services.visualiser.settings import ViewSettings
+
+    est = Estimator(EstimatorSettings(robot=ROBOT))
+    _fill_to_1000(est, Simulator(load_world("large"), loops=2, seed=0).events())
+    payload = est.to_state(seq=1, stamp=0.0, step="update").to_bytes()
+    state0 = SlamState.from_bytes(payload, check_symmetry=False)
+    states = [dataclasses.replace(state0, seq=2 + k) for k in range(repeats + 1)]
+    camera = CameraModel.top_down(bounds_xy=(-1.5, -1.5, 39.5, 24.5), width=1280, height=720)
+    frames = [np.full((720, 1280, 3), 60 + k, np.uint8) for k in range(repeats + 1)]
+
+    def cpu_ms(f, k_from: int = 1) -> float:
+        spent = []
+        for k in range(repeats + 1):
+            t = time.thread_time()
+            f(k)
+            spent.append((time.thread_time() - t) * 1e3)
+        return statistics.median(spent[k_from:])
+
+    def picture(renderer: Renderer, state: SlamState, k: int, settings: ViewSettings) -> None:
+        cv2.imencode(".jpg", renderer.render(frames[k], state=state, camera=camera,
+                                             settings=settings))
+
+    print(f"PROFILE viewer at n = {state0.n} (thread CPU ms, median of {repeats}), load "
+          f"{os.getloadavg()[0]:.2f}:")
+    print(f"  decode a state (SlamState.from_bytes, {len(payload) / 2 ** 20:.1f} MiB): "
+          f"{cpu_ms(lambda k: SlamState.from_bytes(payload, check_symmetry=False)):.1f} ms")
+    for mode in ("all", "minmeanmax"):
+        settings = ViewSettings(mode=mode)
+        r = Renderer()
+        new = cpu_ms(lambda k, r=r, s=settings: picture(r, states[k], k, s))
+        same = cpu_ms(lambda k, r=r, s=settings: picture(r, states[-1], k, s))
+        fresh = cpu_ms(lambda k, s=settings: picture(Renderer(), states[-1], k, s))
+        print(f"  mode {mode:10s}: new state {new:5.1f} ms; camera frame, same state "
+              f"{same:5.1f} ms (scene reused) vs {fresh:5.1f} ms recomputed "
+              f"(ratio {fresh / same:.1f}×)")
+    # a state drawn onto layers once, put over every camera frame; baseline in the same
+    # run: every step drawn straight onto each frame (as before the layers)
+    settings = ViewSettings()
+    r = Renderer()
+    r.scene(states[-1], settings)
+    layers = cpu_ms(lambda k: (r._layers.clear(), r.layers(states[-1], camera, settings)))
+    over = cpu_ms(lambda k: r.render(frames[k], state=states[-1], camera=camera,
+                                     settings=settings))
+
+    def straight(k: int) -> None:
+        img = frames[k].copy()
+        drawn = r.draw(img, state=states[-1], camera=camera, settings=settings)
+        _draw_legend(drawn.canvas, health=None, glyphs_shown=drawn.glyphs_shown,
+                     notes=rejected_legend(states[-1], settings))
+
+    direct = cpu_ms(straight)
+    copy = cpu_ms(lambda k: bytearray(payload))
+    print(f"  a state onto its layers (once per state, viewer-prepare) {layers:5.1f} ms; a "
+          f"camera frame: layers put over it {over:5.2f} ms vs drawn straight {direct:5.1f} "
+          f"ms (ratio {direct / over:.0f}×)")
+    print(f"  a {len(payload) / 2 ** 20:.1f} MiB payload copied (each state the viewer "
+          f"skipped, before subscribe_lazy): {copy:.1f} ms")
+    store = SeriesStore(min_interval_s=0.0)
+    sample = cpu_ms(lambda k: SeriesStore(min_interval_s=0.0).add_state(states[k], now=0.0))
+    old = cpu_ms(lambda k: pd_size_m(all_relative_covariances(states[k].covariance,
+                                                              states[k].n)[2]))
+    store.add_state(states[0], now=0.0)
+    print(f"  plot sample: {sample:.1f} ms (every pair's size, {store.interval_s:.2f} s "
+          f"apart at most: ≤ 1/20 of the time) vs before {old:.1f} ms every 0.2 s "
+          f"(ratio {old / sample:.1f}×)")
+    settings = ViewSettings()
+    r = Renderer()
+    profiler = cProfile.Profile(time.thread_time)
+    profiler.enable()
+    for k in range(repeats):
+        picture(r, states[k], k, settings)
+    profiler.disable()
+    stats = pstats.Stats(profiler).stats  # type: ignore[attr-defined]
+    groups = {
+        "overview kernel (group_min_mean_max)": "group_min_mean_max",
+        "clusters (cluster_labels + tracker)": "cluster_ids",
+        "glyphs and cones (_draw_objects)": "_draw_objects",
+        "floor layer (outlines, lines, path)": "_draw_floor_layer",
+        "legend": "_draw_legend",
+        "layers put over the frame (Overlay.put_over)": "put_over",
+        "JPEG (imencode)": "imencode",
+    }
+    for name, func in groups.items():
+        total = sum(v[3] for (_f, _l, fn), v in stats.items()
+                    if fn == func or (fn.startswith("<") and func in fn))
+        print(f"  {name:40s} {total / repeats * 1e3:6.1f} ms per new state")
+
+
 def _line(r: dict) -> str:
     text = (f"{r['world']:>5} {'pipeline' if r['full'] else 'alone   '} n={FULL_N[r['world']]}: "
             f"estimator {r['estimator_states_s']:.0f} states/s (mean "
@@ -352,7 +477,9 @@ def _line(r: dict) -> str:
                  f"{r['camera_hz'] or 0:.0f} Hz, registered {r['registered']}); monitor "
                  f"checks {r['monitor_checked_s']:.1f} states/s, sampled_out "
                  f"{r['monitor_sampled_out']:.0f} in the window, behind ≤ "
-                 f"{r['monitor_behind_max']:.0f}")
+                 f"{r['monitor_behind_max']:.0f}; MJPEG parts in the window "
+                 f"{r['mjpeg_parts_in_window']}"
+                 + (f", the stream ended: {r['mjpeg_error']}" if r["mjpeg_error"] else ""))
     cpu = ", ".join(f"{k} {v:.1f}" for k, v in r["cpu_s"].items())
     return (text + f"\n      window {r['window_s']:.1f} s after {r['build_s']:.0f} s to build "
             f"the map, load {r['load']:.2f}; CPU s in the window: {cpu}")
@@ -364,9 +491,17 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=1)
     parser.add_argument("--profile", action="store_true",
                         help="first profile the estimator service in-process at n = 1000")
+    parser.add_argument("--profile-viewer", action="store_true",
+                        help="first profile the viewer's state → picture path at n = 1000")
+    parser.add_argument("--profile-only", action="store_true",
+                        help="only the profiles, no pipeline runs")
     args = parser.parse_args()
     if args.profile:
         profile_estimator()
+    if args.profile_viewer:
+        profile_viewer()
+    if args.profile_only:
+        return
     router = spawn("router", "--listen", (endpoint := free_tcp_endpoint()), "-q")
     router.wait_for_line("router ready")
     results: dict[str, list[dict]] = {"large-full": [], "large-alone": [], "paper-full": []}
