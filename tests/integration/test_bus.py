@@ -29,13 +29,22 @@ def test_one_channel_for_two_keys_gets_everything_each_key_in_order(make_client)
     assert a.wait_for_subscriber("t/robot/r/observations")
     odo = a.publisher("t/robot/r/odometry", cache=1000)
     obs = a.publisher("t/robot/r/observations", cache=1000)
+    # a matched route may still drop the first samples for a few hundred ms under load
+    # (zenoh 1.10; in CI the first 17 of a burst were gone, and recovery cannot know of
+    # samples before the first it saw): put a first one on each key until it arrives
+    for pub, key in ((odo, "odometry"), (obs, "observations")):
+        before = ch.received  # type: ignore[attr-defined]
+        put_until_seen(lambda p=pub: p.put(b"-1"),
+                       lambda b=before: ch.received > b,  # type: ignore[attr-defined]
+                       what=f"the first sample on {key}", timeout_s=20.0)
     for i in range(500):
         (odo if i % 3 else obs).put(str(i).encode())
     got: dict[str, list[int]] = {"odometry": [], "observations": []}
     while sum(map(len, got.values())) < 500:
         s = ch.recv(timeout=10.0)
         assert s is not None, f"only {got} arrived"
-        got[s.key.rsplit("/", 1)[1]].append(int(s.payload))
+        if s.payload != b"-1":  # (a first one put again that arrived late)
+            got[s.key.rsplit("/", 1)[1]].append(int(s.payload))
     assert got["odometry"] == [i for i in range(500) if i % 3]
     assert got["observations"] == [i for i in range(500) if not i % 3]
 
