@@ -29,7 +29,7 @@ before issue 13 (msgpack.packb of a freshly materialised state) timed on the sam
 n = 1000 (:func:`profile_viewer`); ``--profile-only`` skips the pipeline runs.
 
 Run: ``.venv/bin/python benchmarks/bench_large.py [--window 20] [--repeats 1] [--profile]
-[--profile-viewer] [--profile-only]``
+[--profile-viewer] [--profile-only] [--only large-alone,large-full,paper-full]``
 (about 5 min per repeat on the shared 2-core machine).
 """
 
@@ -298,6 +298,7 @@ def profile_estimator(events: int = 300) -> None:
              for m in stream if isinstance(m, (Odometry, Observations))][:events + 20]
     for item in items[:20]:  # warm: the shared-memory pool is made on first use
         service.apply(item)
+    reused_before = est._buffers.reused
     profiler = cProfile.Profile()
     t0 = time.perf_counter()
     profiler.enable()
@@ -312,6 +313,7 @@ def profile_estimator(events: int = 300) -> None:
         "EKF predict": ("predict",),
         "materialise P after an update (symmetric)": ("symmetric",),
         "materialise P after a predict (copy + robot rows)": ("symmetric_after_predict",),
+        "patch P in place after a predict (robot rows)": ("robot_rows_into",),
         "finite checks on construction (sums)": ("reduce",),
         "shared-memory copy (ShmPool.wrap)": ("wrap",),
         "encode (wire_parts, msgpack of the small fields)": ("wire_parts", "_wire_dict",
@@ -327,7 +329,8 @@ def profile_estimator(events: int = 300) -> None:
     print(f"PROFILE estimator service at n = {est.n}: {n} events in {wall:.2f} s = "
           f"{n / wall:.0f} states/s (under cProfile), load {os.getloadavg()[0]:.2f}; "
           f"{received[0]} received by a same-host subscriber, shm {bus.shm.shared} / plain "
-          f"{bus.shm.plain}")
+          f"{bus.shm.plain}; predict states patched in place {est.predicts_in_place}, "
+          f"covariance buffers reused {est._buffers.reused - reused_before} of {n}")
     for name, t in sorted(spent.items(), key=lambda kv: -kv[1]):
         print(f"  {name:52s} {t / n * 1e3:6.2f} ms per state ({t / wall:5.1%})")
     # the same states through the old publish path (before issue 13), timed without profiler
@@ -344,11 +347,21 @@ def profile_estimator(events: int = 300) -> None:
         d["covariance"] = {"dtype": "<f8", "shape": [cov.size], "data": cov.tobytes()}
         bus.shm.wrap(msgpack.packb(d, use_bin_type=True))
         old.append(time.perf_counter() - t)
+        est._map_dirty = True  # as after an update: the whole matrix, no predict shortcut
         t = time.perf_counter()
         state = est.to_state(seq=1, stamp=0.0, step="update")
         bus.shm.wrap(state.wire_parts())
         new.append(time.perf_counter() - t)
         del state
+    alone = []
+    N = 3 + 2 * est.n
+    out = est._buffers.array((N, N), "<f8")
+    for _ in range(7):
+        t = time.perf_counter()
+        ekf.symmetric(est._L, N, out=out)
+        alone.append(time.perf_counter() - t)
+    print(f"  ekf.symmetric alone at N = {N}, into one buffer: "
+          f"{statistics.median(alone) * 1e3:.1f} ms (median of 7)")
     o, w = statistics.median(old) * 1e3, statistics.median(new) * 1e3
     print(f"  publish path of an update state (materialise + encode + shm): before {o:.1f} ms, "
           f"now {w:.1f} ms (ratio {o / w:.1f}×; median of 7)")
@@ -495,7 +508,13 @@ def main() -> None:
                         help="first profile the viewer's state → picture path at n = 1000")
     parser.add_argument("--profile-only", action="store_true",
                         help="only the profiles, no pipeline runs")
+    parser.add_argument("--only", default="large-alone,large-full,paper-full",
+                        help="the pipeline runs to make, comma-separated (default: all three)")
     args = parser.parse_args()
+    wanted = set(args.only.split(","))
+    unknown = wanted - {"large-alone", "large-full", "paper-full"}
+    if unknown:
+        parser.error(f"--only: unknown run(s) {', '.join(sorted(unknown))}")
     if args.profile:
         profile_estimator()
     if args.profile_viewer:
@@ -510,6 +529,8 @@ def main() -> None:
             for name, world, full in (("large-alone", "large", False),
                                       ("large-full", "large", True),
                                       ("paper-full", "paper", True)):
+                if name not in wanted:
+                    continue
                 r = run(endpoint, world, full=full, window_s=args.window, seed=k)
                 results[name].append(r)
                 print(_line(r), flush=True)
@@ -518,6 +539,14 @@ def main() -> None:
 
     def med(name: str, key: str) -> float:
         return statistics.median(float(r[key] or 0.0) for r in results[name])
+
+    if wanted != {"large-alone", "large-full", "paper-full"}:
+        for name in sorted(wanted):  # a subset: each run's median, no ratios between them
+            viewer = (f", viewer {med(name, 'viewer_states_s'):.0f} states/s"
+                      if name.endswith("-full") else "")
+            print(f"{name}: estimator {med(name, 'estimator_states_s'):.0f} states/s"
+                  f"{viewer} (median of {len(results[name])})")
+        return
 
     est, alone = med("large-full", "estimator_states_s"), med("large-alone",
                                                               "estimator_states_s")

@@ -80,6 +80,29 @@ class RecycledBuffers:
         return out
 
 
+    def reclaim(self, array: np.ndarray, *, holders: int) -> np.ndarray | None:
+        """A writable array over ``array``'s own buffer — the same memory, to change in
+        place — if nothing but the caller refers to that memory: ``array`` is one of this
+        pool's, referred to only by the caller's ``holders`` references (its variables and
+        attributes; the argument is counted here), with no view, memoryview or other array
+        on its buffer. Else None (something may still read it: copy instead). The caller
+        must drop ``array`` and keep only what is returned."""
+        buf = buffer_of(array)
+        if buf is None or not any(b is buf for b in self._buffers):
+            return None
+        root = array.base  # the 1-D array np.frombuffer made (every view's base)
+        view = root.base if isinstance(root, np.ndarray) else None  # its memoryview
+        # the counts: getrefcount's argument, this frame's name, then who else holds it
+        if (not isinstance(view, memoryview)
+                or sys.getrefcount(array) > holders + 2  # the argument, getrefcount's
+                or sys.getrefcount(root) > 3  # array.base, `root`, getrefcount's
+                or sys.getrefcount(view) > 3  # root.base, `view`, getrefcount's
+                or sys.getrefcount(buf) > 4):  # the list, the memoryview, `buf`, getrefcount's
+            return None
+        self.reused += 1
+        return np.frombuffer(buf, dtype=array.dtype).reshape(array.shape)
+
+
 def buffer_of(array: np.ndarray) -> bytes | bytearray | None:
     """The ``bytes``/``bytearray`` holding exactly ``array``'s data in order, or None."""
     root: Any = array

@@ -47,8 +47,10 @@ log = logging.getLogger(__name__)
 Callback = Callable[[str, bytes], None]
 #: a lazy subscriber's callback: (key, a function returning the payload's bytes when called)
 LazyCallback = Callable[[str, Callable[[], bytes]], None]
-#: a queryable's handler: (key, query payload or None, selector parameters) → reply or None
-Answer = Callable[[str, "bytes | None", str], "bytes | None"]
+#: a queryable's handler: (key, query payload or None, selector parameters) → reply or None;
+#: the reply is bytes or, on a Zenoh bus, what one of its publishers' ``put`` returned (a
+#: shared-memory ZBytes, answered without a copy)
+Answer = Callable[[str, "bytes | None", str], Any]
 
 DEFAULT_QUEUE_BYTES = 1 << 30  #: 1 GiB of payloads waiting in one channel, then drop oldest
 _LOST_LOG_EVERY = 1000
@@ -107,7 +109,11 @@ def payload_length(payload: Payload) -> int:
 
 
 class Publisher(Protocol):
-    def put(self, payload: Payload) -> None: ...
+    def put(self, payload: Payload) -> Any:
+        """Publish ``payload``. Returns what went out when it can be answered or put again
+        without a copy and holds none of ``payload``'s memory (a shared-memory buffer, or
+        the payload joined into bytes of its own), else None (it may be ``payload``)."""
+        ...
 
 
 class BurstPuts:
@@ -141,16 +147,18 @@ class BurstPuts:
             self.flush()
             self._held = None
 
-    def put(self, payload: Payload, tag: Any) -> None:
+    def put(self, payload: Payload, tag: Any) -> Any:
+        """Put or hold ``payload``; for one sent at once, what the publisher's ``put``
+        returned (:meth:`Publisher.put`), else None."""
         held = self._held
         if held is not None and (self._below is None or payload_length(payload) < self._below):
             held.append((payload, tag))
             if len(held) >= self._limit:
                 self.flush()
-            return
+            return None
         self.flush()
         self._sent(tag)
-        self._publisher.put(payload)
+        return self._publisher.put(payload)
 
     def flush(self) -> None:
         """Put what waits, back to back, in order."""
@@ -447,13 +455,21 @@ class ShmPool:
         return zenoh.ZBytes(buf)
 
 
+def _put_wrapped(pub: Any, payload: Payload, pool: ShmPool | None) -> Any:
+    """Put ``payload`` on the Zenoh publisher ``pub`` (a large one through ``pool``'s
+    shared memory); what went out if it is not ``payload`` itself (:meth:`Publisher.put`)."""
+    out = joined(payload) if pool is None else pool.wrap(payload)
+    pub.put(out)
+    return None if out is payload else out
+
+
 class _ZenohPublisher:
     def __init__(self, publisher: Any, pool: ShmPool | None = None) -> None:
         self._pub = publisher
         self._pool = pool
 
-    def put(self, payload: Payload) -> None:
-        self._pub.put(joined(payload) if self._pool is None else self._pool.wrap(payload))
+    def put(self, payload: Payload) -> Any:
+        return _put_wrapped(self._pub, payload, self._pool)
 
     def wait_matched(self, timeout: float = 10.0) -> bool:
         """Wait until this publisher itself knows a matching subscriber (its own matching
@@ -499,7 +515,7 @@ class _CachingPublisher:
                     old.undeclare()
                 except Exception:
                     pass
-        self._pub.put(joined(payload) if self._pool is None else self._pool.wrap(payload))
+        return _put_wrapped(self._pub, payload, self._pool)
 
     def undeclare(self) -> None:
         self._pub.undeclare()

@@ -204,6 +204,13 @@ def symmetric_after_predict(L: np.ndarray, N: int, previous: np.ndarray, *,
     (= symmetric(L, N) before a :func:`predict`, which leaves P_mm untouched): a copy and
     3 rows and columns instead of a transpose of the whole matrix."""
     out[...] = previous
+    return robot_rows_into(L, N, out)
+
+
+def robot_rows_into(L: np.ndarray, N: int, out: np.ndarray) -> np.ndarray:
+    """Write the robot's rows and columns of the symmetric P (from ``L``) into the full
+    N×N ``out``, leaving the rest as it is: after a :func:`predict`, ``symmetric(L, N)``
+    of the state before it becomes ``symmetric(L, N)`` now, in place (O(N))."""
     out[0:N, 0:3] = L[0:N, 0:3]
     out[0:3, 0:N] = L[0:N, 0:3].T
     pvv = out[0:3, 0:3]

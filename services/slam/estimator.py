@@ -123,6 +123,8 @@ class Estimator:
         #: the covariance of the last state made (to_state), and whether anything but the
         #: robot rows/columns may have changed since (then it is materialised again whole)
         self._published: np.ndarray | None = None
+        #: predict states whose matrix was the last state's, patched in place (to_state)
+        self.predicts_in_place = 0
         self._map_dirty = True
         self._buffers = RecycledBuffers(keep=4)
 
@@ -327,13 +329,24 @@ class Estimator:
         N = 3 + 2 * n
         # backed by a bytearray: shared memory takes it with one copy (common/bus.py);
         # recycled once no message or view of an earlier state holds it any more
-        cov = self._buffers.array((N, N), "<f8")
-        previous = self._published
+        previous, self._published = self._published, None
         if not self._map_dirty and previous is not None and previous.shape == (N, N):
-            # only predicts since the last state: P_mm is as it was (SPEC §4)
-            ekf.symmetric_after_predict(self._L, N, previous, out=cov)
+            # only predicts since the last state: P_mm is as it was (SPEC §4). If nothing
+            # holds the last state's matrix any more (its message went out: a large state
+            # is sent from shared memory and a get answers with that), its robot rows and
+            # columns are patched in place, O(N); else it is copied with them patched
+            reclaimed = self._buffers.reclaim(previous, holders=1)
+            if reclaimed is not None:
+                previous = None
+                cov = ekf.robot_rows_into(self._L, N, reclaimed)
+                self.predicts_in_place += 1
+            else:
+                cov = self._buffers.array((N, N), "<f8")
+                ekf.symmetric_after_predict(self._L, N, previous, out=cov)
         else:
+            cov = self._buffers.array((N, N), "<f8")
             ekf.symmetric(self._L, N, out=cov)
+        del previous
         cov.flags.writeable = False  # the message keeps it without another copy
         self._published, self._map_dirty = cov, False
         extra: dict[str, Any] = {}

@@ -27,8 +27,9 @@ import dataclasses
 import logging
 import threading
 import time
-from collections.abc import Iterator
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import msgpack
 import numpy as np
@@ -134,7 +135,8 @@ class EstimatorService:
                                            input_stamp=0.0)
         #: the latest state's encoding in parts (a large map's covariance not copied: it
         #: is joined only when asked for, by a get or a checkpoint)
-        self._latest: Payload = init.wire_parts()
+        #: (a large state's, once put: what the publisher sent, answered as it is)
+        self._latest: Any = init.wire_parts()
         self._header = self._header_of(init)
         bus.answer(keys.state(self.robot), self._on_query)
         self._publisher.put(self._latest)
@@ -186,7 +188,9 @@ class EstimatorService:
                 if self._latest is latest:
                     self._latest = whole
             return whole
-        return bytes(latest)
+        if isinstance(latest, (bytes, bytearray, memoryview)):
+            return bytes(latest)
+        return latest.to_bytes()  # what the publisher sent (a shared-memory buffer)
 
     def _header_of(self, state: SlamState) -> bytes:
         """``get state?header``'s answer: what a driver paces on, not the map (and the
@@ -199,12 +203,16 @@ class EstimatorService:
                               "dropped": self.drops.total, "lost": self.order.stats.lost},
                              use_bin_type=True)
 
-    def _on_query(self, key: str, payload: bytes | None, parameters: str) -> bytes:
+    def _on_query(self, key: str, payload: bytes | None, parameters: str) -> Any:
         """The latest state, or with ``?header`` only its header (SPEC §7: a ``get`` on
         the state key answers the latest state; the header is ours, docs/protocol.md)."""
         if "header" in parameters.split(";"):
             with self._lock:
                 return self._header
+        with self._lock:
+            latest = self._latest
+        if not isinstance(latest, (list, bytes, bytearray, memoryview)):
+            return latest  # a shared-memory buffer: Zenoh answers with it, no copy here
         return self.latest_bytes()
 
     def handle(self, key: str, payload: bytes) -> SlamState | None:
@@ -274,7 +282,14 @@ class EstimatorService:
                                         epoch=self.epoch, input_stamp=stamp,
                                         origin_stamp=self._origin_stamp)
         payload = state.wire_parts()  # the covariance copied once, by the publisher
-        self._puts.put(payload, (payload, self._header_of(state)))
+        sent = self._puts.put(payload, (payload, self._header_of(state)))
+        if sent is not None:
+            # put at once (a large state): a get answers with what went out — a shared-
+            # memory buffer, or bytes — so nothing refers to the covariance's buffer any
+            # more and the next predict can patch it in place (Estimator.to_state)
+            with self._lock:
+                if self._latest is payload:
+                    self._latest = sent
         self.stats.states += 1
         return state
 
@@ -294,22 +309,36 @@ class EstimatorService:
         ordering (then the gap timers); applies what is ready, puts the burst's states
         back to back (module docstring) and returns them. A checkpoint due in the middle
         is written then, after the states it covers were put."""
-        return list(self._applied(samples))
+        states: list[SlamState] = []
+        self._apply_burst(samples, states.append)
+        return states
 
-    def _applied(self, samples: list[Sample]) -> Iterator[SlamState]:
-        """The states :meth:`ingest_burst` publishes, one at a time. The worker counts
-        them and keeps none: each holds its covariance, which the estimator recycles only
-        once nothing holds it (at n = 1000 a burst of 100 states held would be 3 GB, each
-        in a new buffer faulted in)."""
+    def _apply_burst(self, samples: list[Sample], each: Callable[[SlamState], None]) -> int:
+        """Apply what ``samples`` make ready, handing each state published to ``each``;
+        returns how many. Nothing here holds a state once ``each`` returned: each holds its
+        covariance, which the estimator recycles — or, after a predict, patches in place —
+        only once nothing holds it (at n = 1000 a burst of 100 states held would be 3 GB,
+        each in a new buffer faulted in)."""
+        published = 0
+
+        def apply_all(items: list[Input]) -> None:
+            nonlocal published
+            for item in items:
+                state = self.apply(item)
+                if state is not None:
+                    published += 1
+                    each(state)
+                    del state  # before the next apply: nothing of ours holds it
+
         with self._puts.burst():
             for sample in samples:
                 item = self.decode(sample)
                 if item is not None:
-                    yield from (s for s in map(self.apply, self.order.offer(item))
-                                if s is not None)
+                    apply_all(self.order.offer(item))
                     self._maybe_checkpoint()
-            yield from (s for s in map(self.apply, self.order.expire()) if s is not None)
+            apply_all(self.order.expire())
         self._maybe_checkpoint()
+        return published
 
     def step(self, timeout: float = 0.2) -> int:
         """Take what arrived (waiting up to ``timeout`` s for the first) and apply what is
@@ -319,7 +348,7 @@ class EstimatorService:
             timeout = max(0.0, min(timeout, deadline - time.monotonic()))
         first = self._inputs.recv(timeout=timeout)
         burst = [] if first is None else [first, *self._inputs.take_all()]
-        return sum(1 for _state in self._applied(burst))
+        return self._apply_burst(burst, lambda _state: None)
 
     def status_line(self) -> str:
         o = self.order.stats

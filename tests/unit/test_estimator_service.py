@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import itertools
+from collections.abc import Callable
 
 import numpy as np
 import pytest
@@ -45,7 +46,9 @@ def _sample(key: str, payload: bytes, t: int) -> Sample:
     return Sample(key, payload, source="driver", time=t)
 
 
-def _direct(inputs: list[tuple[str, bytes]], settings: EstimatorSettings) -> Estimator:
+def _direct(inputs: list[tuple[str, bytes]], settings: EstimatorSettings,
+            after_each: Callable[[Estimator], None] | None = None) -> Estimator:
+    """An estimator fed ``inputs`` straight, in order (``after_each`` sees it after each)."""
     est = Estimator(settings)
     for key, payload in inputs:
         if key.endswith("odometry"):
@@ -54,6 +57,8 @@ def _direct(inputs: list[tuple[str, bytes]], settings: EstimatorSettings) -> Est
         else:
             b = Observations.from_bytes(payload)
             est.observe(ids=b.ids, ranges=b.ranges, bearings=b.bearings, stamp=b.stamp)
+        if after_each is not None:
+            after_each(est)
     return est
 
 
@@ -187,3 +192,62 @@ def test_the_worker_holds_no_state_of_a_burst_so_covariance_buffers_are_recycled
     # published state's is still held as the base of the next); every other one reused
     fresh = 2 * len(set(sizes))
     assert service.estimator._buffers.reused >= len(inputs) - fresh, (fresh, sizes)
+
+
+def _dense(est: Estimator) -> np.ndarray:
+    """The textbook symmetric P from the estimator's lower-triangle storage (an oracle
+    independent of ``ekf.symmetric``: numpy's own triangles)."""
+    N = 3 + 2 * est.n
+    lower = np.tril(est._L[:N, :N])
+    return lower + np.tril(lower, -1).T
+
+
+def _dense_after_each(inputs: list[tuple[str, bytes]],
+                      settings: EstimatorSettings) -> list[np.ndarray]:
+    """The dense P after each input, from an estimator of its own fed them directly."""
+    out: list[np.ndarray] = []
+    _direct(inputs, settings, lambda est: out.append(_dense(est)))
+    return out
+
+
+@pytest.mark.parametrize("burst", [False, True])
+def test_predict_states_patched_in_place_equal_the_dense_matrix_every_one(burst) -> None:
+    """A predict's state reuses the last state's matrix in place (its robot rows and
+    columns patched) once nothing holds that matrix: every state a subscriber gets is
+    still exactly the dense P of its moment — none was changed after it went out — one
+    input a turn, or all of them in one burst (the worker at full speed)."""
+    settings = EstimatorSettings(robot=ROBOT)
+    bus, service, states = _service(settings)
+    inputs = _inputs(300)
+    publishers = {key: bus.publisher(key) for key, _ in inputs}
+    if burst:
+        for key, payload in inputs:
+            publishers[key].put(payload)
+        assert service.step(timeout=0) == len(inputs)
+    else:
+        for key, payload in inputs:
+            publishers[key].put(payload)
+            assert service.step(timeout=0) == 1
+    assert service.estimator.predicts_in_place > 100  # about half the states are predicts
+    assert [s.seq for s in states] == list(range(0, len(inputs) + 1))
+    for state, P in zip(states[1:], _dense_after_each(inputs, settings), strict=True):
+        np.testing.assert_array_equal(state.covariance, P, err_msg=f"seq {state.seq}")
+
+
+def test_a_state_still_held_is_never_patched_in_place() -> None:
+    """States returned to a caller who keeps them (here: all of them) keep their own
+    matrices: the next predict copies instead of patching."""
+    settings = EstimatorSettings(robot=ROBOT)
+    bus, service, _ = _service(settings)
+    inputs = _inputs(120)
+    publishers = {key: bus.publisher(key) for key, _ in inputs}
+    kept: list[tuple[SlamState, np.ndarray]] = []
+    for key, payload in inputs:
+        publishers[key].put(payload)
+        for state in service.ingest(service._inputs.recv(timeout=1.0)):
+            kept.append((state, state.covariance.copy()))
+    # only the first predict patched in place: the init state's matrix, which nobody kept
+    assert service.estimator.predicts_in_place == 1
+    assert len(kept) == len(inputs)
+    for state, copy in kept:
+        np.testing.assert_array_equal(state.covariance, copy, err_msg=f"seq {state.seq}")
