@@ -699,30 +699,33 @@ class SlamState(Message):
 
     @classmethod
     def _from_wire(cls, kwargs: dict[str, Any], **options: Any) -> Self:
-        cov = kwargs["covariance"]
-        if cov.ndim == 1:
-            N = math.isqrt(cov.shape[0])
-            if N * N != cov.shape[0]:
-                raise MessageError(cls.TYPE, "covariance", "(3+2n)² entries",
-                                   f"{cov.shape[0]} (not a square)")
-            kwargs["covariance"] = cov.reshape(N, N)
+        kwargs["covariance"] = cls._square(kwargs["covariance"])
         state = cls(**kwargs)
-        if options.get("check_symmetry", True):
-            check_symmetric(cls.TYPE, "covariance", state.covariance,
-                            rtol=options.get("symmetry_rtol", 1e-6))
+        cls._check_symmetry(state, options)
         return state
 
     @classmethod
     def _fast_finish(cls, message: Any, options: Mapping[str, Any]) -> None:
-        cov = message.covariance
-        if cov.ndim == 1:  # as _from_wire
-            N = math.isqrt(cov.shape[0])
-            if N * N != cov.shape[0]:
-                raise MessageError(cls.TYPE, "covariance", "(3+2n)² entries", "not a square")
-            object.__setattr__(message, "covariance", cov.reshape(N, N))
+        object.__setattr__(message, "covariance", cls._square(message.covariance))
         message._fill_defaults()  # as __post_init__
+        cls._check_symmetry(message, options)
+
+    @classmethod
+    def _square(cls, cov: np.ndarray) -> np.ndarray:
+        """The wire's flat covariance as its N×N matrix (a 2-D one as it is)."""
+        if cov.ndim != 1:
+            return cov
+        N = math.isqrt(cov.shape[0])
+        if N * N != cov.shape[0]:
+            raise MessageError(cls.TYPE, "covariance", "(3+2n)² entries",
+                               f"{cov.shape[0]} (not a square)")
+        return cov.reshape(N, N)
+
+    @classmethod
+    def _check_symmetry(cls, state: Any, options: Mapping[str, Any]) -> None:
+        """A decoded state's symmetry test, unless the decoder was asked not to."""
         if options.get("check_symmetry", True):
-            check_symmetric(cls.TYPE, "covariance", message.covariance,
+            check_symmetric(cls.TYPE, "covariance", state.covariance,
                             rtol=options.get("symmetry_rtol", 1e-6))
 
 
