@@ -416,21 +416,18 @@ class Monitor:
         ids = state.landmark_ids
         asym, corr = checks.structure(P, rtol_symmetry=s.rtol_symmetry,
                                       rtol_correlation=s.rtol_correlation, atol=s.atol_growth)
-        if asym.count:
-            k = int(np.argmax(asym.value / asym.bound))
-            a, b = asym.index[k]
+        # the worst entry of each: asymmetry relative to its bound, |ρ| by its excess
+        for kind, found, worst, what in (
+                ("symmetry", asym, lambda f: f.value / f.bound, "P_ab ≠ P_ba"),
+                ("correlation", corr, lambda f: f.value, "|ρ| > 1")):
+            if not found.count:
+                continue
+            k = int(np.argmax(worst(found)))
+            a, b = found.index[k]
             out.append(Violation(
-                kind="symmetry", ids=_owners(ids, a, b), step=state.seq,
-                value=float(asym.value[k]), bound=float(asym.bound[k]), phase=state.step,
-                detail=f"{asym.count} entries with P_ab ≠ P_ba, worst {_name(ids, a)} / "
-                       f"{_name(ids, b)}"))
-        if corr.count:
-            k = int(np.argmax(corr.value))
-            a, b = corr.index[k]
-            out.append(Violation(
-                kind="correlation", ids=_owners(ids, a, b), step=state.seq,
-                value=float(corr.value[k]), bound=float(corr.bound[k]), phase=state.step,
-                detail=f"{corr.count} entries with |ρ| > 1, worst {_name(ids, a)} / "
+                kind=kind, ids=_owners(ids, a, b), step=state.seq,
+                value=float(found.value[k]), bound=float(found.bound[k]), phase=state.step,
+                detail=f"{found.count} entries with {what}, worst {_name(ids, a)} / "
                        f"{_name(ids, b)}"))
         return out
 
@@ -473,7 +470,6 @@ class Monitor:
             stats["landmarks_removed"] = float(removed)
         ids = prev.landmark_ids[pos_prev]
         pairs = _NO_PAIRS
-        Pmm_prev = Pmm_cur = None
         if screened is None:
             Pmm_prev = checks.map_block(prev.covariance, pos_prev)
             Pmm_cur = checks.map_block(state.covariance, pos_cur)
@@ -481,7 +477,7 @@ class Monitor:
             unchanged = np.array_equal(Pmm_prev, Pmm_cur)
         feats = pair = None
         if not unchanged and not no_growth:
-            if Pmm_prev is None or Pmm_cur is None:
+            if screened is not None:  # the screen saw growth: now the blocks are needed
                 Pmm_prev = checks.map_block(prev.covariance, pos_prev)
                 Pmm_cur = checks.map_block(state.covariance, pos_cur)
             delta = Pmm_prev - Pmm_cur
