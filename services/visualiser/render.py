@@ -143,8 +143,7 @@ class Renderer:
         self._scenes: _PerState[Scene] = _PerState(_MAX_SCENES, touch=True)
         #: the stable cluster ids of the two newest states per clustering (one tracker
         #: update per state, however many pictures are drawn of it)
-        self._clustered: dict[tuple[float, int], OrderedDict[
-            int, tuple[SlamState, np.ndarray]]] = {}
+        self._clustered: _PerState[np.ndarray] = _PerState(_MAX_TRACKERS)
         self.scenes_built = 0  #: scenes computed (the rest were reused)
         #: the two newest states drawn as layers, per settings, camera, health and notes
         self._layers: _PerState[Layers] = _PerState(_MAX_LAYERS)
@@ -207,10 +206,9 @@ class Renderer:
         same state asked again: the same ids, clustered once)."""
         key = (settings.cluster_threshold_m, settings.cluster_count)
         with self._lock:
-            kept = self._clustered.get(key)
-            held = None if kept is None else kept.get(id(state))
-            if held is not None and held[0] is state:
-                return held[1]
+            kept = self._clustered.get(state, key)
+        if kept is not None:
+            return kept
         labels = cluster_labels(state.landmarks, threshold_m=settings.cluster_threshold_m,
                                 count=settings.cluster_count)
         with self._lock:
@@ -222,10 +220,7 @@ class Renderer:
             self._trackers.move_to_end(key)
             stable = tracker.update(state.landmark_ids, labels)
             self._cluster_of[key] = (np.asarray(state.landmark_ids), stable)
-            kept = self._clustered.setdefault(key, OrderedDict())
-            kept[id(state)] = (state, stable)  # (the state held: its id is not reused)
-            while len(kept) > _STATES_KEPT:
-                kept.popitem(last=False)
+            self._clustered.put(state, key, stable)
             return stable
 
     def known_cluster_ids(self, settings: ViewSettings
@@ -276,7 +271,7 @@ class Renderer:
                 health: Health | None = None) -> None:
         """Compute the scene a picture of ``state`` under ``settings`` will draw (off the
         render thread: the viewer's ``viewer-prepare``)."""
-        violating = _health_sets(health, state)[0] if settings.health else frozenset()
+        violating = _health_sets(health if settings.health else None, state)[0]
         self.scene(state, settings, violating)
 
     # -- drawing --------------------------------------------------------------------
@@ -348,8 +343,7 @@ class Renderer:
         size) as two layers (:meth:`render`): drawn once per state, settings, camera,
         health drawn and notes, then reused (the ``viewer-prepare`` thread draws them
         before the render thread needs them)."""
-        violating, suspects = _health_sets(health, state) if settings.health else (
-            frozenset(), np.zeros(0, np.int64))
+        violating, suspects = _health_sets(health if settings.health else None, state)
         shown_health = (summary_text(health) if settings.health and health is not None
                         else None)
         key = (settings, _camera_key(camera), violating, suspects.tobytes(), shown_health,
@@ -404,8 +398,7 @@ class Renderer:
              reference_estimate: np.ndarray | None = None) -> Drawn:
         """Draw the state onto ``img`` in place (everything but the legend): one robot of a
         picture that may show several, each with its own renderer and camera."""
-        violating, suspects = _health_sets(health, state) if settings.health else (
-            frozenset(), np.zeros(0, np.int64))
+        violating, suspects = _health_sets(health if settings.health else None, state)
         _, c, path = self._canvas(img, state, camera, settings, violating)
         lines, glyphs = _draw_under(c, path)
         if settings.robot and reference_pose is not None:
@@ -571,7 +564,8 @@ def _bgr_copy(image: np.ndarray, camera: CameraModel) -> tuple[np.ndarray, Camer
 
 def _health_sets(health: Health | None,
                  state: SlamState) -> tuple[frozenset[tuple[int, int]], np.ndarray]:
-    """Violating pairs (min id, max id) and the feature ids to ring (suspects + feature kind)."""
+    """Violating pairs (min id, max id) and the feature ids to ring (suspects + feature kind);
+    none without a Health (or with health drawing off: the caller passes None)."""
     if health is None:
         return frozenset(), np.zeros(0, np.int64)
     pairs = frozenset((min(v.ids), max(v.ids)) for v in health.violations
