@@ -79,7 +79,6 @@ class RecycledBuffers:
             del self._buffers[0]
         return out
 
-
     def reclaim(self, array: np.ndarray, *, holders: int) -> np.ndarray | None:
         """A writable array over ``array``'s own buffer — the same memory, to change in
         place — if nothing but the caller refers to that memory: ``array`` is one of this

@@ -337,7 +337,6 @@ class Estimator:
             # columns are patched in place, O(N); else it is copied with them patched
             reclaimed = self._buffers.reclaim(previous, holders=1)
             if reclaimed is not None:
-                previous = None
                 cov = ekf.robot_rows_into(self._L, N, reclaimed)
                 self.predicts_in_place += 1
             else:

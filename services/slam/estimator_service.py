@@ -188,8 +188,8 @@ class EstimatorService:
                 if self._latest is latest:
                     self._latest = whole
             return whole
-        if isinstance(latest, (bytes, bytearray, memoryview)):
-            return bytes(latest)
+        if isinstance(latest, bytes):
+            return latest
         return latest.to_bytes()  # what the publisher sent (a shared-memory buffer)
 
     def _header_of(self, state: SlamState) -> bytes:
@@ -211,9 +211,9 @@ class EstimatorService:
                 return self._header
         with self._lock:
             latest = self._latest
-        if not isinstance(latest, (list, bytes, bytearray, memoryview)):
-            return latest  # a shared-memory buffer: Zenoh answers with it, no copy here
-        return self.latest_bytes()
+        if isinstance(latest, list):  # parts: joined once, then kept
+            return self.latest_bytes()
+        return latest  # bytes, or a shared-memory buffer Zenoh answers with, no copy here
 
     def handle(self, key: str, payload: bytes) -> SlamState | None:
         """Decode and apply one input now (no ordering); the state published, or None."""

@@ -11,9 +11,9 @@ to the render thread — a state's callback keeps only a getter of its payload
 thread takes it, and the states it skips are never copied; everything else when the
 render thread calls :meth:`Intake.ingest`. A bad payload is logged (the first few of
 each kind, then one line in a hundred: :class:`~common.drops.DropCounter`), counted and
-dropped; so is a registration no camera model can be made of (or larger than ``max_frame_pixels``),
-and a frame whose JPEG header (read without decoding) claims another size than its message
-or more pixels than allowed (a decode bomb).
+dropped; so is a registration no camera model can be made of (or larger than
+``max_frame_pixels``), and a frame whose JPEG header (read without decoding) claims another
+size than its message or more pixels than allowed (a decode bomb).
 
 Several robots: each has its own state, health and tracked pose, and one registration
 per camera (``camera/C/registration/R``). Robots are named, or discovered: with

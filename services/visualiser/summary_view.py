@@ -120,7 +120,7 @@ def _pairs_scene(state: SummarisedState, s: StateSummary, settings: ViewSettings
     pair_ids = np.column_stack([ids[ii], ids[jj]]).astype(np.int64).reshape(-1, 2)
     flags = np.array([(int(min(a, b)), int(max(a, b))) in violating_pairs
                       for a, b in pair_ids.tolist()], dtype=bool)
-    groups = s.groups if s.groups is not None else None
+    groups = s.groups
     clusters = (np.column_stack([groups[ii], groups[jj]]).reshape(-1, 2)
                 if groups is not None else np.full((len(ii), 2), -1, np.int64))
     what = (f"feature {s.selected_feature}" if s.selected_feature is not None
