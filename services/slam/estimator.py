@@ -233,70 +233,77 @@ class Estimator:
         assigned: list[int] = []
         gated: list[tuple[int, float, float, float]] = []
         rejected = ambiguous = refused = 0
-        for lid, z_r, z_b in zip(id_list, range_list, bearing_list, strict=True):
-            var_r = self._range_variance(z_r, z_b)
-            if lid == -1:
-                decision = association.decide(association.mahalanobis_all(
-                    self._x, self._L, self._n, z_range=z_r, z_bearing=z_b,
-                    var_range=var_r, var_bearing=self._var_b), self._gates)
-                if decision.kind == association.AMBIGUOUS:
-                    log.debug("anonymous observation (%.3f m, %.3f rad) ambiguous: d² = %.2f",
-                              z_r, z_b, decision.d2)
-                    rejected += 1
-                    ambiguous += 1
-                    assigned.append(-1)
-                    continue
-                if decision.kind != association.MATCH and self.gates.map_full(self._n):
-                    self._refuse("map_size", f"the map holds {self._n} landmarks, the bound: "
-                                             "an anonymous observation was not mapped",
-                                 stamp, f"observation range={z_r!r} bearing={z_b!r}")
-                    rejected += 1
-                    assigned.append(-1)
-                    continue
-                lid = (self._ids[decision.index] if decision.kind == association.MATCH
-                       else self._fresh_anonymous_id())
-            j = self._index.get(lid)
-            if j is None:
-                try:
-                    self._initialise(lid, z_r, z_b, var_r)
-                except ekf.RefusedStepError as exc:
-                    self._refuse(exc.reason, str(exc), stamp,
-                                 f"observation id={lid} range={z_r!r} bearing={z_b!r}")
-                    rejected += 1
-                    refused += 1
-                    assigned.append(-1)
-                    continue
-                new.append(lid)
-            else:
-                try:
-                    out = ekf.update(self._x, self._L, self._n, j, z_range=z_r, z_bearing=z_b,
-                                     var_range=var_r, var_bearing=self._var_b,
-                                     ws=self._ws, gate=self._gate, guard=self._guard)
-                except ekf.GatedObservationError as exc:
-                    self.gated += 1
-                    gated.append((lid, z_r, z_b, exc.nis))
-                    rejected += 1
-                    assigned.append(-1)
-                    continue
-                except ekf.RefusedStepError as exc:
-                    self._refuse(exc.reason, str(exc), stamp,
-                                 f"observation id={lid} range={z_r!r} bearing={z_b!r}")
-                    rejected += 1
-                    refused += 1
-                    assigned.append(-1)
-                    continue
-                except ekf.SingularInnovationError as exc:
-                    self._log_refused(lid, exc)
-                    rejected += 1
-                    assigned.append(-1)
-                    continue
-                nu_r, nu_b, s00, s01, s11 = out
-                innovation_ids.append(lid)
-                innovations.append((nu_r, nu_b))
-                covariances.append((s00, s01, s01, s11))
-            assigned.append(lid)
-            if lid not in observed:
-                observed.append(lid)
+        try:
+            for lid, z_r, z_b in zip(id_list, range_list, bearing_list, strict=True):
+                var_r = self._range_variance(z_r, z_b)
+                if lid == -1:
+                    self._flush()  # association reads P
+                    decision = association.decide(association.mahalanobis_all(
+                        self._x, self._L, self._n, z_range=z_r, z_bearing=z_b,
+                        var_range=var_r, var_bearing=self._var_b), self._gates)
+                    if decision.kind == association.AMBIGUOUS:
+                        log.debug("anonymous observation (%.3f m, %.3f rad) ambiguous: "
+                                  "d² = %.2f", z_r, z_b, decision.d2)
+                        rejected += 1
+                        ambiguous += 1
+                        assigned.append(-1)
+                        continue
+                    if decision.kind != association.MATCH and self.gates.map_full(self._n):
+                        self._refuse("map_size", f"the map holds {self._n} landmarks, the "
+                                                 "bound: an anonymous observation was not "
+                                                 "mapped",
+                                     stamp, f"observation range={z_r!r} bearing={z_b!r}")
+                        rejected += 1
+                        assigned.append(-1)
+                        continue
+                    lid = (self._ids[decision.index] if decision.kind == association.MATCH
+                           else self._fresh_anonymous_id())
+                j = self._index.get(lid)
+                if j is None:
+                    try:
+                        self._flush()  # the new rows are made from P's robot rows
+                        self._initialise(lid, z_r, z_b, var_r)
+                    except ekf.RefusedStepError as exc:
+                        self._refuse(exc.reason, str(exc), stamp,
+                                     f"observation id={lid} range={z_r!r} bearing={z_b!r}")
+                        rejected += 1
+                        refused += 1
+                        assigned.append(-1)
+                        continue
+                    new.append(lid)
+                else:
+                    try:
+                        out = ekf.update(self._x, self._L, self._n, j, z_range=z_r,
+                                         z_bearing=z_b, var_range=var_r,
+                                         var_bearing=self._var_b, ws=self._ws,
+                                         gate=self._gate, guard=self._guard, defer=True)
+                    except ekf.GatedObservationError as exc:
+                        self.gated += 1
+                        gated.append((lid, z_r, z_b, exc.nis))
+                        rejected += 1
+                        assigned.append(-1)
+                        continue
+                    except ekf.RefusedStepError as exc:
+                        self._refuse(exc.reason, str(exc), stamp,
+                                     f"observation id={lid} range={z_r!r} bearing={z_b!r}")
+                        rejected += 1
+                        refused += 1
+                        assigned.append(-1)
+                        continue
+                    except ekf.SingularInnovationError as exc:
+                        self._log_refused(lid, exc)
+                        rejected += 1
+                        assigned.append(-1)
+                        continue
+                    nu_r, nu_b, s00, s01, s11 = out
+                    innovation_ids.append(lid)
+                    innovations.append((nu_r, nu_b))
+                    covariances.append((s00, s01, s01, s11))
+                assigned.append(lid)
+                if lid not in observed:
+                    observed.append(lid)
+        finally:
+            self._flush()  # the batch's updates are in x; their downdates held back (ekf.py)
         if refused and refused == len(id_list):
             raise ekf.RefusedStepError(
                 self.last_refusal.reason if self.last_refusal else "non-finite",
@@ -471,6 +478,11 @@ class Estimator:
         count = self.refused_updates
         if count == 1 or count % 100 == 0:  # a broken P refuses every update: do not flood
             log.warning("observation of landmark %d not applied (%d so far): %s", lid, count, exc)
+
+    def _flush(self) -> None:
+        """Apply the downdates held back by this batch's updates (ekf.update ``defer``):
+        after it, ``_L`` is P again for anything that reads it."""
+        ekf.flush(self._L, 3 + 2 * self._n, self._ws)
 
     def _fresh_anonymous_id(self) -> int:
         while self._next_anonymous in self._index:

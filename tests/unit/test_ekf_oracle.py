@@ -168,13 +168,20 @@ def test_initialise_equals_dense_augmentation(seed: int) -> None:
     assert_close(full(L, N), Pe, "P")
 
 
+@pytest.mark.parametrize("defer", [False, True])
+@pytest.mark.parametrize("guarded", [False, True])
 @pytest.mark.parametrize("seed", range(5))
-def test_batch_of_updates_equals_dense_one_by_one(seed: int) -> None:
-    """Sequential relinearisation: each update linearises at the previous posterior."""
+def test_batch_of_updates_equals_dense_one_by_one(seed: int, defer: bool,
+                                                  guarded: bool) -> None:
+    """Sequential relinearisation: each update linearises at the previous posterior.
+
+    With ``defer`` the downdates of P are held back and applied together (by ``flush``, and
+    by the kernel itself once ``MAX_DEFERRED`` are held: the batch is longer than that); each
+    update still sees the P its predecessors left, as its innovation covariance shows."""
     rng = np.random.default_rng(300 + seed)
     n = 12
     x, P = random_state(rng, n)
-    order = rng.integers(0, n, size=8)  # repeats allowed: the same landmark twice
+    order = rng.integers(0, n, size=ekf.MAX_DEFERRED + 3)  # repeats: a landmark twice
     zs = []
     for j in order:
         a = 3 + 2 * j
@@ -182,15 +189,49 @@ def test_batch_of_updates_equals_dense_one_by_one(seed: int) -> None:
                             wrap(math.atan2(x[a + 1] - x[1], x[a] - x[0]) - x[2]
                                  + rng.normal(0, 0.05))]))
     xe, Pe = x, P
+    expected_s = []
     for j, z in zip(order, zs, strict=True):
-        xe, Pe, _, _ = dense_update(xe, Pe, int(j), z)
+        xe, Pe, _, Se = dense_update(xe, Pe, int(j), z)
+        expected_s.append(Se)
     # the same with every update linearised at the prior would differ clearly
     xb, L, ws = put(x, P)
-    for j, z in zip(order, zs, strict=True):
-        ekf.update(xb, L, n, int(j), z_range=z[0], z_bearing=z[1], var_range=SIG_R**2,
-                   var_bearing=SIG_B**2, ws=ws)
+    guard = ekf.Guard(psd_rtol=1e-9) if guarded else None
+    for j, z, Se in zip(order, zs, expected_s, strict=True):
+        out = ekf.update(xb, L, n, int(j), z_range=z[0], z_bearing=z[1], var_range=SIG_R**2,
+                         var_bearing=SIG_B**2, ws=ws, guard=guard, defer=defer)
+        assert_close(np.array([[out[2], out[3]], [out[3], out[4]]]), Se, "S")
+    assert ws.deferred == (2 * ((len(order)) % ekf.MAX_DEFERRED) if defer else 0)
+    ekf.flush(L, x.size, ws)
+    assert ws.deferred == 0
     assert_close(xb[:x.size], xe, "x")
     assert_close(full(L, x.size), Pe, "P")
+
+
+def test_a_deferred_update_is_guarded_against_the_held_back_downdates() -> None:
+    """The guard checks each variance of the P that the held-back downdates leave: a step
+    that would drive one negative only together with them is refused, nothing written."""
+    rng = np.random.default_rng(5)
+    n = 3
+    x, P = random_state(rng, n)
+    a = 3
+    z = np.array([math.hypot(x[a] - x[0], x[a + 1] - x[1]),
+                  wrap(math.atan2(x[a + 1] - x[1], x[a] - x[0]) - x[2])])
+    xb, L, ws = put(x, P)
+    ekf.update(xb, L, n, 0, z_range=z[0], z_bearing=z[1], var_range=SIG_R**2,
+               var_bearing=SIG_B**2, ws=ws, defer=True)
+    # a held-back downdate that takes almost all that is left of P_77 (landmark 2's y
+    # variance), not touching the five columns this update reads
+    ws.pending[2:4, :] = 0.0
+    left = P[7, 7] - ws.pending[0, 7] ** 2 - ws.pending[1, 7] ** 2
+    ws.pending[2, 7] = math.sqrt(left) * (1 - 1e-9)
+    ws.deferred = 4
+    before_x, before_l, before_held = xb.copy(), L.copy(), ws.pending.copy()
+    with pytest.raises(ekf.RefusedStepError, match="variance 7"):
+        ekf.update(xb, L, n, 0, z_range=z[0], z_bearing=z[1], var_range=SIG_R**2,
+                   var_bearing=SIG_B**2, ws=ws, guard=ekf.Guard(psd_rtol=1e-9), defer=True)
+    assert np.array_equal(xb, before_x)
+    assert np.array_equal(L, before_l, equal_nan=True)
+    assert ws.deferred == 4 and np.array_equal(ws.pending, before_held)
 
 
 def test_mixed_sequence_equals_dense() -> None:
