@@ -344,7 +344,7 @@ class Workspace:
     h5: np.ndarray  # (2, 5) the non-zero columns of H
     #: the V ᵀ rows of updates applied to x but not yet to L (:func:`update` with
     #: ``defer``; :func:`flush` applies them as one rank-2m downdate)
-    pending: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    pending: np.ndarray  # (2 · MAX_DEFERRED, capacity)
     deferred: int = 0  #: rows of ``pending`` in use (2 per deferred update)
     syrk: SyrkArgs = field(default_factory=SyrkArgs)  # one per workspace (thread)
 
@@ -470,7 +470,7 @@ def update(x: np.ndarray, L: np.ndarray, n: int, j: int, *, z_range: float,
     m = ws.deferred
     if m:  # P = L − Σ V Vᵀ of the held-back updates: its five columns
         held = ws.pending[:m]
-        cols[:, :N] -= held[:, _five(a)].T @ held[:, :N]
+        cols[:, :N] -= held[:, [0, 1, 2, a, a + 1]].T @ held[:, :N]
     h5 = ws.h5
     # H = [Hv | Hm] on columns (x, y, θ, mx, my); Hm = −Hv[:, :2].
     h5[0, 0], h5[0, 1], h5[0, 2], h5[0, 3], h5[0, 4] = -ux, -uy, 0.0, ux, uy
@@ -532,12 +532,6 @@ def flush(L: np.ndarray, N: int, ws: Workspace) -> None:
     if ws.deferred:
         downdate_lower(L, ws.pending[:ws.deferred], N, args=ws.syrk)
         ws.deferred = 0
-
-
-@functools.cache
-def _five(a: int) -> list[int]:
-    """The columns of P one update reads: the robot's three and landmark ``a``'s two."""
-    return [0, 1, 2, a, a + 1]
 
 
 # a step absurd enough overflows in here: the checks see ∞ or NaN and refuse it, so numpy

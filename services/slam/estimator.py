@@ -259,42 +259,34 @@ class Estimator:
                     lid = (self._ids[decision.index] if decision.kind == association.MATCH
                            else self._fresh_anonymous_id())
                 j = self._index.get(lid)
-                if j is None:
-                    try:
-                        self._flush()  # the new rows are made from P's robot rows
+                try:
+                    if j is None:
                         self._initialise(lid, z_r, z_b, var_r)
-                    except ekf.RefusedStepError as exc:
-                        self._refuse(exc.reason, str(exc), stamp,
-                                     f"observation id={lid} range={z_r!r} bearing={z_b!r}")
-                        rejected += 1
-                        refused += 1
-                        assigned.append(-1)
-                        continue
-                    new.append(lid)
-                else:
-                    try:
+                        new.append(lid)
+                    else:
                         out = ekf.update(self._x, self._L, self._n, j, z_range=z_r,
                                          z_bearing=z_b, var_range=var_r,
                                          var_bearing=self._var_b, ws=self._ws,
                                          gate=self._gate, guard=self._guard, defer=True)
-                    except ekf.GatedObservationError as exc:
-                        self.gated += 1
-                        gated.append((lid, z_r, z_b, exc.nis))
-                        rejected += 1
-                        assigned.append(-1)
-                        continue
-                    except ekf.RefusedStepError as exc:
-                        self._refuse(exc.reason, str(exc), stamp,
-                                     f"observation id={lid} range={z_r!r} bearing={z_b!r}")
-                        rejected += 1
-                        refused += 1
-                        assigned.append(-1)
-                        continue
-                    except ekf.SingularInnovationError as exc:
-                        self._log_refused(lid, exc)
-                        rejected += 1
-                        assigned.append(-1)
-                        continue
+                except ekf.GatedObservationError as exc:
+                    self.gated += 1
+                    gated.append((lid, z_r, z_b, exc.nis))
+                    rejected += 1
+                    assigned.append(-1)
+                    continue
+                except ekf.RefusedStepError as exc:  # the guard: an update or a new landmark
+                    self._refuse(exc.reason, str(exc), stamp,
+                                 f"observation id={lid} range={z_r!r} bearing={z_b!r}")
+                    rejected += 1
+                    refused += 1
+                    assigned.append(-1)
+                    continue
+                except ekf.SingularInnovationError as exc:
+                    self._log_refused(lid, exc)
+                    rejected += 1
+                    assigned.append(-1)
+                    continue
+                if j is not None:
                     nu_r, nu_b, s00, s01, s11 = out
                     innovation_ids.append(lid)
                     innovations.append((nu_r, nu_b))
@@ -492,6 +484,7 @@ class Estimator:
         return lid
 
     def _initialise(self, lid: int, z_range: float, z_bearing: float, var_range: float) -> None:
+        self._flush()  # the new rows are made from P's robot rows (and a larger L from P)
         self._ensure_capacity(self._n + 1)
         ekf.initialise(self._x, self._L, self._n, z_range=z_range, z_bearing=z_bearing,
                        var_range=var_range, var_bearing=self._var_b, ws=self._ws,
