@@ -219,6 +219,12 @@ class Channel(Protocol):
         """Samples a recovering channel knows it missed and could not get back."""
         ...
 
+    @property
+    def superseded(self) -> int:
+        """Large samples (``newest_above``) replaced, uncopied, by a newer one of their key
+        before they were taken."""
+        ...
+
     def close(self) -> None: ...
 
 
@@ -233,7 +239,7 @@ class Bus(Protocol):
     def channel(self, key: str, *, latest_wins: bool = False, recover: bool = False,
                 history_s: float = 0.0, max_bytes: int = DEFAULT_QUEUE_BYTES,
                 accept: Callable[[str], bool] | None = None,
-                also: tuple[str, ...] = ()) -> Channel: ...
+                also: tuple[str, ...] = (), newest_above: int | None = None) -> Channel: ...
 
     def wait_for_subscriber(self, key: str, *, timeout: float = 10.0) -> bool: ...
 
@@ -274,19 +280,41 @@ def pump(channel: Channel, handle: Callable[[str, bytes], object], stop: threadi
 # ---------------------------------------------------------------------------------
 
 
+@dataclass(eq=False)
+class _Deferred:
+    """A large sample left in Zenoh's buffer until it is taken (``newest_above``)."""
+
+    sample: Sample  #: key and timestamp; the payload is fetched when taken
+    fetch: Callable[[], bytes]
+    size: int
+
+    def resolve(self) -> Sample:
+        s = self.sample
+        return Sample(s.key, self.fetch(), source=s.source, time=s.time)
+
+
+def _size(item: Sample | _Deferred) -> int:
+    return item.size if isinstance(item, _Deferred) else len(item.payload)
+
+
 class QueueChannel:
     """An in-order queue of samples fed by a subscriber callback; ``push`` never blocks.
 
     ``recv`` wakes the moment a sample arrives (no polling). With ``capacity`` (1 = latest
     wins) the oldest samples beyond it are dropped; otherwise the queue grows until its
     payloads hold ``max_bytes``, then drops its oldest — counted in ``dropped`` and logged —
-    rather than ever making the feeding (Zenoh) thread wait.
+    rather than ever making the feeding (Zenoh) thread wait. A sample pushed with
+    :meth:`push_newest` (a large one) is copied only when taken, and replaces an older one of
+    its key still waiting (counted in ``superseded``): the queue holds at most one such
+    payload per key, so it pins at most that much of the publisher's shared memory.
     """
 
     def __init__(self, *, name: str = "", capacity: int | None = None,
                  max_bytes: int = DEFAULT_QUEUE_BYTES) -> None:
         self.name = name
-        self._items: deque[Sample] = deque()
+        self._items: deque[Sample | _Deferred] = deque()
+        self._newest: dict[str, _Deferred] = {}  #: the deferred sample waiting, per key
+        self._superseded = 0
         self._capacity = None if capacity is None else max(1, capacity)
         self._max_bytes = max(1, max_bytes)
         self._bytes = 0
@@ -312,7 +340,8 @@ class QueueChannel:
         with self._cond:
             items, self._items = list(self._items), deque()
             self._bytes = 0
-        return items
+            self._newest.clear()
+        return [x.resolve() if isinstance(x, _Deferred) else x for x in items]
 
     @property
     def dropped(self) -> int:
@@ -321,6 +350,10 @@ class QueueChannel:
     @property
     def lost(self) -> int:
         return self._lost
+
+    @property
+    def superseded(self) -> int:
+        return self._superseded
 
     def count_lost(self, n: int) -> None:
         """Record ``n`` samples known to be missed for good (sample-miss detection)."""
@@ -331,21 +364,33 @@ class QueueChannel:
             log.warning("%s: %d sample(s) missed and not recoverable (%d so far)",
                         self.name or "channel", n, total)
 
-    def push(self, sample: Sample) -> None:
+    def push_newest(self, sample: Sample, fetch: Callable[[], bytes], size: int) -> None:
+        """Queue a large sample whose payload (``size`` bytes) ``fetch`` copies when it is
+        taken; an older one of its key still waiting is dropped, uncopied (``superseded``)."""
+        self.push(_Deferred(sample, fetch, size))
+
+    def push(self, sample: Sample | _Deferred) -> None:
         overflow = False
         with self._cond:
             if self._closed:
                 return
+            if isinstance(sample, _Deferred):
+                older = self._newest.pop(sample.sample.key, None)
+                if older is not None:
+                    self._items.remove(older)
+                    self._bytes -= older.size
+                    self._superseded += 1
+                self._newest[sample.sample.key] = sample
             self._items.append(sample)
-            self._bytes += len(sample.payload)
+            self._bytes += _size(sample)
             self.received += 1
             if self._capacity is not None:
                 while len(self._items) > self._capacity:
-                    self._bytes -= len(self._items.popleft().payload)
+                    self._forget(self._items.popleft())
                     self._dropped += 1
             else:
                 while self._bytes > self._max_bytes and len(self._items) > 1:
-                    self._bytes -= len(self._items.popleft().payload)
+                    self._forget(self._items.popleft())
                     self._dropped += 1
                     overflow = True
             if len(self._items) > self.high_water:
@@ -356,15 +401,21 @@ class QueueChannel:
             log.warning("%s: queue over %d MB, oldest samples dropped (%d so far)",
                         self.name or "channel", self._max_bytes >> 20, dropped)
 
+    def _forget(self, item: Sample | _Deferred) -> None:
+        """Account for ``item`` leaving the queue (under the lock)."""
+        self._bytes -= _size(item)
+        if isinstance(item, _Deferred) and self._newest.get(item.sample.key) is item:
+            del self._newest[item.sample.key]
+
     def recv(self, timeout: float | None = None) -> Sample | None:
         with self._cond:
             if not self._cond.wait_for(lambda: self._items or self._closed, timeout):
                 return None
             if not self._items:
                 return None
-            sample = self._items.popleft()
-            self._bytes -= len(sample.payload)
-            return sample
+            item = self._items.popleft()
+            self._forget(item)
+        return item.resolve() if isinstance(item, _Deferred) else item
 
     def close(self) -> None:
         with self._cond:
@@ -372,6 +423,7 @@ class QueueChannel:
                 return
             self._closed = True
             self._items.clear()
+            self._newest.clear()
             self._bytes = 0
             self._cond.notify_all()
         for undeclare in reversed(self._on_close):
@@ -394,12 +446,14 @@ def _wait_matching(pub: Any, timeout: float) -> bool:
         listener.undeclare()
 
 
-def _sample_of(zsample: Any, key: str | None = None) -> Sample:
-    """A :class:`Sample` from a ``zenoh.Sample`` (payload copied out of Zenoh's buffer)."""
+def _sample_of(zsample: Any, key: str | None = None, *, copy: bool = True) -> Sample:
+    """A :class:`Sample` from a ``zenoh.Sample`` (payload copied out of Zenoh's buffer;
+    left empty with ``copy=False``)."""
+    payload = zsample.payload.to_bytes() if copy else b""
     ts = zsample.timestamp
     if ts is None:
-        return Sample(key or str(zsample.key_expr), zsample.payload.to_bytes())
-    return Sample(key or str(zsample.key_expr), zsample.payload.to_bytes(),
+        return Sample(key or str(zsample.key_expr), payload)
+    return Sample(key or str(zsample.key_expr), payload,
                   source=str(ts.get_id()), time=int(str(ts.get_time_as_ntp64())))  # raw u64
 
 
@@ -641,15 +695,22 @@ class ZenohBus:
     def channel(self, key: str, *, latest_wins: bool = False, recover: bool = False,
                 history_s: float = 0.0, max_bytes: int = DEFAULT_QUEUE_BYTES,
                 accept: Callable[[str], bool] | None = None,
-                also: tuple[str, ...] = ()) -> Channel:
+                also: tuple[str, ...] = (), newest_above: int | None = None) -> Channel:
         """One ordered queue for ``key`` and the key expressions ``also`` (module
-        docstring); ``accept(key)`` filters samples before their payload is copied."""
+        docstring); ``accept(key)`` filters samples before their payload is copied. A
+        payload of at least ``newest_above`` bytes stays in Zenoh's buffer until taken, and
+        only the newest of its key waits (:meth:`QueueChannel.push_newest`)."""
         ch = QueueChannel(name=key, capacity=1 if latest_wins else None, max_bytes=max_bytes)
 
         def on_sample(sample: Any) -> None:
             sample_key = str(sample.key_expr)
             if accept is None or accept(sample_key):  # filter before copying the payload
-                ch.push(_sample_of(sample, sample_key))
+                size = len(sample.payload)
+                if newest_above is not None and size >= newest_above:
+                    ch.push_newest(_sample_of(sample, sample_key, copy=False),
+                                   sample.payload.to_bytes, size)
+                else:
+                    ch.push(_sample_of(sample, sample_key))
 
         for expr in (key, *also):
             if recover or history_s > 0:
@@ -859,12 +920,16 @@ class InProcessBus:
     def channel(self, key: str, *, latest_wins: bool = False, recover: bool = False,
                 history_s: float = 0.0, max_bytes: int = DEFAULT_QUEUE_BYTES,
                 accept: Callable[[str], bool] | None = None,
-                also: tuple[str, ...] = ()) -> Channel:
+                also: tuple[str, ...] = (), newest_above: int | None = None) -> Channel:
         ch = QueueChannel(name=key, capacity=1 if latest_wins else None, max_bytes=max_bytes)
 
         def push(sample: Sample) -> None:
             if accept is None or accept(sample.key):
-                ch.push(sample)
+                size = len(sample.payload)
+                if newest_above is not None and size >= newest_above:
+                    ch.push_newest(sample, lambda: sample.payload, size)
+                else:
+                    ch.push(sample)
 
         for expr in (key, *also):
             self._subs.append((expr, push))

@@ -61,8 +61,9 @@ class MonitorService:
         self.violations = 0
         self.duplicates = 0
         self.restarts = 0
-        self.sampled_out = 0  #: states skipped to keep up with a large map (never small ones)
+        self._skipped = 0  #: states skipped by the burst rule (``sample_above_mb``)
         self._said_sampled = 0.0
+        self._said_count = 0  #: sampled_out when it was last logged
         self._sample_above = int(settings.sample_above_mb * 2 ** 20)
         self._position: tuple[int, int] | None = None  #: (epoch, seq) of the last state
         self.verdict = ""  #: the latest Health's verdict ("" before the first state)
@@ -81,7 +82,8 @@ class MonitorService:
         # one ordered queue for what it checks, each key subscribed on its own (the router
         # sends nothing else: not the estimator's inputs, not our own health)
         self._inputs = bus.channel(keys.state(robot), recover=True,
-                                   also=(keys.truth(robot), keys.tracked(robot)))
+                                   also=(keys.truth(robot), keys.tracked(robot)),
+                                   newest_above=int(settings.newest_above_mb * 2 ** 20))
         bus.serve_latest(keys.health(robot), self.latest_bytes)
 
     def latest_bytes(self) -> bytes | None:
@@ -92,6 +94,13 @@ class MonitorService:
     def epoch(self) -> int | None:
         """The epoch of the last state checked (None before the first)."""
         return None if self._position is None else self._position[0]
+
+    @property
+    def sampled_out(self) -> int:
+        """States skipped to keep up with a large map (never those of a small one): a large
+        state replaced by a newer one before its turn (``newest_above_mb``), or skipped
+        when the states waiting held more than ``sample_above_mb``."""
+        return self._skipped + self._inputs.superseded
 
     @property
     def behind(self) -> int:
@@ -207,6 +216,7 @@ class MonitorService:
         if first is None:
             return 0
         burst = [first, *self._inputs.take_all()]
+        self._say_sampled()  # large states superseded while waiting
         if sum(len(s.payload) for s in burst[1:]) > self._sample_above:
             self.handle(first.key, first.payload)
             return 1 + self._sample(burst[1:])
@@ -228,6 +238,16 @@ class MonitorService:
         finally:
             self._waiting = 0
 
+    def _say_sampled(self) -> None:
+        """Log the states skipped so far, at the first and then at most once per 10 s."""
+        total = self.sampled_out
+        if total > self._said_count and (self._said_count == 0
+                                         or time.monotonic() - self._said_sampled >= 10.0):
+            log.warning("monitor behind on a large map: checking the newest state, skipped "
+                        "%d (%d so far); the checks compare across the gap",
+                        total - self._said_count, total)
+            self._said_sampled, self._said_count = time.monotonic(), total
+
     def _sample(self, waiting: list[Sample] | None = None) -> int:
         """Too far behind on a large map: take everything waiting, keep the truths, check
         only the newest state (the comparison with the last one checked stays valid)."""
@@ -235,13 +255,8 @@ class MonitorService:
             waiting = self._inputs.take_all()
         states = [s for s in waiting if s.key.endswith("/state")]
         skipped = max(0, len(states) - 1)
-        self.sampled_out += skipped
-        if skipped and (self.sampled_out == skipped or time.monotonic() - self._said_sampled
-                        >= 10.0):
-            self._said_sampled = time.monotonic()
-            log.warning("monitor behind on a large map: checked the newest state, skipped "
-                        "%d (%d so far); the checks compare across the gap", skipped,
-                        self.sampled_out)
+        self._skipped += skipped
+        self._say_sampled()
         for s in waiting:
             if not s.key.endswith("/state") or s is states[-1]:
                 self.handle(s.key, s.payload)

@@ -380,6 +380,13 @@ class MonitorSettings:
                    "the Loewner order is transitive, so the checks stay valid across the "
                    "gap): a large map at the estimator's full rate; small maps never reach "
                    "it (docs/monitor.md)", unit="MB", min=1.0, group=_BLAME)
+    newest_above_mb: float = setting(
+        8.0, doc="a state at least this large (n ≳ 500) waits in Zenoh's buffer, uncopied, "
+                 "and only the newest one waits: one still waiting when a newer one comes "
+                 "is skipped (counted as 'sampled_out'; the checks stay valid across the "
+                 "gap), so the monitor copies only the states it checks and never pins "
+                 "more than one of the estimator's shared-memory buffers (docs/monitor.md)",
+        unit="MB", min=0.1, group=_BLAME)
     clear_after: int = setting(
         200, doc="a violation stands (and keeps the verdict) until this many further states "
                  "were checked without it; a fault also stands while any suspect is named "

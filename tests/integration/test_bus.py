@@ -85,9 +85,16 @@ def test_a_callback_that_blocks_never_stops_the_channel_or_the_publisher(make_cl
         release.wait(1.0)
 
     b.subscribe("t/flood", stall)
-    ch = c.channel("t/flood", recover=True)  # (a first put may precede the match)
-    assert a.wait_for_subscriber("t/flood")
+    ch = c.channel("t/flood", recover=True)
+    assert a.wait_for_subscriber("t/flood")  # (either subscriber: b's may match first)
     pub = a.publisher("t/flood", cache=100)
+    # a first sample until the channel has it: its route is then open (tests/routes.py)
+    put_until_seen(lambda: pub.put(b"w"), lambda: ch.received > 0,  # type: ignore[attr-defined]
+                   what="the first sample", timeout_s=20.0)
+    while ch.recv(timeout=0.5) is not None:
+        pass
+    release.set()  # the warm-up samples' stalls end; the flood's begin
+    release.clear()
     started = time.monotonic()
     for i in range(2000):
         pub.put(i.to_bytes(4, "little"))
@@ -271,4 +278,40 @@ def test_large_payloads_go_through_shared_memory_on_one_host(router_endpoint) ->
         assert all(kinds["local"]) and not any(kinds["remote"]), kinds
     finally:
         for b in (pub_bus, local, remote):
+            b.close()
+
+
+def test_large_samples_wait_uncopied_and_only_the_newest_of_a_key(router_endpoint) -> None:
+    """The monitor's intake on a large map (``newest_above``): small samples all come, in
+    order; of the large ones only the newest still waiting is kept, the others counted as
+    superseded, and what is taken is the payload that was put (from shared memory)."""
+    from common.session import BusSettings, open_bus
+
+    pub_bus = open_bus(BusSettings(connect=(router_endpoint,)))
+    sub_bus = open_bus(BusSettings(connect=(router_endpoint,)))
+    try:
+        ch = sub_bus.channel("t/big", recover=True, also=("t/small",), newest_above=1 << 20)
+        assert pub_bus.wait_for_subscriber("t/big") and pub_bus.wait_for_subscriber("t/small")
+        big, small = pub_bus.publisher("t/big", cache=16), pub_bus.publisher("t/small", cache=16)
+        for pub in (big, small):  # a small first sample on each key until it came
+            put_until_seen(lambda p=pub: p.put(b"w"), lambda: ch.backlog > 0,
+                           what="the first sample", timeout_s=20.0)
+            while ch.recv(timeout=0.5) is not None:
+                pass
+        base = ch.received  # type: ignore[attr-defined]
+        larges = [bytes([k]) * (2 << 20) for k in range(5)]
+        for k, payload in enumerate(larges):
+            big.put(payload)
+            small.put(str(k).encode())
+        assert _wait(lambda: ch.received == base + 10, timeout=30.0)  # type: ignore[attr-defined]
+        taken = ch.take_all()  # (each key in order; the two keys' order is Zenoh's)
+        assert [s.payload for s in taken if s.key == "t/small"] == [b"0", b"1", b"2", b"3", b"4"]
+        kept = [s for s in taken if s.key == "t/big"]
+        assert len(kept) == 1 and kept[0].payload == larges[4] and kept[0].time is not None
+        assert ch.superseded == 4 and ch.dropped == 0 and ch.backlog_bytes == 0
+        big.put(larges[0])  # one waiting alone is taken as it is
+        got = ch.recv(timeout=20.0)
+        assert got is not None and got.payload == larges[0] and ch.superseded == 4
+    finally:
+        for b in (pub_bus, sub_bus):
             b.close()
