@@ -29,8 +29,9 @@ before issue 13 (msgpack.packb of a freshly materialised state) timed on the sam
 n = 1000 (:func:`profile_viewer`); ``--profile-only`` skips the pipeline runs.
 
 Run: ``.venv/bin/python benchmarks/bench_large.py [--window 20] [--repeats 1] [--profile]
-[--profile-viewer] [--profile-only] [--only large-alone,large-full,paper-full]``
-(about 5 min per repeat on the shared 2-core machine).
+[--profile-viewer] [--profile-only] [--only large-alone,large-full,paper-full]
+[--monitor-share S]`` (about 5 min per repeat on the shared 2-core machine; ``--monitor-share
+1`` is the baseline of the monitor's ``large_share`` rest, docs/monitor.md).
 """
 
 from __future__ import annotations
@@ -158,7 +159,8 @@ def _cpu(procs: dict[str, Service]) -> dict[str, float]:
     return {name: p.cpu_seconds() or 0.0 for name, p in procs.items()}
 
 
-def run(endpoint: str, world: str, *, full: bool, window_s: float, seed: int) -> dict:
+def run(endpoint: str, world: str, *, full: bool, window_s: float, seed: int,
+        monitor_args: tuple[str, ...] = ()) -> dict:
     """One pipeline on ``world``: measured for ``window_s`` once the map is complete."""
     procs: dict[str, Service] = {}
     bus = open_bus(BusSettings(connect=(endpoint,)))
@@ -170,7 +172,8 @@ def run(endpoint: str, world: str, *, full: bool, window_s: float, seed: int) ->
         viewer_at = None
         if full:
             arena, height, marker = CAMERAS[world]
-            procs["monitor"] = spawn("monitor", "--robot", ROBOT, "--connect", endpoint, "-q")
+            procs["monitor"] = spawn("monitor", "--robot", ROBOT, "--connect", endpoint, "-q",
+                                     *monitor_args)
             procs["registration"] = spawn(
                 "registration", "--camera", CAMERA, "--robot", ROBOT, "--source", "synthetic",
                 "--fps", "30", f"--arena={arena}", "--camera-height", height,
@@ -508,6 +511,9 @@ def main() -> None:
                         help="first profile the viewer's state → picture path at n = 1000")
     parser.add_argument("--profile-only", action="store_true",
                         help="only the profiles, no pipeline runs")
+    parser.add_argument("--monitor-share", type=float, default=None,
+                        help="the monitor's --large-share (default: its own, 0.25; 1 = the "
+                             "monitor never rests, the baseline for that rule)")
     parser.add_argument("--only", default="large-alone,large-full,paper-full",
                         help="the pipeline runs to make, comma-separated (default: all three)")
     args = parser.parse_args()
@@ -531,7 +537,10 @@ def main() -> None:
                                       ("paper-full", "paper", True)):
                 if name not in wanted:
                     continue
-                r = run(endpoint, world, full=full, window_s=args.window, seed=k)
+                share = () if args.monitor_share is None else ("--large-share",
+                                                               str(args.monitor_share))
+                r = run(endpoint, world, full=full, window_s=args.window, seed=k,
+                        monitor_args=share)
                 results[name].append(r)
                 print(_line(r), flush=True)
     finally:

@@ -81,9 +81,12 @@ class MonitorService:
         self._puts = BurstPuts(self._publisher, limit=BURST_HEALTHS, sent=self._now_gettable)
         # one ordered queue for what it checks, each key subscribed on its own (the router
         # sends nothing else: not the estimator's inputs, not our own health)
+        self._newest_above = int(settings.newest_above_mb * 2 ** 20)
+        self._large_share = settings.large_share
+        self._large_step = False  #: the last step checked a large state
         self._inputs = bus.channel(keys.state(robot), recover=True,
                                    also=(keys.truth(robot), keys.tracked(robot)),
-                                   newest_above=int(settings.newest_above_mb * 2 ** 20))
+                                   newest_above=self._newest_above)
         bus.serve_latest(keys.health(robot), self.latest_bytes)
 
     def latest_bytes(self) -> bytes | None:
@@ -199,7 +202,11 @@ class MonitorService:
         cpu = time.thread_time()
         try:
             while not stop.is_set():
+                before = time.thread_time()
                 self.step(timeout=0.2)
+                if self._large_step:  # a large map: at most large_share of a core
+                    spent = time.thread_time() - before
+                    stop.wait(spent * (1.0 / self._large_share - 1.0))
                 if time.monotonic() - last >= status_every_s:
                     last = time.monotonic()
                     log.info("%s", self.status_line())
@@ -214,8 +221,10 @@ class MonitorService:
         number of samples handled (0: nothing came)."""
         first = self._inputs.recv(timeout=timeout)
         if first is None:
+            self._large_step = False
             return 0
         burst = [first, *self._inputs.take_all()]
+        self._large_step = any(len(s.payload) >= self._newest_above for s in burst)
         self._say_sampled()  # large states superseded while waiting
         if sum(len(s.payload) for s in burst[1:]) > self._sample_above:
             self.handle(first.key, first.payload)

@@ -387,6 +387,12 @@ class MonitorSettings:
                  "gap), so the monitor copies only the states it checks and never pins "
                  "more than one of the estimator's shared-memory buffers (docs/monitor.md)",
         unit="MB", min=0.1, group=_BLAME)
+    large_share: float = setting(
+        0.25, doc="after checking a large state (newest_above_mb) the checking thread "
+                  "rests so that it uses at most this share of a core, leaving the rest to "
+                  "the estimator and the viewer on the same host; the states that come "
+                  "meanwhile are sampled as above (1 = no rest; docs/monitor.md)",
+        min=0.001, max=1.0, group=_BLAME)
     clear_after: int = setting(
         200, doc="a violation stands (and keeps the verdict) until this many further states "
                  "were checked without it; a fault also stands while any suspect is named "

@@ -49,3 +49,26 @@ def test_small_maps_never_reach_the_budget() -> None:
     for seq in range(1, 2001):  # 2000 states of a 15-landmark map waiting
         pub.put(_state(seq, 15, shrink=1.0 / seq).to_bytes())
     assert service._inputs.backlog_bytes < 512 << 20
+
+
+def test_the_rest_after_a_large_state_ends_at_once_on_stop() -> None:
+    """large_share: after a large state the checking thread rests (here 999 × the check, seconds),
+    and a stop during the rest ends it at once (no signal waits for it)."""
+    import threading
+
+    bus = InProcessBus()
+    checked = threading.Event()
+    bus.subscribe(KEYS.health("r1"), lambda k, p: checked.set())
+    service = MonitorService(bus, keys=KEYS, robot="r1",
+                             settings=MonitorSettings(robot="r1", newest_above_mb=1.0,
+                                                      large_share=0.001))
+    stop = threading.Event()
+    worker = threading.Thread(target=service.run, args=(stop,), daemon=True)
+    worker.start()
+    before = service.worker_cpu_s
+    bus.publisher(KEYS.state("r1")).put(_state(1, 200, shrink=1.0).to_bytes())  # 1.3 MB
+    assert checked.wait(30.0)
+    assert service._large_step  # resting now, for ~999 × the check's CPU time
+    stop.set()
+    worker.join(timeout=5.0)
+    assert not worker.is_alive() and service.worker_cpu_s > before
