@@ -1029,15 +1029,99 @@ def _bin_header(length: int) -> bytes:
     return b"\xc6" + length.to_bytes(4, "big")
 
 
+#: bytes after the format byte of each fixed-size msgpack type (nil, bools, numbers, fixext)
+_FIXED_AFTER = {0xC0: 0, 0xC2: 0, 0xC3: 0, 0xCA: 4, 0xCB: 8, 0xCC: 1, 0xCD: 2, 0xCE: 4,
+                0xCF: 8, 0xD0: 1, 0xD1: 2, 0xD2: 4, 0xD3: 8, 0xD4: 2, 0xD5: 3, 0xD6: 5,
+                0xD7: 9, 0xD8: 17}
+#: the length field's size of each sized type: bin, ext (+ 1 type byte), str
+_SIZED = {0xC4: 1, 0xC5: 2, 0xC6: 4, 0xC7: 1, 0xC8: 2, 0xC9: 4, 0xD9: 1, 0xDA: 2, 0xDB: 4}
+#: the count field's size of each container type: array16/32, map16/32 (a map: 2 per entry)
+_COUNTED = {0xDC: (2, 1), 0xDD: (4, 1), 0xDE: (2, 2), 0xDF: (4, 2)}
+#: items a peek walks before it hands the payload to msgpack itself (a hostile flat list)
+_PEEK_ITEMS = 100_000
+
+
+class _NotWalked(Exception):
+    """The payload is not one the peek walks (malformed, or beyond _PEEK_ITEMS items)."""
+
+
+def _skip(buf: memoryview, pos: int, budget: list[int]) -> int:
+    """The offset just past the msgpack object at ``pos`` (its bytes are not copied)."""
+    pending = 1
+    end = len(buf)
+    while pending:
+        if pos >= end or budget[0] <= 0:
+            raise _NotWalked
+        budget[0] -= 1
+        pending -= 1
+        b = buf[pos]
+        pos += 1
+        if b <= 0x7F or b >= 0xE0:  # fixint
+            continue
+        if b <= 0x8F:  # fixmap
+            pending += 2 * (b & 0x0F)
+        elif b <= 0x9F:  # fixarray
+            pending += b & 0x0F
+        elif b <= 0xBF:  # fixstr
+            pos += b & 0x1F
+        elif b in _FIXED_AFTER:
+            pos += _FIXED_AFTER[b]
+        elif b in _SIZED:
+            width = _SIZED[b]
+            pos += width + int.from_bytes(buf[pos:pos + width], "big") + (b in (0xC7, 0xC8, 0xC9))
+        elif b in _COUNTED:
+            width, per = _COUNTED[b]
+            pending += per * int.from_bytes(buf[pos:pos + width], "big")
+            pos += width
+        else:  # 0xC1: never used
+            raise _NotWalked
+    if pos > end:
+        raise _NotWalked
+    return pos
+
+
+def _peek_walked(view: memoryview, names: tuple[str, ...]) -> dict[str, Any]:
+    """peek_fields by walking the top-level map over ``view``: only the fields wanted (and
+    the keys) are decoded, every other value is stepped over in place."""
+    budget = [_PEEK_ITEMS]
+    b = view[0] if len(view) else 0xC1
+    if 0x80 <= b <= 0x8F:
+        count, pos = b & 0x0F, 1
+    elif b in (0xDE, 0xDF):
+        width = _COUNTED[b][0]
+        count, pos = int.from_bytes(view[1:1 + width], "big"), 1 + width
+    else:
+        raise _NotWalked
+    out: dict[str, Any] = {}
+    for _ in range(count):
+        key_end = _skip(view, pos, budget)
+        key = msgpack.unpackb(view[pos:key_end], raw=False, strict_map_key=False)
+        value_end = _skip(view, key_end, budget)
+        if isinstance(key, str) and key in names:
+            out[key] = msgpack.unpackb(view[key_end:value_end], raw=False,
+                                       strict_map_key=False)
+        pos = value_end
+    return out
+
+
 def peek_fields(payload: bytes | bytearray | memoryview,
                 names: tuple[str, ...]) -> dict[str, Any]:
     """The top-level fields ``names`` of a msgpack map, without decoding the others.
 
     For consumers that need a state's header (seq, epoch, input_stamp) and not its map: the
-    big arrays are skipped, not copied. Raises MessageError if the payload is not a map.
+    big arrays are stepped over in place, never copied (a 32 MB state at n = 1000 is peeked
+    in microseconds; msgpack's own Unpacker would copy it into its buffer first). A payload
+    the walk does not take (malformed, or a huge flat list) goes to msgpack's Unpacker, so
+    the answer is always msgpack's. Raises MessageError if the payload is not a map.
     """
-    unpacker = msgpack.Unpacker(raw=False, strict_map_key=False)
-    unpacker.feed(payload)
+    view = memoryview(payload).cast("B")
+    try:
+        return _peek_walked(view, names)
+    except Exception:  # malformed, or not walked: msgpack itself decides (same answer or
+        pass  # the same error as ever)
+    unpacker = msgpack.Unpacker(raw=False, strict_map_key=False,
+                                max_buffer_size=max(len(view), 1))
+    unpacker.feed(view)
     out: dict[str, Any] = {}
     try:
         for _ in range(unpacker.read_map_header()):

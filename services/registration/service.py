@@ -20,13 +20,17 @@ Maps (SPEC §7a): the service watches the robot's state header (epoch, origin_st
 pose). The first map it sees keeps the registration made while the robot stood still; a
 new map (a new epoch) is registered from the remembered frame nearest its
 ``origin_stamp`` — where the robot stood when that map started. Every Registration says
-its ``epoch``, ``reason`` and how far it moved the frame.
+its ``epoch``, ``reason`` and how far it moved the frame. Only the header is read of a
+state, and a state is copied out of Zenoh's buffer only when its header is read: at most
+every :data:`STATE_HEAD_EVERY_S` (a 32 MB state at n = 1000 costs ~20 ms of CPU to copy,
+and the estimator publishes tens a second; docs/registration.md, "Maps").
 """
 
 from __future__ import annotations
 
 import collections
 import dataclasses
+import functools
 import logging
 import math
 import threading
@@ -67,6 +71,7 @@ from services.registration.tracking import (
 log = logging.getLogger(__name__)
 
 TRACKER_TIMEOUT_S = 1.0  #: an external CameraPose older than this is not used
+STATE_HEAD_EVERY_S = 0.2  #: a state's header is read (and the state copied) at most this often
 
 
 @dataclasses.dataclass(frozen=True)
@@ -159,7 +164,9 @@ class CameraPipeline:
         self.read_errors = DropCounter(log, burst=1)  #: failed reads of the source
         self._stop = threading.Event()
         self._requests: Latest[str] = Latest()  #: who asked for a re-registration
-        self._states: Latest[bytes] = Latest()  #: the robot's newest state payload
+        #: the robot's newest state, still in Zenoh's buffer: a call copies it out
+        self._states: Latest[Callable[[], bytes]] = Latest()
+        self._head_read_at = -math.inf  #: when _follow_map last read a state's header
         self._map: MapHead | None = None  #: the map the registration is for
         self._waiting: MapHead | None = None  #: a new map not registered yet
         self._pending_request: tuple[str, np.ndarray | None] | None = None
@@ -207,9 +214,10 @@ class CameraPipeline:
         """Re-register from the next frames (called from a Zenoh thread: only stores)."""
         self._requests.put(requester or "an anonymous request")
 
-    def offer_state(self, payload: bytes) -> None:
-        """The robot's newest state (called from a Zenoh thread: only stores)."""
-        self._states.put(payload)
+    def offer_state(self, fetch: Callable[[], bytes]) -> None:
+        """The robot's newest state, as a function that copies it out of Zenoh's buffer
+        (called from a Zenoh thread: only stores)."""
+        self._states.put(fetch)
 
     @property
     def epoch(self) -> int | None:
@@ -408,8 +416,13 @@ class CameraPipeline:
 
     def _follow_map(self) -> np.ndarray | None:
         """Register a new map at its origin instant; its T_camera_from_map if it did."""
-        payload = self._states.take(timeout=0)
-        head = None if payload is None else map_head(payload)
+        head = None
+        now = time.monotonic()
+        if now - self._head_read_at >= STATE_HEAD_EVERY_S:  # else the newest waits, uncopied
+            fetch = self._states.take(timeout=0)
+            if fetch is not None:
+                self._head_read_at = now
+                head = map_head(fetch())
         if head is None:
             head = self._waiting  # a new map still waiting for its origin frames
         if head is None:
@@ -532,7 +545,7 @@ class RegistrationService:
         self.drops = DropCounter(log)  #: malformed Truth and CameraControl messages
         if self.synthetic_sources:
             bus.subscribe(keys.truth(robot), self._on_truth)
-        bus.subscribe(keys.state(robot), self._on_state)
+        bus.subscribe_lazy(keys.state(robot), self._on_state)
         names = {p.camera for p in self.pipelines} | {base_camera}
         for name in sorted(names):
             bus.subscribe(keys.camera_control(name), self._on_control)
@@ -551,9 +564,9 @@ class RegistrationService:
         for source in self.synthetic_sources:
             source.set_truth(truth)
 
-    def _on_state(self, key: str, payload: bytes) -> None:
+    def _on_state(self, key: str, fetch: Callable[[], bytes]) -> None:
         for p in self.pipelines:
-            p.offer_state(payload)
+            p.offer_state(fetch)
 
     def _on_control(self, key: str, payload: bytes) -> None:
         self._control(key, payload)
@@ -597,7 +610,7 @@ class RegistrationService:
             log.debug("late join of the state failed: %s", exc)
             return
         for reply in replies[:1]:
-            self._on_state(reply.key, reply.payload)
+            self._on_state(reply.key, functools.partial(bytes, reply.payload))
 
     def stop(self) -> None:
         for p in self.pipelines:
