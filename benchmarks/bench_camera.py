@@ -1,7 +1,11 @@
 """Camera benchmark: synthetic rendering, JPEG encoding, and the service's frame rate with a
 slow subscriber attached over real Zenoh on loopback.
 
-    .venv/bin/python benchmarks/bench_camera.py [--seconds 5] [--frames 100]
+    .venv/bin/python benchmarks/bench_camera.py [--seconds 5] [--frames 100] [--repeats 3]
+        [--only-windows]
+
+The last section runs the large world's fixed camera with the robot driving in real time,
+detection windows (``detect_full_every`` 15) against every frame detected whole (1).
 
 Targets (issue 3): a 1280×720 synthetic frame fast enough for 30 fps; JPEG encode ≤ 4 ms;
 a steady 30 fps published while a subscriber sleeping 200 ms per frame is attached. Every
@@ -12,6 +16,7 @@ shared: run it a few times and quote medians).
 from __future__ import annotations
 
 import argparse
+import itertools
 import statistics
 import sys
 import threading
@@ -23,6 +28,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from common.bus import InProcessBus  # noqa: E402
 from common.keys import Keys  # noqa: E402
 from common.messages import Truth  # noqa: E402
 from common.session import BusSettings, free_tcp_endpoint, open_bus, router_settings  # noqa: E402
@@ -178,14 +184,94 @@ def bench_service(seconds: float) -> None:
     print(f"  ratio published fps slow/baseline: {slow['fps'] / base['fps']:.3f}")
 
 
+def _thread_cpu_s(thread: threading.Thread) -> float:
+    """CPU seconds a thread of this process has run (Linux: its schedstat)."""
+    with open(f"/proc/self/task/{thread.native_id}/schedstat") as f:
+        return int(f.read().split()[0]) / 1e9
+
+
+def _run_windows(seconds: float, full_every: int, truths: list[Truth]) -> dict[str, float]:
+    """The large world's fixed camera (30 m up, a 1 m marker) with the robot driving in real
+    time: the processing thread's CPU per frame it processed."""
+    keys = Keys("bench")
+    service = build_service(InProcessBus(), keys, RegistrationSettings(
+        camera="bench", fps=30.0, arena=(-1.5, -1.5, 39.5, 24.5), camera_height=30.0,
+        marker_size=1.0, detect_full_every=full_every))
+    source = service.synthetic_sources[0]
+    source.set_truth(truths[0])
+    service.start()
+    p = service.pipelines[0]
+    worker = next(t for t in threading.enumerate() if t.name == "register-bench")
+    t0 = time.monotonic()
+    cpu0 = processed0 = 0.0
+    # the robot stands still until the camera has registered the map frame, then drives:
+    # 10 Hz truths in real time
+    deadline = time.monotonic() + 30.0
+    while p.stats.registrations == 0 and time.monotonic() < deadline:
+        time.sleep(0.05)
+    for k, truth in enumerate(truths):
+        source.set_truth(truth)
+        if k == 10:  # after a second: caches warm
+            cpu0, processed0, t0 = _thread_cpu_s(worker), p.stats.processed, time.monotonic()
+        time.sleep(max(0.0, t0 + (k - 10) * 0.1 - time.monotonic()) if k > 10 else 0.1)
+        if k > 10 and time.monotonic() - t0 >= seconds:
+            break
+    cpu, processed = _thread_cpu_s(worker) - cpu0, p.stats.processed - processed0
+    elapsed = time.monotonic() - t0
+    counts = service.summary()["cameras"]["bench"]
+    service.stop()
+    return {"ms_per_frame": 1e3 * cpu / max(processed, 1), "processed_fps": processed / elapsed,
+            "core": cpu / elapsed, "windows": counts.get("detected_in_windows", 0),
+            "whole": counts.get("detected_whole", processed), "fallbacks":
+            counts.get("window_fallbacks", 0), "registered": p.stats.registrations}
+
+
+def bench_windows(seconds: float, repeats: int) -> None:
+    """Detection windows (detect_full_every 15) against every frame whole (1), interleaved."""
+    from services.slam.sim import Simulator
+
+    truths = [e for e in itertools.islice(Simulator(load_world("large"), seed=0).events(),
+                                          20_000) if isinstance(e, Truth)]
+    truths = truths[:int(10 * (seconds + 2))]
+    print(f"the large world's camera (1280x720, 30 m up), robot driving in real time, "
+          f"{seconds:.0f} s per run, {repeats} runs each, interleaved")
+    runs: dict[int, list[dict[str, float]]] = {15: [], 1: []}
+    for _ in range(repeats):
+        for full_every in (15, 1):
+            runs[full_every].append(_run_windows(seconds, full_every, truths))
+    labels = ((1, "every frame whole (baseline)"), (15, "windows, whole every 15th"))
+    for full_every, label in labels:
+        rs = runs[full_every]
+
+        def med(key: str, rs: list[dict[str, float]] = rs) -> float:
+            return statistics.median(r[key] for r in rs)
+
+        def total(key: str, rs: list[dict[str, float]] = rs) -> float:
+            return sum(r[key] for r in rs)
+
+        print(f"  {label}: processing thread {med('ms_per_frame'):5.1f} ms CPU per frame, "
+              f"{med('processed_fps'):4.1f} frames/s processed, {med('core'):.2f} of a core; "
+              f"detected in windows {total('windows'):.0f}, whole {total('whole'):.0f}, "
+              f"fallbacks {total('fallbacks'):.0f}; registrations per run "
+              f"{[int(r['registered']) for r in rs]}")
+    ratio = statistics.median(r["ms_per_frame"] for r in runs[15]) / statistics.median(
+        r["ms_per_frame"] for r in runs[1])
+    print(f"  ratio CPU per frame, windows / whole: {ratio:.2f}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=5.0)
     parser.add_argument("--frames", type=int, default=100)
+    parser.add_argument("--repeats", type=int, default=3, help="runs of the windows section")
+    parser.add_argument("--only-windows", action="store_true",
+                        help="only the detection-windows section")
     args = parser.parse_args()
-    image = bench_render(args.frames)
-    bench_jpeg(image, args.frames)
-    bench_service(args.seconds)
+    if not args.only_windows:
+        image = bench_render(args.frames)
+        bench_jpeg(image, args.frames)
+        bench_service(args.seconds)
+    bench_windows(max(args.seconds, 8.0), args.repeats)
 
 
 if __name__ == "__main__":

@@ -35,7 +35,11 @@ from marker_render import PlacedMarker, render, true_corners  # noqa: E402
 
 from common.geometry import make_T, rot_z  # noqa: E402
 from services.registration.calibration import synthetic_calibration  # noqa: E402
-from services.registration.markers import DetectorTuning, MarkerDetector  # noqa: E402
+from services.registration.markers import (  # noqa: E402
+    DetectorTuning,
+    MarkerDetector,
+    WindowedDetector,
+)
 from services.registration.pose import marker_pose  # noqa: E402
 
 CALIB = synthetic_calibration(1280, 720, hfov_deg=84.0)
@@ -148,6 +152,32 @@ def main() -> None:
     base = medians[BASELINE]
     print("ratio to OpenCV's defaults (same run): " + ", ".join(
         f"{name} {value / base:.2f}" for name, value in medians.items() if name != BASELINE))
+
+    # a fixed camera between full frames (WindowedDetector): the same frames, looked at only
+    # around their markers, against the product's whole-frame detector, round robin
+    # (all ten markers, and the first one alone: a robot's marker, what a fixed camera sees)
+    whole = MarkerDetector("apriltag_36h11")
+    alone = [cv2.cvtColor(render(CALIB, placed[:1], background=floor_texture(
+        np.random.default_rng(seed)), blur_sigma_px=0.7, noise_sigma=2.0, seed=seed),
+        cv2.COLOR_GRAY2BGR) for seed, (_, placed) in enumerate(frames)]
+    for label, images in ((f"{N_MARKERS} markers", [f for f, _ in frames]),
+                          ("1 marker", alone)):
+        windowed_ms: list[float] = []
+        whole_ms: list[float] = []
+        for frame in images:
+            windowed = WindowedDetector(MarkerDetector("apriltag_36h11"), full_every=10 ** 9)
+            want = windowed.detect(frame)
+            for _ in range(args.repeats):
+                t0 = time.perf_counter()
+                got = windowed.detect(frame)
+                windowed_ms.append((time.perf_counter() - t0) * 1000.0)
+                t0 = time.perf_counter()
+                whole.detect(frame)
+                whole_ms.append((time.perf_counter() - t0) * 1000.0)
+                assert got == want, "the windows must find what the whole frame finds"
+        w_med, f_med = statistics.median(windowed_ms), statistics.median(whole_ms)
+        print(f"detection windows, {label} (between full frames): median {w_med:.2f} ms, "
+              f"whole frame {f_med:.2f} ms (ratio {w_med / f_med:.2f}, the same detections)")
 
     image = frames[0][0]
     encode_ms = []

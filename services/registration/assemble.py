@@ -20,7 +20,7 @@ from services.registration.calibration import (
     load_calibration,
     synthetic_calibration,
 )
-from services.registration.markers import MarkerDetector
+from services.registration.markers import MarkerDetector, WindowedDetector
 from services.registration.service import (
     CameraParts,
     CameraPipeline,
@@ -142,6 +142,16 @@ def real_source(settings: RegistrationSettings,
                               backoff_max_s=settings.reconnect_max_s)
 
 
+def detector_for(settings: RegistrationSettings, *, moving: bool
+                 ) -> MarkerDetector | WindowedDetector:
+    """One camera's detector: a fixed camera's looks only around the last markers between
+    full frames (``detect_full_every``); a moving camera's over every whole frame."""
+    detector = MarkerDetector(settings.dictionary)
+    if moving or settings.detect_full_every <= 1:
+        return detector
+    return WindowedDetector(detector, full_every=settings.detect_full_every)
+
+
 def build_service(bus: Bus, keys: Keys, settings: RegistrationSettings) -> RegistrationService:
     """Everything ``slamlens registration`` runs, wired to ``bus`` (not started)."""
     # a missing path fails first, a missing calibration second, before a device is opened
@@ -152,7 +162,6 @@ def build_service(bus: Bus, keys: Keys, settings: RegistrationSettings) -> Regis
     moving = settings.mode == "head-mounted"
     board = board_for(settings) if moving else None
     tracker = TrackerPoses() if moving and settings.camera_pose_source == "tracker" else None
-    detector = MarkerDetector(settings.dictionary)
     registrar_settings = RegistrarSettings(
         marker_id=settings.marker_id, marker_size_m=settings.marker_size,
         marker_offset_xyz=tuple(settings.marker_offset),  # type: ignore[arg-type]
@@ -178,7 +187,7 @@ def build_service(bus: Bus, keys: Keys, settings: RegistrationSettings) -> Regis
             origin_tolerance_m=settings.origin_tolerance_m)
         parts = CameraParts(
             source=source, calib=calib,
-            detector=detector if i == 0 else MarkerDetector(settings.dictionary),
+            detector=detector_for(settings, moving=moving),
             registrar=Registrar(registrar_settings, calib),
             board=None if settings.camera_pose_source == "tracker" else board,
             tracker_pose=(None if tracker is None

@@ -17,6 +17,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -51,6 +52,9 @@ _CV_REFINEMENT = {
 
 
 CUSTOM_SUFFIXES = (".yml", ".yaml")
+#: pixels a detection window reaches beyond a marker and its motion margin: more than
+#: OpenCV's largest adaptive-threshold window (23 px) and its border distance (3 px)
+WINDOW_PAD_PX = 32
 
 
 def is_custom(name: str) -> bool:
@@ -353,10 +357,136 @@ class MarkerDetector:
             sy = gray.shape[0] / small.shape[0]
             # pixel centres sit at integers: scale about the −0.5 pixel edge, not about 0
             found = (found + 0.5) * np.array([sx, sy]) - 0.5
+        return self.finish(gray, found, ids)
+
+    def finish(self, gray: np.ndarray, found: np.ndarray, ids: np.ndarray) -> list[Detection]:
+        """OpenCV's corners ``found`` (k, 4, 2, image pixels) of markers ``ids`` refined
+        (the "edges" refinement) and sorted by id then x then y."""
         if self.tuning.corner_refinement == "edges":
             found = refine_corners_edges(gray, found, search_px=self.tuning.edge_search_px,
                                          max_iterations=self.tuning.edge_max_iterations,
                                          tolerance_px=self.tuning.edge_tolerance_px)
         detections = [Detection(int(i), c) for i, c in zip(np.ravel(ids), found, strict=True)]
         detections.sort(key=lambda d: (d.marker_id, *d.center_px))
+        return detections
+
+
+class WindowedDetector:
+    """A :class:`MarkerDetector` that, between full-frame detections, looks only where the
+    markers were: the same detections for a fraction of the pixels.
+
+    Every ``full_every``-th frame (and the first, and whenever the last frame found nothing)
+    it detects over the whole image. In between it detects in a window around each marker
+    of the last frame — the marker plus ``margin`` of its side on every side, for its motion
+    between frames, plus :data:`WINDOW_PAD_PX` so that OpenCV's adaptive threshold sees the
+    same neighbourhood as over the whole image — with the minimum perimeter scaled so that
+    a window accepts exactly the sizes the whole image would. If a window loses a marker of
+    the last frame, that frame is detected again over the whole image, so a marker is never
+    missed for the window's sake, and the next 1, 2, 4, … (at most ``full_every``) frames
+    are detected whole before windows are tried again (a marker faster than its window does
+    not pay twice each frame); a marker newly in view is found at the next full frame, at
+    most ``full_every`` frames later. docs/registration.md, "Detection windows".
+    """
+
+    def __init__(self, detector: MarkerDetector, *, full_every: int = 15,
+                 margin: float = 1.0) -> None:
+        if full_every < 1:
+            raise ConfigError(f"full_every {full_every}: at least 1 (1 = every frame whole)")
+        self.detector = detector
+        self.full_every = int(full_every)
+        self.margin = float(margin)
+        self.full_frames = 0  #: frames detected over the whole image
+        self.window_frames = 0  #: frames detected in windows only
+        self.fallbacks = 0  #: frames whose windows lost a marker: detected whole again
+        self._last: list[Detection] = []
+        self._since_full = 0
+        #: after a fallback, frames detected whole before windows are tried again (doubling
+        #: while they keep failing: a marker moving faster than its window costs a wasted
+        #: window detection at most every full_every-th frame)
+        self._backoff = 0
+        self._skip = 0
+        self._window_detector: cv2.aruco.ArucoDetector | None = None
+        self._window_rate = -1.0
+
+    @property
+    def dictionary_name(self) -> str:
+        return self.detector.dictionary_name
+
+    def _windows(self, shape: tuple[int, ...]) -> list[tuple[int, int, int, int]]:
+        """(x0, y0, x1, y1) around the last frame's markers, overlapping ones merged."""
+        h, w = shape[:2]
+        boxes = []
+        for d in self._last:
+            lo, hi = d.corners_px.min(axis=0), d.corners_px.max(axis=0)
+            grow = self.margin * max(d.side_px, 1.0) + WINDOW_PAD_PX
+            boxes.append([max(0, math.floor(lo[0] - grow)), max(0, math.floor(lo[1] - grow)),
+                          min(w, math.ceil(hi[0] + grow) + 1),
+                          min(h, math.ceil(hi[1] + grow) + 1)])
+        merged = True
+        while merged:  # a handful of boxes: merge until none overlap
+            merged = False
+            for i in range(len(boxes)):
+                for j in range(i + 1, len(boxes)):
+                    a, b = boxes[i], boxes[j]
+                    if a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]:
+                        boxes[i] = [min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]),
+                                    max(a[3], b[3])]
+                        del boxes[j]
+                        merged = True
+                        break
+                if merged:
+                    break
+        return [(a, b, c, d) for a, b, c, d in boxes]
+
+    def _detect_window(self, gray: np.ndarray, box: tuple[int, int, int, int]
+                       ) -> tuple[Any, Any, Any]:
+        """OpenCV's (corners, ids, rejected) in ``box`` of ``gray``, in the box's pixels."""
+        x0, y0, x1, y1 = box
+        crop = gray[y0:y1, x0:x1]
+        # OpenCV's minimum perimeter is a rate of the input's larger side: scaled, the
+        # window accepts the marker sizes the whole image does
+        rate = self.detector.tuning.min_marker_perimeter_rate * max(gray.shape) / max(
+            crop.shape)
+        if self._window_detector is None or rate != self._window_rate:
+            params = self.detector._cv_parameters()
+            params.minMarkerPerimeterRate = rate
+            params.maxMarkerPerimeterRate = max(params.maxMarkerPerimeterRate, rate)
+            self._window_detector = cv2.aruco.ArucoDetector(self.detector.dictionary, params)
+            self._window_rate = rate
+        return self._window_detector.detectMarkers(np.ascontiguousarray(crop))
+
+    def detect(self, image: np.ndarray) -> list[Detection]:
+        """As :meth:`MarkerDetector.detect`: markers sorted by id then x then y."""
+        tuning = self.detector.tuning
+        if (not self._last or self._since_full + 1 >= self.full_every
+                or tuning.downscale > 1.0 or self._skip > 0):
+            self._skip = max(0, self._skip - 1)
+            return self._full(image)
+        gray = to_gray(image)
+        corners_all, ids_all = [], []
+        for box in self._windows(gray.shape):
+            corners, ids, _ = self._detect_window(gray, box)
+            if ids is not None and len(ids):
+                corners_all.append(np.asarray(corners, np.float64).reshape(-1, 4, 2)
+                                   + np.array([box[0], box[1]], np.float64))
+                ids_all.append(np.ravel(ids))
+        found_ids = sorted(int(i) for i in np.concatenate(ids_all)) if ids_all else []
+        if found_ids != sorted(d.marker_id for d in self._last):
+            self.fallbacks += 1  # a marker lost (or one more): the whole image decides
+            self._backoff = min(max(1, 2 * self._backoff), self.full_every)
+            self._skip = self._backoff
+            return self._full(image, gray)
+        self._backoff = 0
+        found = np.concatenate(corners_all)
+        detections = self.detector.finish(gray, found, np.concatenate(ids_all))
+        self._last = detections
+        self._since_full += 1
+        self.window_frames += 1
+        return detections
+
+    def _full(self, image: np.ndarray, gray: np.ndarray | None = None) -> list[Detection]:
+        detections = self.detector.detect(image if gray is None else gray)
+        self._last = detections
+        self._since_full = 0
+        self.full_frames += 1
         return detections

@@ -59,7 +59,7 @@ from common.messages import (
 )
 from services.registration.board import MarkerBoard, camera_pose_from_board
 from services.registration.calibration import CameraCalibration
-from services.registration.markers import MarkerDetector
+from services.registration.markers import MarkerDetector, WindowedDetector
 from services.registration.sources import FrameSource, SourceEnded, SyntheticSource
 from services.registration.tracking import (
     STATUS_WAITING,
@@ -71,7 +71,7 @@ from services.registration.tracking import (
 log = logging.getLogger(__name__)
 
 TRACKER_TIMEOUT_S = 1.0  #: an external CameraPose older than this is not used
-STATE_HEAD_EVERY_S = 0.2  #: a state's header is read (and the state copied) at most this often
+STATE_HEAD_EVERY_S = 0.5  #: a state's header is read (and the state copied) at most this often
 
 
 @dataclasses.dataclass(frozen=True)
@@ -128,7 +128,7 @@ class CameraParts:
 
     source: FrameSource
     calib: CameraCalibration
-    detector: MarkerDetector
+    detector: MarkerDetector | WindowedDetector
     registrar: Registrar
     board: MarkerBoard | None = None
     tracker_pose: Callable[[], np.ndarray | None] | None = None
@@ -150,6 +150,15 @@ class PipelineStats:
     ended: bool = False
     publish_times: collections.deque = dataclasses.field(
         default_factory=lambda: collections.deque(maxlen=600))
+
+
+def _window_counts(detector: MarkerDetector | WindowedDetector) -> dict[str, int]:
+    """How a camera's frames were detected: over the whole image, in windows only, and
+    the windows that lost a marker (detected whole again); empty if it never windows."""
+    if not isinstance(detector, WindowedDetector):
+        return {}
+    return {"detected_whole": detector.full_frames, "detected_in_windows":
+            detector.window_frames, "window_fallbacks": detector.fallbacks}
 
 
 class CameraPipeline:
@@ -621,6 +630,7 @@ class RegistrationService:
         return {"cameras": {p.camera: {
             "frames": p.stats.published, "registrations": p.stats.registrations,
             "refused": p.stats.refused, "tracked": p.stats.tracked, "epoch": p.epoch,
+            **_window_counts(p.parts.detector),
             "status": p.status} for p in self.pipelines},
             "dropped": self.drops.total + sum(p.read_errors.total for p in self.pipelines)
             + (self.tracker.drops.total if self.tracker is not None else 0)}

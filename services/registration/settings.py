@@ -58,6 +58,11 @@ class RegistrationSettings:
                          min=0.1, group=_CAMERA)
     jpeg_quality: int = setting(80, doc="JPEG quality of published frames", min=1, max=100,
                                 group=_CAMERA)
+    detect_full_every: int = setting(
+        15, doc="a fixed camera looks over the whole image every this many frames and, in "
+                "between, only around the markers of the last frame (the same detections: "
+                "docs/registration.md, \"Detection windows\"); 1 = every frame whole; a "
+                "head-mounted camera always looks over the whole image", min=1, group=_CAMERA)
     loop: bool = setting(False, doc="replay a video file / image folder from the start when "
                                     "it ends", group=_CAMERA)
     register_frames: int = setting(5, doc="frames averaged for a registration (the robot "

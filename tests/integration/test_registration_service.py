@@ -173,6 +173,9 @@ def test_frames_registration_late_get_and_tracked_poses(make_client, run_service
     errors = [np.linalg.norm(t.pose[:2] - by_stamp[t.stamp].pose[:2]) for t in tracked.all()]
     assert max(errors) < 0.01, max(errors)
     assert service.pipelines[0].stats.registrations == 1  # a fixed camera registers once
+    # a fixed camera looks around the last marker between whole frames (tracked just as well)
+    counts = service.summary()["cameras"][CAMERA]
+    assert counts["detected_in_windows"] > counts["detected_whole"] > 0, counts
 
 
 def test_reregister_on_request_and_bad_control_messages(make_client, run_service) -> None:
@@ -373,6 +376,7 @@ def test_head_mounted_stereo_follows_the_moving_cameras(make_client, run_service
         dt, dr = pose_error(pose.T_world_from_camera, T_wc)
         assert dt < 0.02 and dr < DEG
     assert service.pipelines[1].stats.tracked == 0  # one tracked stream per robot
+    assert "detected_in_windows" not in service.summary()["cameras"][names[0]]  # moving: whole
 
 
 def test_cli_process_publishes_and_stops_cleanly_on_sigterm(router_endpoint,
