@@ -11,7 +11,7 @@ from __future__ import annotations
 import math
 import sys
 from collections.abc import Sequence
-from typing import Any
+from typing import Any, TypeGuard
 
 import numpy as np
 
@@ -121,6 +121,13 @@ def _describe(value: Any) -> str:
     return text if len(text) <= 60 else text[:57] + "..."
 
 
+def is_frozen_view(data: Any) -> TypeGuard[memoryview]:
+    """A read-only byte memoryview (into an immutable payload: common.messages'
+    ``unpack_in_place``), taken as array data without a copy, as ``bytes`` is."""
+    return (type(data) is memoryview and data.readonly and data.ndim == 1
+            and data.format == "B" and isinstance(data.obj, bytes))
+
+
 def decode_array(
     raw: Any, *, message: str, field: str, dtype: str, shape: Sequence[int | None],
     finite: bool = True,
@@ -136,7 +143,8 @@ def decode_array(
     # in a few operations, without a copy — every state a consumer decodes goes this way
     if type(raw) is dict and raw.get("dtype") == dtype:
         wire_shape, data = raw.get("shape"), raw.get("data")
-        if type(data) is bytes and type(wire_shape) is list and len(wire_shape) == len(shape):
+        if (type(data) is bytes or is_frozen_view(data)) and type(
+                wire_shape) is list and len(wire_shape) == len(shape):
             count = 1
             for d, s in zip(wire_shape, shape, strict=True):
                 if type(d) is not int or d < 0 or (s is not None and d != s):
@@ -178,7 +186,8 @@ def decode_array(
                                f"{count * wire.itemsize} data bytes for shape {list(wire_shape)}",
                                f"{len(data)} bytes")
         # a read-only view of the (immutable) bytes: no copy when the dtype is the field's
-        array = np.frombuffer(data if isinstance(data, bytes) else bytes(data),
+        array = np.frombuffer(data if isinstance(data, bytes) or is_frozen_view(data)
+                              else bytes(data),
                               dtype=wire).reshape(wire_shape)
     elif isinstance(raw, (list, tuple)):
         depth = 0

@@ -37,6 +37,7 @@ from common.arrays import (
     decode_array,
     encode_array,
     frozen_array,
+    is_frozen_view,
     values_equal,
 )
 from common.errors import MessageError
@@ -277,8 +278,12 @@ class Message:
                  build: Callable[..., Self], options: dict[str, Any]) -> Self:
         """``build(map, **options)`` of the msgpack map in ``payload``; every failure one
         MessageError (undecodable bytes, or a case the validators missed)."""
+        raw: Any = _NOT_UNPACKED
+        if type(payload) is bytes and len(payload) >= IN_PLACE_ABOVE:
+            raw = unpack_in_place(payload)  # the large arrays as views, not copies
         try:
-            raw = msgpack.unpackb(bytes(payload), raw=False, strict_map_key=False)
+            if raw is _NOT_UNPACKED:
+                raw = msgpack.unpackb(bytes(payload), raw=False, strict_map_key=False)
         except Exception as exc:  # msgpack raises several unrelated types
             raise MessageError(cls.TYPE, "<payload>", "a msgpack map",
                                f"undecodable bytes ({type(exc).__name__})") from None
@@ -378,7 +383,8 @@ class Message:
                     if type(value) is not dict or value.get("dtype") != dstr:
                         return None
                     wire_shape, data = value.get("shape"), value.get("data")
-                    if type(data) is not bytes or type(wire_shape) is not list:
+                    if not (type(data) is bytes or is_frozen_view(data)) or type(
+                            wire_shape) is not list:
                         return None
                     if own_shape:
                         shape = cls._wire_shape(name, raw, shape)
@@ -1102,6 +1108,71 @@ def _peek_walked(view: memoryview, names: tuple[str, ...]) -> dict[str, Any]:
                                        strict_map_key=False)
         pos = value_end
     return out
+
+
+#: a payload at least this large is unpacked in place (:func:`unpack_in_place`)
+IN_PLACE_ABOVE = 1 << 20
+#: a bin at least this large, one level down (an array's data), stays in the payload
+IN_PLACE_BIN = 1 << 16
+_NOT_UNPACKED = object()
+
+
+def _map_header(view: memoryview, pos: int) -> tuple[int, int]:
+    """(entries, offset of the first key) of the msgpack map at ``pos``."""
+    b = view[pos] if pos < len(view) else 0xC1
+    if 0x80 <= b <= 0x8F:
+        return b & 0x0F, pos + 1
+    if b in (0xDE, 0xDF):
+        width = _COUNTED[b][0]
+        return int.from_bytes(view[pos + 1:pos + 1 + width], "big"), pos + 1 + width
+    raise _NotWalked
+
+
+def _in_place(view: memoryview, start: int, end: int, budget: list[int]) -> Any:
+    """The msgpack value at view[start:end]; a map's large bin values as views."""
+    if not (0x80 <= view[start] <= 0x8F or view[start] in (0xDE, 0xDF)):
+        return msgpack.unpackb(view[start:end], raw=False, strict_map_key=False)
+    count, pos = _map_header(view, start)
+    out: dict[Any, Any] = {}
+    for _ in range(count):
+        key_end = _skip(view, pos, budget)
+        value_end = _skip(view, key_end, budget)
+        key = msgpack.unpackb(view[pos:key_end], raw=False, strict_map_key=False)
+        b = view[key_end]
+        width = {0xC4: 1, 0xC5: 2, 0xC6: 4}.get(b, 0)
+        if width and value_end - key_end - 1 - width >= IN_PLACE_BIN:
+            out[key] = view[key_end + 1 + width:value_end]  # read-only: bytes underneath
+        else:
+            out[key] = msgpack.unpackb(view[key_end:value_end], raw=False,
+                                       strict_map_key=False)
+        pos = value_end
+    if pos != end:
+        raise _NotWalked
+    return out
+
+
+def unpack_in_place(payload: bytes) -> Any:
+    """``msgpack.unpackb(payload)`` of a map, but the large bins of its values' maps (the
+    arrays' ``data``, at least :data:`IN_PLACE_BIN` bytes) are read-only memoryviews into
+    ``payload`` instead of copies: a 32 MB state's covariance is decoded without copying
+    it. Anything the walk does not take (not a map, malformed, trailing bytes, a huge flat
+    list) is :data:`_NOT_UNPACKED`, for msgpack itself to decode or refuse."""
+    view = memoryview(payload)
+    budget = [_PEEK_ITEMS]
+    try:
+        count, pos = _map_header(view, 0)
+        out: dict[Any, Any] = {}
+        for _ in range(count):
+            key_end = _skip(view, pos, budget)
+            value_end = _skip(view, key_end, budget)
+            key = msgpack.unpackb(view[pos:key_end], raw=False, strict_map_key=False)
+            out[key] = _in_place(view, key_end, value_end, budget)
+            pos = value_end
+        if pos != len(view):
+            raise _NotWalked  # msgpack refuses trailing bytes (ExtraData)
+        return out
+    except Exception:  # malformed, or not walked: msgpack itself decides
+        return _NOT_UNPACKED
 
 
 def peek_fields(payload: bytes | bytearray | memoryview,
