@@ -40,7 +40,7 @@ from common.arrays import (
     is_frozen_view,
     values_equal,
 )
-from common.errors import MessageError
+from common.errors import MessageError, SlamlensError
 
 SCHEMA = 1
 #: binary values of at least this many bytes are written as parts of their own (wire_parts)
@@ -1047,7 +1047,7 @@ _COUNTED = {0xDC: (2, 1), 0xDD: (4, 1), 0xDE: (2, 2), 0xDF: (4, 2)}
 _PEEK_ITEMS = 100_000
 
 
-class _NotWalked(Exception):
+class _NotWalked(SlamlensError):
     """The payload is not one the peek walks (malformed, or beyond _PEEK_ITEMS items)."""
 
 
