@@ -291,7 +291,10 @@ def test_the_plots_are_real_charts_and_the_verdict_is_the_monitors(live_viewer, 
     points = page.evaluate(f"window.slamlens.charts['plot-nis'].data[{nis_index}]"
                            ".filter((v) => v !== null).length")
     assert points >= 3 and stroke_pixels("plot-nis", nis_index) >= points - 1
-    assert stroke_pixels("plot-nees", charts["plot-nees"]["labels"].index("nees_pose")) >= 5
+    # NEES: the running average and the band are drawn over the line and cover some of its
+    # points (4–5 of 9 seen on a loaded machine): a drawn line shows at several, a missing
+    # one at none
+    assert stroke_pixels("plot-nees", charts["plot-nees"]["labels"].index("nees_pose")) >= 3
 
     # the verdict: the same words in the top bar and the panel, the standing list once each
     expected = summary_text(health(10))
