@@ -1086,37 +1086,6 @@ def _skip(buf: memoryview, pos: int, budget: list[int]) -> int:
     return pos
 
 
-def _peek_walked(view: memoryview, names: tuple[str, ...]) -> dict[str, Any]:
-    """peek_fields by walking the top-level map over ``view``: only the fields wanted (and
-    the keys) are decoded, every other value is stepped over in place."""
-    budget = [_PEEK_ITEMS]
-    b = view[0] if len(view) else 0xC1
-    if 0x80 <= b <= 0x8F:
-        count, pos = b & 0x0F, 1
-    elif b in (0xDE, 0xDF):
-        width = _COUNTED[b][0]
-        count, pos = int.from_bytes(view[1:1 + width], "big"), 1 + width
-    else:
-        raise _NotWalked
-    out: dict[str, Any] = {}
-    for _ in range(count):
-        key_end = _skip(view, pos, budget)
-        key = msgpack.unpackb(view[pos:key_end], raw=False, strict_map_key=False)
-        value_end = _skip(view, key_end, budget)
-        if isinstance(key, str) and key in names:
-            out[key] = msgpack.unpackb(view[key_end:value_end], raw=False,
-                                       strict_map_key=False)
-        pos = value_end
-    return out
-
-
-#: a payload at least this large is unpacked in place (:func:`unpack_in_place`)
-IN_PLACE_ABOVE = 1 << 20
-#: a bin at least this large, one level down (an array's data), stays in the payload
-IN_PLACE_BIN = 1 << 16
-_NOT_UNPACKED = object()
-
-
 def _map_header(view: memoryview, pos: int) -> tuple[int, int]:
     """(entries, offset of the first key) of the msgpack map at ``pos``."""
     b = view[pos] if pos < len(view) else 0xC1
@@ -1128,25 +1097,53 @@ def _map_header(view: memoryview, pos: int) -> tuple[int, int]:
     raise _NotWalked
 
 
-def _in_place(view: memoryview, start: int, end: int, budget: list[int]) -> Any:
-    """The msgpack value at view[start:end]; a map's large bin values as views."""
-    if not (0x80 <= view[start] <= 0x8F or view[start] in (0xDE, 0xDF)):
-        return msgpack.unpackb(view[start:end], raw=False, strict_map_key=False)
-    count, pos = _map_header(view, start)
-    out: dict[Any, Any] = {}
+def _entries(view: memoryview, pos: int, budget: list[int]
+             ) -> Iterator[tuple[Any, int, int]]:
+    """(key, value start, value end) of each entry of the msgpack map at ``pos``; the
+    keys decoded, the values only stepped over. The offset past the map is the last
+    value end (``pos`` past the header for an empty map)."""
+    count, pos = _map_header(view, pos)
     for _ in range(count):
         key_end = _skip(view, pos, budget)
         value_end = _skip(view, key_end, budget)
-        key = msgpack.unpackb(view[pos:key_end], raw=False, strict_map_key=False)
-        b = view[key_end]
-        width = {0xC4: 1, 0xC5: 2, 0xC6: 4}.get(b, 0)
-        if width and value_end - key_end - 1 - width >= IN_PLACE_BIN:
-            out[key] = view[key_end + 1 + width:value_end]  # read-only: bytes underneath
-        else:
-            out[key] = msgpack.unpackb(view[key_end:value_end], raw=False,
-                                       strict_map_key=False)
+        yield _unpack(view, pos, key_end), key_end, value_end
         pos = value_end
-    if pos != end:
+
+
+def _unpack(view: memoryview, start: int, end: int) -> Any:
+    """msgpack's value of view[start:end]."""
+    return msgpack.unpackb(view[start:end], raw=False, strict_map_key=False)
+
+
+def _peek_walked(view: memoryview, names: tuple[str, ...]) -> dict[str, Any]:
+    """peek_fields by walking the top-level map over ``view``: only the fields wanted (and
+    the keys) are decoded, every other value is stepped over in place."""
+    return {key: _unpack(view, start, end) for key, start, end in
+            _entries(view, 0, [_PEEK_ITEMS]) if isinstance(key, str) and key in names}
+
+
+#: a payload at least this large is unpacked in place (:func:`unpack_in_place`)
+IN_PLACE_ABOVE = 1 << 20
+#: a bin at least this large, one level down (an array's data), stays in the payload
+IN_PLACE_BIN = 1 << 16
+_NOT_UNPACKED = object()
+#: the length field's size of bin 8/16/32
+_BIN_WIDTH = {0xC4: 1, 0xC5: 2, 0xC6: 4}
+
+
+def _in_place(view: memoryview, start: int, end: int, budget: list[int]) -> Any:
+    """The msgpack value at view[start:end]; a map's large bin values as views."""
+    if not (0x80 <= view[start] <= 0x8F or view[start] in (0xDE, 0xDF)):
+        return _unpack(view, start, end)
+    out: dict[Any, Any] = {}
+    last = _map_header(view, start)[1]  # an empty map ends after its header
+    for key, value_start, last in _entries(view, start, budget):
+        width = _BIN_WIDTH.get(view[value_start], 0)
+        if width and last - value_start - 1 - width >= IN_PLACE_BIN:
+            out[key] = view[value_start + 1 + width:last]  # read-only: bytes underneath
+        else:
+            out[key] = _unpack(view, value_start, last)
+    if last != end:
         raise _NotWalked
     return out
 
@@ -1160,15 +1157,11 @@ def unpack_in_place(payload: bytes) -> Any:
     view = memoryview(payload)
     budget = [_PEEK_ITEMS]
     try:
-        count, pos = _map_header(view, 0)
         out: dict[Any, Any] = {}
-        for _ in range(count):
-            key_end = _skip(view, pos, budget)
-            value_end = _skip(view, key_end, budget)
-            key = msgpack.unpackb(view[pos:key_end], raw=False, strict_map_key=False)
-            out[key] = _in_place(view, key_end, value_end, budget)
-            pos = value_end
-        if pos != len(view):
+        last = _map_header(view, 0)[1]  # an empty map ends after its header
+        for key, value_start, last in _entries(view, 0, budget):
+            out[key] = _in_place(view, value_start, last, budget)
+        if last != len(view):
             raise _NotWalked  # msgpack refuses trailing bytes (ExtraData)
         return out
     except Exception:  # malformed, or not walked: msgpack itself decides

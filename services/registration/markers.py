@@ -408,10 +408,6 @@ class WindowedDetector:
         self._window_detector: cv2.aruco.ArucoDetector | None = None
         self._window_rate = -1.0
 
-    @property
-    def dictionary_name(self) -> str:
-        return self.detector.dictionary_name
-
     def _windows(self, shape: tuple[int, ...]) -> list[tuple[int, int, int, int]]:
         """(x0, y0, x1, y1) around the last frame's markers, overlapping ones merged."""
         h, w = shape[:2]
@@ -422,21 +418,20 @@ class WindowedDetector:
             boxes.append([max(0, math.floor(lo[0] - grow)), max(0, math.floor(lo[1] - grow)),
                           min(w, math.ceil(hi[0] + grow) + 1),
                           min(h, math.ceil(hi[1] + grow) + 1)])
-        merged = True
-        while merged:  # a handful of boxes: merge until none overlap
-            merged = False
-            for i in range(len(boxes)):
-                for j in range(i + 1, len(boxes)):
-                    a, b = boxes[i], boxes[j]
-                    if a[0] < b[2] and b[0] < a[2] and a[1] < b[3] and b[1] < a[3]:
-                        boxes[i] = [min(a[0], b[0]), min(a[1], b[1]), max(a[2], b[2]),
-                                    max(a[3], b[3])]
-                        del boxes[j]
-                        merged = True
-                        break
-                if merged:
-                    break
-        return [(a, b, c, d) for a, b, c, d in boxes]
+        merged: list[list[int]] = []
+        for box in boxes:  # a handful of boxes: each absorbs every one it overlaps
+            i = 0
+            while i < len(merged):
+                o = merged[i]
+                if box[0] < o[2] and o[0] < box[2] and box[1] < o[3] and o[1] < box[3]:
+                    box = [min(box[0], o[0]), min(box[1], o[1]), max(box[2], o[2]),
+                           max(box[3], o[3])]
+                    del merged[i]
+                    i = 0  # grown: it may overlap one it passed
+                else:
+                    i += 1
+            merged.append(box)
+        return [(a, b, c, d) for a, b, c, d in merged]
 
     def _detect_window(self, gray: np.ndarray, box: tuple[int, int, int, int]
                        ) -> tuple[Any, Any, Any]:
