@@ -25,6 +25,8 @@ CPU seconds per process over the window and the load average are printed too.
 Zenoh session, shared memory on): where a state's time goes (EKF update, materialising the
 covariance, encoding, the shared-memory copy, the publish), and the publish path as it was
 before issue 13 (msgpack.packb of a freshly materialised state) timed on the same states.
+When the window opens the bench prints a line with the processes' ids, so a sampling
+profiler can be attached for it (e.g. ``py-spy record -p PID -d 20``).
 ``--profile-viewer`` profiles the viewer's state → picture path in this process at
 n = 1000 (:func:`profile_viewer`); ``--profile-only`` skips the pipeline runs.
 
@@ -205,6 +207,8 @@ def run(endpoint: str, world: str, *, full: bool, window_s: float, seed: int,
         status_start = _status(*viewer_at) if viewer_at else None
         cpu0, load0 = _cpu(procs), os.getloadavg()[0]
         t0 = time.monotonic()
+        pids = " ".join(f"{k}={p.pid}" for k, p in procs.items())
+        print(f"  window open for {window_s:.0f} s ({world}, pids {pids})", flush=True)
         time.sleep(window_s)
         t1 = time.monotonic()
         cpu1, load1 = _cpu(procs), os.getloadavg()[0]
