@@ -455,7 +455,7 @@ def profile_viewer(repeats: int = 9) -> None:
 
     direct = cpu_ms(straight)
     copy = cpu_ms(lambda k: bytearray(payload))
-    print(f"  a state onto its layers (once per state, viewer-prepare) {layers:5.1f} ms; a "
+    print(f"  a state onto its layers (once per state, viewer-layers) {layers:5.1f} ms; a "
           f"camera frame: layers put over it {over:5.2f} ms vs drawn straight {direct:5.1f} "
           f"ms (ratio {direct / over:.0f}×)")
     print(f"  a {len(payload) / 2 ** 20:.1f} MiB payload copied (each state the viewer "

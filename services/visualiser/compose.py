@@ -152,14 +152,19 @@ class Composer:
             return placeholder(eye, f"cannot draw state seq {state.seq}: "
                                     f"{type(exc).__name__}", settings)
 
-    def prepare(self, frame: Frame | None, robot: str, state: SlamState,
-                settings: ViewSettings, health: Health | None) -> None:
-        """Before the render thread takes ``state`` in (``viewer-prepare``): its scene
-        under ``settings`` and — one robot over a camera — its layers through each eye of
-        ``frame`` (the last render cycle's; a camera or notes changed meanwhile are drawn
-        again by the render thread), so that thread only puts them over camera frames."""
+    def prepare_scene(self, robot: str, state: SlamState, settings: ViewSettings,
+                      health: Health | None) -> None:
+        """The first half of preparing ``state`` (``viewer-prepare``): its scene under
+        ``settings`` (clusters, the overview, glyphs)."""
+        self.histories.get(robot).renderer.prepare(state, settings, health)
+
+    def prepare_layers(self, frame: Frame | None, robot: str, state: SlamState,
+                       settings: ViewSettings, health: Health | None) -> None:
+        """The second half (``viewer-layers``): one robot over a camera, ``state`` drawn
+        on its layers through each eye of ``frame`` (the last render cycle's; a camera or
+        notes changed meanwhile are drawn again by the render thread), so that thread
+        only puts them over camera frames."""
         renderer = self.histories.get(robot).renderer
-        renderer.prepare(state, settings, health)
         if (frame is None or len(frame.robots) != 1 or frame.robots[0].name != robot
                 or not renderer.layered(state)):
             return

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import queue
 import threading
 import time
 from collections import deque
@@ -327,11 +328,21 @@ class Intake:
                  on_input: Callable[[], None], drops: DropCounter,
                  discover: bool = False, max_frame_pixels: int = 16_777_216,
                  source: str = "state", summary_query: SummaryQuery | None = None,
-                 prepare: Callable[[str, SlamState], None] | None = None) -> None:
+                 prepare: Callable[[str, SlamState], None] | None = None,
+                 finish: Callable[[str, SlamState], None] | None = None) -> None:
         self.bus = bus
         #: called on the ``viewer-prepare`` thread with each decoded state before the render
         #: thread takes it in (the viewer computes its pictures' scenes there)
         self._prepare = prepare
+        #: if given, the second stage: called on the ``viewer-layers`` thread with each
+        #: prepared state (the viewer draws its layers there) while ``viewer-prepare``
+        #: decodes the next one — a two-stage pipeline (:meth:`_prepare_loop`)
+        self._finish = finish
+        #: prepared states waiting for ``viewer-layers`` (one at most: the next state is
+        #: taken from Zenoh only when it can go on, so it is the newest there is)
+        self._handoff: queue.Queue[tuple[_Robot, float, SlamState | None]] = \
+            queue.Queue(maxsize=1)
+        self._handed = threading.Event()  #: ``viewer-layers`` took a state from the handoff
         self._prepare_wake = threading.Event()
         #: "state": subscribe to each robot's full state; "summary": pull its summary
         #: stream instead (docs/remote_viewers.md); either fills the robot's state slot
@@ -403,6 +414,8 @@ class Intake:
             self.add_robot(robot)
         self._start_thread("viewer-decode", self._decode_loop)
         self._start_thread("viewer-prepare", self._prepare_loop)
+        if self._finish is not None:
+            self._start_thread("viewer-layers", self._finish_loop)
         if self._discover:
             self._start_thread("viewer-discover", self._discover_loop)
 
@@ -494,6 +507,7 @@ class Intake:
         self._stop.set()
         self._decode_wake.set()
         self._prepare_wake.set()
+        self._handed.set()
         with self._lock:
             pullers = list(self._puller_of.values())
         for puller in pullers:  # all told first; a query in flight ends with the bus
@@ -507,8 +521,18 @@ class Intake:
     def _prepare_loop(self) -> None:
         """States: decoded here, newest first (latest wins), handed to ``prepare`` and
         then to the render thread, which meanwhile draws the previous state (issue 13:
-        at n = 1000 a state's decoding and scenes cost as much as drawing it)."""
+        at n = 1000 a state's decoding and scenes cost as much as drawing it).
+
+        With ``finish`` the state goes to ``viewer-layers`` instead, which draws it while
+        this thread decodes the next: two stages, each a state's half of the work, so on a
+        machine with a core to spare a new state is ready every max(stage) instead of
+        every sum. The next state is taken from Zenoh only once the handoff is free, so
+        it is the newest when its work begins (a finished state never waits for another)."""
         while not self._stop.is_set():
+            while self._finish is not None and self._handoff.full() \
+                    and not self._stop.is_set():
+                self._handed.wait(0.5)
+                self._handed.clear()
             self._prepare_wake.wait(0.5)
             self._prepare_wake.clear()
             with self._lock:
@@ -529,7 +553,27 @@ class Intake:
                         self._prepare(r.name, state)
                     except Exception:  # preparing is an optimisation: the render draws
                         log.exception("preparing state seq %d failed", state.seq)
-                r.prepared.put((taken.received, state))
+                if self._finish is None:
+                    r.prepared.put((taken.received, state))
+                else:  # only this thread puts: after the wait above there is room
+                    self._handoff.put((r, taken.received, state))
+
+    def _finish_loop(self) -> None:
+        """The second stage (``viewer-layers``): each prepared state to ``finish``, then
+        to the render thread."""
+        assert self._finish is not None
+        while not self._stop.is_set():
+            try:
+                r, received, state = self._handoff.get(timeout=0.5)
+            except queue.Empty:
+                continue
+            self._handed.set()
+            if state is not None:
+                try:
+                    self._finish(r.name, state)
+                except Exception:  # as in preparing: the render thread draws it itself
+                    log.exception("finishing state seq %d failed", state.seq)
+            r.prepared.put((received, state))
 
     def _decode_state(self, r: _Robot, raw: Raw) -> SlamState | None:
         # symmetry is the monitor's business: the viewer shows what the estimator sent

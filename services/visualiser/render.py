@@ -46,7 +46,9 @@ T = TypeVar("T")
 MAX_PATH_POINTS = 20_000  #: beyond this the older path is thinned (every other point)
 _MAX_TRACKERS = 8  # one per distinct clustering setting in use, oldest dropped
 _MAX_SCENES = 16  # scenes kept per state (distinct settings of open views)
-_STATES_KEPT = 2  # states whose scenes and cluster ids are kept: drawn, being prepared
+#: states whose scenes, cluster ids and layers are kept: the one drawn, the one being drawn
+#: onto layers (viewer-layers), the one being prepared (viewer-prepare)
+_STATES_KEPT = 3
 _MAX_LAYERS = 4  # drawn layers kept per state (distinct settings and cameras of open views)
 #: states of at least this many features are drawn onto layers over a camera (below, a
 #: state is cheap to draw and usually comes faster than camera frames: drawn straight)
@@ -88,9 +90,10 @@ class _Glyphs:
 
 class _PerState(Generic[T]):
     """Values computed from a state, kept for the :data:`_STATES_KEPT` newest states (the
-    one drawn, the one being prepared) and at most ``per_state`` keys of each, oldest out
-    first (``touch``: a key used again counts as new). States are held, not only their
-    ids, so an id is never reused while it is a key. The caller holds the renderer's lock.
+    one drawn, the one on layers, the one being prepared) and at most ``per_state`` keys
+    of each, oldest out first (``touch``: a key used again counts as new). States are
+    held, not only their ids, so an id is never reused while it is a key. The caller
+    holds the renderer's lock.
     """
 
     def __init__(self, per_state: int, *, touch: bool = False) -> None:
@@ -145,11 +148,11 @@ class Renderer:
         #: update per state, however many pictures are drawn of it)
         self._clustered: _PerState[np.ndarray] = _PerState(_MAX_TRACKERS)
         self.scenes_built = 0  #: scenes computed (the rest were reused)
-        #: the two newest states drawn as layers, per settings, camera, health and notes
+        #: the newest states drawn as layers, per settings, camera, health and notes
         self._layers: _PerState[Layers] = _PerState(_MAX_LAYERS)
         self.layers_built = 0  #: states drawn onto layers (the rest were reused)
         #: the same, by the name of the thread that drew them (the viewer draws them on
-        #: viewer-prepare, so that viewer-render only puts them over camera frames)
+        #: viewer-layers, so that viewer-render only puts them over camera frames)
         self.layers_built_on: Counter[str] = Counter()
 
     # -- history --------------------------------------------------------------------
@@ -341,8 +344,8 @@ class Renderer:
                health: Health | None = None, notes: Sequence[LegendRow] = ()) -> Layers:
         """The state drawn under ``settings`` through ``camera`` (fitted to the picture's
         size) as two layers (:meth:`render`): drawn once per state, settings, camera,
-        health drawn and notes, then reused (the ``viewer-prepare`` thread draws them
-        before the render thread needs them)."""
+        health drawn and notes, then reused (the viewer's ``viewer-layers`` thread draws
+        them before the render thread needs them)."""
         violating, suspects = _health_sets(health if settings.health else None, state)
         shown_health = (summary_text(health) if settings.health and health is not None
                         else None)
@@ -676,8 +679,9 @@ def _draw_objects(c: Canvas) -> _Glyphs:
     item = np.concatenate([np.arange(len(shown))]
                           + [np.arange(len(cones)) for cones in cone_sets])
     lt = draw.line_type_for(len(shown), limit=_AA_GLYPH_LIMIT)
+    kinds, items = kind.tolist(), item.tolist()  # Python ints: ~1000 items per picture
     for k in np.argsort(-depth, kind="stable").tolist():
-        s, i = int(kind[k]), int(item[k])
+        s, i = kinds[k], items[k]
         if s < 0:
             shaded.draw(c.img, i, line_type=lt)  # type: ignore[union-attr]
         else:

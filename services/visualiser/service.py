@@ -4,8 +4,9 @@ It is assembled from parts a reader can name, each in its own module:
 
 * :class:`~services.visualiser.intake.Intake` — subscriptions, late join, decoding
   (thread ``viewer-decode`` decodes camera frames as they arrive; ``viewer-prepare``
-  decodes states and computes the open views' scenes of them, :meth:`_prepare`, before
-  the render thread takes them in);
+  decodes states and computes the open views' scenes of them, :meth:`_prepare`, and
+  ``viewer-layers`` draws each onto its layers, :meth:`_finish`, meanwhile the next is
+  decoded, before the render thread takes them in);
 * :class:`~services.visualiser.series.PlotSampler` — thread ``viewer-plots`` samples
   large maps for the plots;
 * :class:`~services.visualiser.pipeline.RenderPipeline` — thread ``viewer-render`` takes
@@ -36,7 +37,7 @@ from common.clusters import ClusterTracker, cluster_labels
 from common.drops import DropCounter
 from common.errors import ConfigError
 from common.keys import Keys
-from common.messages import CameraControl, SlamState
+from common.messages import CameraControl, Health, SlamState
 from common.summary import SummaryQuery
 from services.visualiser.api import ViewerApi
 from services.visualiser.clients import ClientRegistry
@@ -83,7 +84,7 @@ class ViewerService:
                                  what="clusters", budget=config.summary_budget,
                                  threshold_m=ViewSettings().cluster_threshold_m,
                                  count=ViewSettings().cluster_count),
-                             prepare=self._prepare)
+                             prepare=self._prepare, finish=self._finish)
         self.composer = Composer(self.intake, eyes=self.eyes, histories=self.histories,
                                  failures=self.failures,
                                  restart_note_s=config.restart_note_s)
@@ -191,19 +192,30 @@ class ViewerService:
                 history.series.add_health(health, now=now)
 
     def _prepare(self, robot: str, state: SlamState) -> None:
-        """On the ``viewer-prepare`` thread, before the render thread takes ``state`` in:
-        the scenes of the views looked at (clusters, the overview, glyphs: the per-state
-        half of a picture at n = 1000) and, over a camera, the state drawn on layers
-        (:meth:`Composer.prepare`), so the render thread only puts them over camera frames
-        — of the previous state, meanwhile. One robot only (several draw under per-robot
-        settings)."""
+        """On the ``viewer-prepare`` thread, the first stage of a new state: the scenes of
+        the views looked at (clusters, the overview, glyphs: the heavier half of a picture
+        at n = 1000). One robot only (several draw under per-robot settings)."""
         if len(self.intake.robot_names) != 1:
             return
-        health = next((r.health for r in self.intake.snapshot().robots if r.name == robot),
-                      None)
+        health = self._health_of(robot)
+        for view in self.clients.looked_at():
+            self.composer.prepare_scene(robot, state, view.settings, health)
+
+    def _finish(self, robot: str, state: SlamState) -> None:
+        """On the ``viewer-layers`` thread, the second stage, while ``viewer-prepare``
+        decodes the next state: over a camera, the state drawn on layers
+        (:meth:`Composer.prepare_layers`), so the render thread only puts them over camera
+        frames — of the previous state, meanwhile."""
+        if len(self.intake.robot_names) != 1:
+            return
+        health = self._health_of(robot)
         frame = self.pipeline.last_frame
         for view in self.clients.looked_at():
-            self.composer.prepare(frame, robot, state, view.settings, health)
+            self.composer.prepare_layers(frame, robot, state, view.settings, health)
+
+    def _health_of(self, robot: str) -> Health | None:
+        return next((r.health for r in self.intake.snapshot().robots if r.name == robot),
+                    None)
 
     def _select_summary(self) -> None:
         """``--source summary``: the summary queries ask for the pairs of the selection

@@ -675,7 +675,7 @@ def test_the_reregister_button_asks_the_registration_service_by_a_query(start_vi
 
 def test_each_state_is_drawn_on_layers_before_the_render_thread_takes_it_in(
         start_viewer, publisher) -> None:
-    """Over a camera, ``viewer-prepare`` draws each new state onto its layers (issue 13),
+    """Over a camera, ``viewer-layers`` draws each new state onto its layers (issue 13),
     so the render thread only puts them over the frames: of five states it draws at most
     the first itself (before any picture, the eyes are not known yet)."""
     service, url = start_viewer(camera=CAMERA)
@@ -689,5 +689,5 @@ def test_each_state_is_drawn_on_layers_before_the_render_thread_takes_it_in(
     assert red_pixels(image, midpoint(0, 1)) >= 40  # drawn, over the camera's picture
     assert np.abs(image[HEIGHT - 20, WIDTH - 20].astype(int) - BACKGROUND_BGR).max() <= 8
     built = service.renderer.layers_built_on
-    assert built["viewer-prepare"] >= 4, built
+    assert built["viewer-layers"] >= 4, built
     assert built["viewer-render"] <= 1, built

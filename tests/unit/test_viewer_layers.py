@@ -245,3 +245,59 @@ def test_the_viewer_copies_out_and_decodes_only_the_newest_state(make_client) ->
     finally:
         hold.set()
         intake.stop()
+
+
+def test_the_next_state_is_prepared_while_the_last_is_drawn_and_it_is_the_newest(
+        make_client) -> None:
+    """With a second stage (``finish``, thread ``viewer-layers``) state 2 is prepared
+    while state 1 is still being finished — the two stages overlap — and, while state 2
+    waits for the second stage, states 3–6 arrive: the next one prepared is 6, taken
+    only when it can go on, and 3–5 are never copied out of Zenoh."""
+    keys = Keys()
+    estimator, viewer = make_client(), CountingBus(make_client(), arrivals=6)
+    publisher = estimator.publisher(keys.state("r1"), latest_wins=True)
+    prepared: list[int] = []
+    finished: list[int] = []
+    finishing_1, release_1, done = threading.Event(), threading.Event(), threading.Event()
+    overlapped: list[bool] = []
+
+    def prepare(_robot: str, state: SlamState) -> None:
+        prepared.append(state.seq)
+
+    def finish(_robot: str, state: SlamState) -> None:
+        if state.seq == 1:
+            finishing_1.set()
+            overlapped.append(release_1.wait(30.0))  # released once state 2 is prepared
+        finished.append(state.seq)
+        if state.seq == 6:
+            done.set()
+
+    intake = Intake(viewer, keys=keys, robots=("r1",), cameras=(), fps=30.0,
+                    late_join_timeout_s=0.0, on_input=lambda: None,
+                    drops=DropCounter(logging.getLogger("test")), prepare=prepare,
+                    finish=finish)
+    intake.start()
+    try:
+        assert estimator.wait_for_subscriber(keys.state("r1"), timeout=10.0)
+        payloads = {seq: paper_state(seq=seq, seed=seq).to_bytes() for seq in range(1, 7)}
+        put_until_seen(lambda: publisher.put(payloads[1]), finishing_1.is_set,
+                       what="the first state", timeout_s=30.0, retry_s=5.0)
+        # state 1 is held in the second stage: the first stage takes state 2 meanwhile
+        put_until_seen(lambda: publisher.put(payloads[2]), lambda: 2 in prepared,
+                       what="the second state", timeout_s=30.0, retry_s=5.0)
+        for seq in range(3, 6):
+            publisher.put(payloads[seq])
+        put_until_seen(lambda: publisher.put(payloads[6]), viewer.all_arrived.is_set,
+                       what="the newest state", timeout_s=30.0, retry_s=2.0)
+        assert prepared == [1, 2]  # state 2 waits for the second stage: nothing taken
+        release_1.set()
+        assert done.wait(10.0)
+        assert overlapped == [True]
+        assert prepared == [1, 2, 6] and finished == [1, 2, 6]
+        assert viewer.copied == [payloads[1], payloads[2], payloads[6]]  # 3–5 never
+        intake.ingest()
+        state = intake.snapshot().state
+        assert state is not None and state.seq == 6
+    finally:
+        release_1.set()
+        intake.stop()
