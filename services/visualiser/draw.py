@@ -96,7 +96,15 @@ def project_polyline(camera: CameraModel, points_map: np.ndarray, *,
     """A map-frame polyline (k, 3) as image polylines, split where points are unprojectable."""
     if len(points_map) < 2:
         return []
-    uv, depth = camera.project(points_map)
+    uv, _ = camera.project(points_map)
+    return polylines_from_uv(uv, closed=closed)
+
+
+def polylines_from_uv(uv: np.ndarray, *, closed: bool = False) -> list[np.ndarray]:
+    """Projected points (k, 2) of one polyline as fixed-point image polylines, split where
+    a point is unprojectable (NaN); ``closed`` closes it when every point projected."""
+    if len(uv) < 2:
+        return []
     ok = np.isfinite(uv).all(axis=1)
     if ok.all():
         pts = fixed(uv)

@@ -690,18 +690,44 @@ def _draw_objects(c: Canvas) -> _Glyphs:
 
 
 def _draw_cluster_outlines(c: Canvas, cluster_ids: np.ndarray) -> None:
-    """A rounded hull around each cluster's features, in the cluster's colour."""
+    """A rounded hull around each cluster's features, in the cluster's colour: the convex
+    hull of its members grown by a ring of ``pad`` (the hull of the members' hull vertices
+    ⊕ the ring, the same polygon as the hull of every member ⊕ the ring), all clusters
+    projected in one call (a large map has hundreds, many of one feature)."""
     pad = 2.5 * c.settings.cone_radius_m
     ring = draw.floor_circle(np.zeros(2), pad, vertices=16)[:, :2]
-    for cid in np.unique(cluster_ids).tolist():
-        if cid < 0:  # not outlined
+    outlined = cluster_ids >= 0  # the rest are not outlined
+    if not outlined.any():
+        return
+    ids, xy = cluster_ids[outlined], c.state.landmarks[outlined]
+    order = np.argsort(ids, kind="stable")
+    ids, xy = ids[order], xy[order]
+    starts = np.flatnonzero(np.r_[True, ids[1:] != ids[:-1]])
+    ends = np.r_[starts[1:], len(ids)]
+    polygons = []
+    for s, e in zip(starts.tolist(), ends.tolist(), strict=True):
+        members = xy[s:e]
+        if e - s == 1:  # one feature: the ring around it
+            polygons.append(members[0] + ring)
             continue
-        members = c.state.landmarks[cluster_ids == cid]
+        if e - s > 2:  # only the members' hull vertices can be on the grown hull
+            members = members[cv2.convexHull(members.astype(np.float32),
+                                             returnPoints=False).ravel()]
         pts = (members[:, None, :] + ring[None]).reshape(-1, 2).astype(np.float32)
-        hull = cv2.convexHull(pts).reshape(-1, 2).astype(float)
-        hull3 = np.column_stack([hull, np.zeros(len(hull))])
-        draw.draw_polylines(c.img, draw.project_polyline(c.camera, hull3, closed=True),
-                            colour=cluster_colour(int(cid)), thickness=c.px)
+        polygons.append(cv2.convexHull(pts).reshape(-1, 2).astype(float))
+    bounds = np.r_[0, np.cumsum([len(p) for p in polygons])]
+    flat = np.concatenate(polygons)
+    uv, _ = c.camera.project(np.column_stack([flat, np.zeros(len(flat))]))
+    whole = np.logical_and.reduceat(np.isfinite(uv).all(axis=1), bounds[:-1]).tolist()
+    points = draw.fixed(np.nan_to_num(uv))
+    for k, (cid, a, b) in enumerate(zip(ids[starts].tolist(), bounds[:-1].tolist(),
+                                        bounds[1:].tolist(), strict=True)):
+        colour = cluster_colour(int(cid))
+        if whole[k]:  # the common case: every vertex projected
+            cv2.polylines(c.img, [points[a:b]], True, colour, c.px, cv2.LINE_AA, draw.SHIFT)
+        else:  # split where the lens cannot project (draw.polylines_from_uv)
+            draw.draw_polylines(c.img, draw.polylines_from_uv(uv[a:b], closed=True),
+                                colour=colour, thickness=c.px)
 
 
 def _draw_heading(c: Canvas) -> None:

@@ -371,3 +371,48 @@ def test_rejected_observations_are_grey_crosses_where_they_were_seen() -> None:
     assert rejected_legend(gated, ViewSettings()) == [[(
         "rejected observations (gate): 2 in this update, 17 in all", (170, 170, 170))]]
     assert rejected_legend(state, ViewSettings()) == []  # a state without the gate
+
+
+def test_cluster_outlines_are_the_hull_of_every_member_grown_by_the_ring() -> None:
+    """Each cluster's outline against an oracle: scipy's convex hull of every member's
+    ring (the members ⊕ a 16-gon of 2.5 cone radii), projected and drawn the same way;
+    clusters of one, two and five features, and a feature that is not outlined (-1)."""
+    import cv2
+    from scipy.spatial import ConvexHull
+
+    from common.clusters import cluster_colour
+    from services.visualiser import draw
+    from services.visualiser.render import Canvas, _draw_cluster_outlines
+
+    state = paper_state()
+    ids = np.array([4, 4, 4, 4, 4, 9, 9, -1, 2, 2, 2, 2, 2, 7, -1])  # 5, 2, 5, 1, unoutlined
+    camera, settings = top_down(), ViewSettings()
+    scene = Renderer().scene(state, settings, frozenset())
+    img = np.zeros((camera.height, camera.width, 3), np.uint8)
+    _draw_cluster_outlines(Canvas(img, camera, state, scene, settings, px=1), ids)
+
+    pad = 2.5 * settings.cone_radius_m
+    t = 2 * np.pi * np.arange(16) / 16
+    ring = pad * np.column_stack([np.cos(t), np.sin(t)])
+    want = np.zeros_like(img)
+    for cid in (2, 4, 7, 9):
+        pts = (state.landmarks[ids == cid][:, None, :] + ring[None]).reshape(-1, 2)
+        hull = pts[ConvexHull(pts).vertices]
+        uv, _ = camera.project(np.column_stack([hull, np.zeros(len(hull))]))
+        closed = np.concatenate([draw.fixed(uv), draw.fixed(uv)[:1]])
+        cv2.polylines(want, [closed], False, cluster_colour(cid), 1, cv2.LINE_AA, draw.SHIFT)
+    mine, theirs = img.any(axis=2), want.any(axis=2)
+    assert theirs.sum() > 400
+    overlap = (mine & theirs).sum() / (mine | theirs).sum()
+    assert overlap > 0.9, f"the outlines overlap the oracle's by {overlap:.2f}"
+    # in its colour: where both drew, the colours agree (anti-aliasing aside)
+    both = mine & theirs
+    differ = np.abs(img[both].astype(int) - want[both].astype(int)).max(axis=1)
+    assert np.mean(differ <= 24) > 0.95
+    for k in (7, 14):  # not outlined: its ring, where no other outline is, stays dark
+        uv, _ = camera.project(np.column_stack([state.landmarks[k] + ring, np.zeros(16)]))
+        its = np.zeros(img.shape[:2], np.uint8)
+        cv2.polylines(its, [np.concatenate([draw.fixed(uv), draw.fixed(uv)[:1]])], False,
+                      255, 1, cv2.LINE_AA, draw.SHIFT)
+        alone = (its > 0) & ~theirs
+        assert alone.sum() > 20 and not mine[alone].any()
