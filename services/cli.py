@@ -18,6 +18,7 @@ from typing import Any
 
 from common.cli import add_common_flags, run_cli
 from common.config import add_flags
+from common.memory import keep_freed_memory
 
 
 @dataclass(frozen=True)
@@ -119,6 +120,7 @@ def main(argv: list[str] | None = None) -> int:
         parser.error(f"unknown command {argv[0]!r}; choose from {', '.join(COMMANDS)}")
     name = argv[0]
     args = command_parser(name).parse_args(argv[1:])
+    keep_freed_memory()  # before the command starts any thread (common/memory.py)
     module = importlib.import_module(COMMANDS[name].module)
     return run_cli(lambda: module.run(name, args))
 
