@@ -60,6 +60,7 @@ sys.path.insert(0, str(REPO))
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as the services run (docs/monitor.md)
 
 from common.keys import Keys  # noqa: E402
+from common.memory import keep_freed_memory  # noqa: E402
 from common.messages import Health  # noqa: E402
 from common.session import BusSettings, free_tcp_endpoint, open_bus  # noqa: E402
 from tests.procs import Service, spawn, stop  # noqa: E402
@@ -545,6 +546,8 @@ def main() -> None:
     unknown = wanted - {"large-alone", "large-full", "paper-full"}
     if unknown:
         parser.error(f"--only: unknown run(s) {', '.join(sorted(unknown))}")
+    if args.profile or args.profile_viewer:
+        keep_freed_memory()  # the in-process profiles allocate as the services do
     if args.profile:
         profile_estimator()
     if args.profile_viewer:
