@@ -12,6 +12,13 @@
     999 pairs at full detail). Target ≤ 33 ms median. Baselines in the same run: P_d and
     its size for all 499 500 pairs (only the first step of drawing them one by one), and
     the exact min/mean/max over all pairs (``scene.min_mean_max``, the small-map path).
+(d) a long run's path: a picture of a new state over a camera frame while the robot's path
+    holds 0, 5 000 and 20 000 points (the viewer keeps up to 20 000: ~15 min of the paper
+    demo) and grows by a point per picture, as the viewer draws it (each view's trace gets
+    the new segment: ``services/visualiser/trail.py``); for the paper world (n = 15, drawn
+    straight onto every camera frame) and the large one (n = 1000, drawn onto layers once
+    per state). Baseline in the same run: the whole path drawn straight onto the picture
+    in one polylines call, as every picture drew it before.
 
 Every timed render is of a new state (a shallow copy: the renderer keeps a state's scene,
 so rendering the same object again is a camera frame of an unchanged state, timed apart).
@@ -23,6 +30,7 @@ from __future__ import annotations
 
 import argparse
 import copy
+import dataclasses
 import statistics
 import time
 from collections.abc import Callable
@@ -180,6 +188,7 @@ def main() -> None:
 
     # (c) n = 1000, all pairs, by the degradation rule
     large(args.repeat)
+    long_path(args.repeat)
 
 
 def grid_state(n: int, *, spacing: float = 1.0, seed: int = 0) -> SlamState:
@@ -245,6 +254,63 @@ def large(repeat: int) -> None:
     print(f"    baseline: exact min/mean/max, all pairs (scene.min_mean_max): {t_exact:8.1f}")
     ratios = [r / b for r, b in zip(c_grid, c_pd, strict=True)]
     print(f"    ratio grid render / all-pairs P_d, per round (cpu): {med(ratios):5.2f} median")
+
+
+def loop_path(points: int, *, side_m: float = 1.0, seed: int = 0) -> np.ndarray:
+    """(points, 2) laps round a square of ``side_m`` at 0.1 m a state, with the wobble of
+    an estimate (1 cm): the paper's loop driven for a long time, overlapping itself."""
+    t = np.arange(points) * 0.1 / side_m
+    side, f = np.floor(t) % 4, t % 1.0
+    x = np.select([side == 0, side == 1, side == 2], [f, np.ones_like(f), 1 - f], 0 * f)
+    y = np.select([side == 0, side == 1, side == 2], [0 * f, f, np.ones_like(f)], 1 - f)
+    return (np.column_stack([x, y]) - 0.5) * side_m + np.random.default_rng(seed).normal(
+        0.0, 0.01, (points, 2))
+
+
+def long_path(repeat: int) -> None:
+    cases = [("paper, n = 15, straight", paper_like_state(15), overhead_camera(), 1.0),
+             ("large, n = 1000, layers", grid_state(1000),
+              CameraModel.top_down(bounds_xy=(-1, -1, 33, 33)), 30.0)]
+    rng = np.random.default_rng(2)
+    frame = cv2.GaussianBlur(rng.integers(60, 140, (720, 1280, 3), dtype=np.uint8), (0, 0), 3)
+    print("(d) a long run's path: a new state over a camera frame, the path one point longer "
+          "each time, CPU ms medians")
+    print("    case                       points :  picture  whole path straight (baseline)")
+    for name, state, camera, side in cases:
+        for points in (0, 5_000, 20_000):
+            xy = loop_path(points + repeat + 10, side_m=side) + side / 2 + 0.2
+            c_picture, c_straight = _path_case(state, camera, frame, xy, points, repeat)
+            print(f"    {name:28s} {points:6d} : {statistics.median(c_picture):8.2f}  "
+                  f"{statistics.median(c_straight):8.2f}")
+
+
+def _path_case(state: SlamState, camera: CameraModel, frame: np.ndarray, xy: np.ndarray,
+               points: int, repeat: int) -> list[list[float]]:
+    """CPU ms of a picture whose path grows by a point each time, from ``points`` on, and
+    of the whole path drawn straight (the baseline), interleaved."""
+    from services.visualiser.draw import draw_polylines, project_polyline
+
+    renderer = Renderer()
+    for k in range(points):
+        renderer.track("bench", k, xy[k])
+    # (a state's seq must not go back: the path would start again)
+    k = max(points - 1, 0)
+    renderer.render(frame, state=dataclasses.replace(state, seq=k), camera=camera,
+                    settings=ViewSettings())  # the first picture draws it all
+
+    def picture() -> None:
+        nonlocal k
+        k += 1
+        renderer.track("bench", k, xy[k])
+        renderer.render(frame, state=dataclasses.replace(state, seq=k), camera=camera,
+                        settings=ViewSettings())
+
+    def straight() -> None:
+        img = frame.copy()
+        draw_polylines(img, project_polyline(camera, np.column_stack(
+            [xy[:k + 1], np.zeros(k + 1)])), colour=(0, 200, 0), thickness=2)
+
+    return interleaved_ms([picture, straight], repeat, warmup=0)[1]
 
 
 if __name__ == "__main__":

@@ -326,6 +326,25 @@ class Overlay:
         img[y0:y1, x0:x1] = out
 
 
+def put_layer(img: np.ndarray, layer: np.ndarray, box: tuple[int, int, int, int]) -> None:
+    """``layer`` over ``img`` in ``box`` (rows y0:y1, columns x0:x1), in place: ``img`` a
+    picture (BGR) or another layer of the same size (module docstring). Over a layer, what
+    shows through both is what showed through each: the 4th channels multiply."""
+    y0, y1, x0, x1 = box
+    src, dst = layer[y0:y1, x0:x1], img[y0:y1, x0:x1]
+    through = src[:, :, 3]
+    if is_layer(img):
+        keep = cv2.merge([through] * 4)
+        add = src.copy()
+        add[:, :, 3] = 0
+    else:
+        keep = cv2.cvtColor(through, cv2.COLOR_GRAY2BGR)
+        add = cv2.cvtColor(src, cv2.COLOR_BGRA2BGR)
+    out = cv2.multiply(dst, keep, scale=1.0 / 255.0)
+    cv2.add(out, add, dst=out)
+    img[y0:y1, x0:x1] = out
+
+
 def _blend_mask(roi: np.ndarray, mask: np.ndarray, colour: BGR) -> None:
     """``colour`` over ``roi`` (a layer's) with coverage ``mask`` (0–255), in place."""
     m = mask.astype(np.uint16)[:, :, None]

@@ -14,8 +14,9 @@ and 3 but the camera-tracked pose, which is drawn between them on each frame), w
 then put over every camera frame until the next state (:mod:`draw`, layers).
 
 ``Renderer`` keeps only what needs history: the robot's path (reset when the robot changes
-or ``seq`` goes backwards) and the cluster trackers that keep cluster ids and colours stable
-from frame to frame. Use one ``Renderer`` per robot; it may be shared by threads.
+or ``seq`` goes backwards; drawn incrementally per view, :mod:`trail`) and the cluster
+trackers that keep cluster ids and colours stable from frame to frame. Use one
+``Renderer`` per robot; it may be shared by threads.
 """
 
 from __future__ import annotations
@@ -40,10 +41,10 @@ from services.visualiser.glyphs import ImageEllipses, project_ellipsoids
 from services.visualiser.scene import ROLE_NAMES, ROLE_PAIR, Scene, build_scene, plan_overview
 from services.visualiser.settings import ViewSettings
 from services.visualiser.summary_view import SummarisedState, summary_scene
+from services.visualiser.trail import Trail
 
 T = TypeVar("T")
 
-MAX_PATH_POINTS = 20_000  #: beyond this the older path is thinned (every other point)
 _MAX_TRACKERS = 8  # one per distinct clustering setting in use, oldest dropped
 _MAX_SCENES = 16  # scenes kept per state (distinct settings of open views)
 #: states whose scenes, cluster ids and layers are kept: the one drawn, the one being drawn
@@ -131,10 +132,7 @@ class Renderer:
         #: over a camera, states of at least this many features are drawn onto layers
         self.layers_from_n = layers_from_n
         self._lock = threading.Lock()
-        self._path: list[tuple[float, float]] = []
-        self._path_robot: str | None = None
-        self._path_seq = -1
-        self._path_epoch: int | None = None
+        self._path = Trail()
         self._trackers: OrderedDict[tuple[float, int], ClusterTracker] = OrderedDict()
         self._floor: tuple[tuple[object, ...], np.ndarray] | None = None  # map view cache
         self._cluster_of: dict[tuple[float, int], tuple[np.ndarray, np.ndarray]] = {}
@@ -158,14 +156,13 @@ class Renderer:
     # -- history --------------------------------------------------------------------
     def reset_path(self) -> None:
         with self._lock:
-            self._path = []
-            self._path_seq = -1
+            self._path.reset()
             self._layers.clear()  # they show the old path
 
     def new_map(self) -> None:
         """A new map began (another epoch): forget the path and the cluster identities."""
         with self._lock:
-            self._path, self._path_seq, self._path_epoch = [], -1, None
+            self._path.reset(forget_robot=True)
             self._trackers.clear()
             self._cluster_of.clear()
             self._clustered.clear()
@@ -175,34 +172,12 @@ class Renderer:
     @property
     def path_xy(self) -> np.ndarray:
         """The remembered path (k, 2), m, map frame."""
-        with self._lock:
-            return np.array(self._path, dtype=float).reshape(-1, 2)
+        return self._path.points()
 
     def track(self, robot: str, seq: int, xy: np.ndarray, epoch: int = 0) -> None:
         """Add a position to the path without drawing (for callers that draw only some
         states, e.g. a viewer whose latest-wins input skips states)."""
-        with self._lock:
-            self._track(robot, seq, (float(xy[0]), float(xy[1])), epoch)
-
-    def _track(self, robot: str, seq: int, point: tuple[float, float], epoch: int) -> None:
-        # a new path for another robot, another map (epoch), or — epoch 0, unknown — a seq
-        # that went back; the same epoch with a lower seq is a resumed estimator: same map
-        if (robot != self._path_robot or epoch != self._path_epoch
-                or (epoch == 0 and seq < self._path_seq)):
-            self._path, self._path_robot, self._path_seq = [], robot, -1
-            self._path_epoch = epoch
-        if seq > self._path_seq:
-            self._path_seq = seq
-            if not self._path or self._path[-1] != point:
-                self._path.append(point)
-            if len(self._path) > MAX_PATH_POINTS:
-                half = len(self._path) // 2
-                self._path = self._path[:half:2] + self._path[half:]
-
-    def _update_path(self, state: SlamState) -> np.ndarray:
-        self._track(state.robot, state.seq, (float(state.pose[0]), float(state.pose[1])),
-                    state.epoch)
-        return np.array(self._path, dtype=float).reshape(-1, 2)
+        self._path.track(robot, seq, (float(xy[0]), float(xy[1])), epoch)
 
     def cluster_ids(self, state: SlamState, settings: ViewSettings) -> np.ndarray:
         """Stable cluster id per landmark of ``state`` under ``settings``' clustering (the
@@ -355,9 +330,9 @@ class Renderer:
             kept = self._layers.get(state, key)
         if kept is not None:
             return kept
-        scene, c_under, path = self._canvas(draw.new_layer(camera.height, camera.width),
-                                            state, camera, settings, violating)
-        lines, glyphs = _draw_under(c_under, path)
+        scene, c_under = self._canvas(draw.new_layer(camera.height, camera.width),
+                                      state, camera, settings, violating)
+        lines, glyphs = _draw_under(c_under, self._path)
         c_over = dataclasses.replace(c_under, img=draw.new_layer(camera.height, camera.width))
         rejected = _draw_over(c_over, glyphs=glyphs, lines=lines, suspects=suspects)
         if settings.legend:
@@ -380,11 +355,12 @@ class Renderer:
 
     def _canvas(self, img: np.ndarray, state: SlamState, camera: CameraModel,
                 settings: ViewSettings, violating: frozenset[tuple[int, int]]
-                ) -> tuple[Scene, Canvas, np.ndarray]:
-        """The scene, a canvas on ``img`` and the path, for drawing ``state``."""
+                ) -> tuple[Scene, Canvas]:
+        """The scene and a canvas on ``img`` for drawing ``state`` (its pose added to the
+        path)."""
         camera = camera.resized(img.shape[1], img.shape[0])
-        with self._lock:
-            path = self._update_path(state)
+        self._path.track(state.robot, state.seq, (float(state.pose[0]), float(state.pose[1])),
+                         state.epoch)
         scene = self.scene(state, settings, violating)
         with self._lock:
             key = _overview_key(settings)
@@ -393,7 +369,7 @@ class Renderer:
             while len(self._overviews) > 64:
                 self._overviews.popitem(last=False)
         c = Canvas(img, camera, state, scene, settings, px=max(1, round(camera.height / 720)))
-        return scene, c, path
+        return scene, c
 
     def draw(self, img: np.ndarray, *, state: SlamState, camera: CameraModel,
              settings: ViewSettings, health: Health | None = None,
@@ -402,8 +378,8 @@ class Renderer:
         """Draw the state onto ``img`` in place (everything but the legend): one robot of a
         picture that may show several, each with its own renderer and camera."""
         violating, suspects = _health_sets(health if settings.health else None, state)
-        _, c, path = self._canvas(img, state, camera, settings, violating)
-        lines, glyphs = _draw_under(c, path)
+        _, c = self._canvas(img, state, camera, settings, violating)
+        lines, glyphs = _draw_under(c, self._path)
         if settings.robot and reference_pose is not None:
             estimate = state.pose if reference_estimate is None else reference_estimate
             _draw_reference(c, estimate=np.asarray(estimate, float),
@@ -412,7 +388,7 @@ class Renderer:
         return Drawn(c, len(glyphs.shown), rejected)
 
 
-def _draw_under(c: Canvas, path: np.ndarray) -> tuple[_Lines, _Glyphs]:
+def _draw_under(c: Canvas, path: Trail) -> tuple[_Lines, _Glyphs]:
     """Steps 1 and 2 (module docstring): the floor layer, then glyphs and cones."""
     settings, scene = c.settings, c.scene
     # outlines: every cluster (or overview group) in the clustered pictures; in "all"
@@ -423,7 +399,7 @@ def _draw_under(c: Canvas, path: np.ndarray) -> tuple[_Lines, _Glyphs]:
             settings.selected_cluster is not None:
         outlined = np.where(scene.cluster_ids == settings.selected_cluster,
                             settings.selected_cluster, -1)
-    lines = _draw_floor_layer(c, path_xy=path, cluster_ids=outlined)
+    lines = _draw_floor_layer(c, path=path, cluster_ids=outlined)
     return lines, _draw_objects(c)
 
 
@@ -628,17 +604,15 @@ def _draw_grid(img: np.ndarray, camera: CameraModel, *, step_m: float = 0.5) -> 
                         colour=major_colour, thickness=1)
 
 
-def _draw_floor_layer(c: Canvas, *, path_xy: np.ndarray,
+def _draw_floor_layer(c: Canvas, *, path: Trail,
                       cluster_ids: np.ndarray | None) -> _Lines:
     """Cluster outlines, the robot path, the pair lines and the heading arrow, flat on the
     floor; returns the pair lines as drawn (health outlines the violating ones)."""
     settings = c.settings
     if cluster_ids is not None:
         _draw_cluster_outlines(c, cluster_ids)
-    if settings.path and len(path_xy) >= 2:
-        draw.draw_polylines(c.img, draw.project_polyline(
-            c.camera, np.column_stack([path_xy, np.zeros(len(path_xy))])),
-            colour=settings.colour_path, thickness=2 * c.px)
+    if settings.path:
+        path.draw(c.img, c.camera, colour=settings.colour_path, thickness=2 * c.px)
     lines = _Lines([], np.zeros(0, dtype=np.int64))
     lines_xy = c.scene.lines_xy
     if settings.lines and len(lines_xy):
