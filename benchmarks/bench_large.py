@@ -225,9 +225,10 @@ def run(endpoint: str, world: str, *, full: bool, window_s: float, seed: int,
         header.stopped.set()
         if reader is not None:
             reader.stop()
+        finals: dict[str, str] = {}
         for name in ("sim", "viewer", "registration", "monitor", "estimator"):
             if name in procs:
-                stop(procs[name])
+                finals[name] = stop(procs[name])[0]
         bus.close()
 
     hs = [(t, seq) for t, seq, n in header.samples if t0 <= t <= t1]
@@ -267,8 +268,21 @@ def run(endpoint: str, world: str, *, full: bool, window_s: float, seed: int,
             "status_start": status_start is not None,
             "mjpeg_error": reader.error,
             "mjpeg_parts_in_window": sum(1 for t, _ in reader.parts if t0 <= t <= t1),
+            "detection": _detection(finals.get("registration", "")),
         })
     return out
+
+
+def _detection(output: str) -> dict[str, int]:
+    """How the registration detected its frames over the whole run (its final line):
+    whole, in windows only, windows that lost a marker (docs/registration.md)."""
+    for line in output.splitlines():
+        if line.startswith("registration stopped: "):
+            cameras = json.loads(line.removeprefix("registration stopped: "))["cameras"]
+            counts = cameras.get(CAMERA, {})
+            return {k: int(counts.get(k, 0)) for k in
+                    ("frames", "detected_whole", "detected_in_windows", "window_fallbacks")}
+    return {}
 
 
 def _fill_to_1000(est, events) -> None:
@@ -517,6 +531,11 @@ def _line(r: dict) -> str:
                  f"{r['monitor_behind_max']:.0f}; MJPEG parts in the window "
                  f"{r['mjpeg_parts_in_window']}"
                  + (f", the stream ended: {r['mjpeg_error']}" if r["mjpeg_error"] else ""))
+        if r["detection"]:
+            d = r["detection"]
+            text += (f"\n      registration over the run: {d['frames']} frames, detected "
+                     f"{d['detected_whole']} whole, {d['detected_in_windows']} in windows, "
+                     f"{d['window_fallbacks']} windows lost a marker")
     cpu = ", ".join(f"{k} {v:.1f}" for k, v in r["cpu_s"].items())
     return (text + f"\n      window {r['window_s']:.1f} s after {r['build_s']:.0f} s to build "
             f"the map, load {r['load']:.2f}; CPU s in the window: {cpu}")
