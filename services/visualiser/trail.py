@@ -60,9 +60,6 @@ class Trail:
         self._epoch: int | None = None
         self._traces: OrderedDict[tuple[object, ...], _Trace] = OrderedDict()
 
-    def __len__(self) -> int:
-        return self._count
-
     def points(self) -> np.ndarray:
         """The remembered path (k, 2), a copy."""
         with self._lock:
