@@ -12,8 +12,9 @@ the n = 1000 pipeline (``/proc/PID/stat``), each ~4 µs on this VM: the overview
 took 15.5 ms with its faults and 11 ms without. So every ``slamlens`` process uses one
 arena (threads share the main heap), puts blocks up to glibc's ceiling for it (32 MiB)
 on the heap instead of in mappings of their own, and keeps up to ``TRIM_THRESHOLD`` of
-free memory at the heap's top: in the pipeline the viewer's faults fell to ~60 a second
-(docs/large_maps.md). The memory held is the process's peak, not more.
+free memory at the heap's top: in the pipeline the viewer's faults fell to 1–30 a second
+and the monitor's to 0 (docs/large_maps.md). The price is memory held at the process's
+peak, not more: at n = 1000 the monitor keeps 1.4–2.0 GB (1.3–1.7 GB with the defaults).
 
 **Given back** (:func:`release_freed_memory`): after a viewer dropped 40 views of 2.8 MB
 pictures, their memory stays in the process (RSS) although nothing uses it.
