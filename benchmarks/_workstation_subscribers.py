@@ -18,8 +18,8 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from common.keys import Keys  # noqa: E402
-from common.session import BusSettings, open_bus  # noqa: E402
+from slamlens.common.keys import Keys  # noqa: E402
+from slamlens.common.session import BusSettings, open_bus  # noqa: E402
 
 
 def main() -> None:

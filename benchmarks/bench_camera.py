@@ -28,13 +28,13 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from common.bus import InProcessBus  # noqa: E402
-from common.keys import Keys  # noqa: E402
-from common.messages import Truth  # noqa: E402
-from common.session import BusSettings, free_tcp_endpoint, open_bus, router_settings  # noqa: E402
-from services.registration.assemble import build_service  # noqa: E402
-from services.registration.settings import RegistrationSettings  # noqa: E402
-from services.registration.synthetic import (  # noqa: E402
+from slamlens.common.bus import InProcessBus  # noqa: E402
+from slamlens.common.keys import Keys  # noqa: E402
+from slamlens.common.messages import Truth  # noqa: E402
+from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus, router_settings  # noqa: E402
+from slamlens.services.registration.assemble import build_service  # noqa: E402
+from slamlens.services.registration.settings import RegistrationSettings  # noqa: E402
+from slamlens.services.registration.synthetic import (  # noqa: E402
     ImagingSettings,
     SceneSettings,
     SyntheticCamera,
@@ -42,7 +42,7 @@ from services.registration.synthetic import (  # noqa: E402
     orbit_pose,
     overhead_pose,
 )
-from services.slam.world import load_world  # noqa: E402
+from slamlens.services.slam.world import load_world  # noqa: E402
 
 W, H = 1280, 720
 
@@ -228,7 +228,7 @@ def _run_windows(seconds: float, full_every: int, truths: list[Truth]) -> dict[s
 
 def bench_windows(seconds: float, repeats: int) -> None:
     """Detection windows (detect_full_every 15) against every frame whole (1), interleaved."""
-    from services.slam.sim import Simulator
+    from slamlens.services.slam.sim import Simulator
 
     truths = [e for e in itertools.islice(Simulator(load_world("large"), seed=0).events(),
                                           20_000) if isinstance(e, Truth)]

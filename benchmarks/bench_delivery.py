@@ -37,9 +37,9 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from common.keys import Keys  # noqa: E402
-from common.messages import peek_fields  # noqa: E402
-from common.session import BusSettings, free_tcp_endpoint, open_bus  # noqa: E402
+from slamlens.common.keys import Keys  # noqa: E402
+from slamlens.common.messages import peek_fields  # noqa: E402
+from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus  # noqa: E402
 from tests.collect import StateCollector  # noqa: E402
 from tests.procs import Service, slamlens_cmd, spawn, stop  # noqa: E402
 
@@ -141,7 +141,7 @@ _SPAN: tuple[float, float] | None = None
 def _dataset_span() -> tuple[float, float]:
     global _SPAN
     if _SPAN is None:
-        from services.slam.mrclam import load_mrclam
+        from slamlens.services.slam.mrclam import load_mrclam
 
         run = load_mrclam(str(MRCLAM), robot=1, robot_name=ROBOT)
         stamps = [float(m.stamp) for m in run.events(truth=False)]

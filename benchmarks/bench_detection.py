@@ -33,14 +33,14 @@ sys.path.insert(0, str(REPO / "tests" / "unit"))
 
 from marker_render import PlacedMarker, render, true_corners  # noqa: E402
 
-from common.geometry import make_T, rot_z  # noqa: E402
-from services.registration.calibration import synthetic_calibration  # noqa: E402
-from services.registration.markers import (  # noqa: E402
+from slamlens.common.geometry import make_T, rot_z  # noqa: E402
+from slamlens.services.registration.calibration import synthetic_calibration  # noqa: E402
+from slamlens.services.registration.markers import (  # noqa: E402
     DetectorTuning,
     MarkerDetector,
     WindowedDetector,
 )
-from services.registration.pose import marker_pose  # noqa: E402
+from slamlens.services.registration.pose import marker_pose  # noqa: E402
 
 CALIB = synthetic_calibration(1280, 720, hfov_deg=84.0)
 HEIGHT_M = 3.0

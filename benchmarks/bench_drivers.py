@@ -15,11 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
-from common.messages import Observations, Odometry, Truth
-from services.slam.mrclam import load_mrclam
-from services.slam.serial_link import SerialParser, encode
-from services.slam.sim import Simulator
-from services.slam.world import load_world
+from slamlens.common.messages import Observations, Odometry, Truth
+from slamlens.services.slam.mrclam import load_mrclam
+from slamlens.services.slam.serial_link import SerialParser, encode
+from slamlens.services.slam.sim import Simulator
+from slamlens.services.slam.world import load_world
 
 MRCLAM = Path(__file__).parents[1] / "../shared/data/mrclam6"
 

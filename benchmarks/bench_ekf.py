@@ -27,9 +27,9 @@ from collections.abc import Callable
 import numpy as np
 import scipy
 
-from services.slam import ekf
-from services.slam.estimator import Estimator
-from services.slam.settings import EstimatorSettings
+from slamlens.services.slam import ekf
+from slamlens.services.slam.estimator import Estimator
+from slamlens.services.slam.settings import EstimatorSettings
 
 SIG = EstimatorSettings()
 VAR_V, VAR_W = SIG.sigma_v ** 2, SIG.sigma_w ** 2

@@ -26,9 +26,9 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from common.keys import Keys  # noqa: E402
-from common.messages import Health, Observations, Odometry, SlamState, Truth  # noqa: E402
-from common.session import BusSettings, free_tcp_endpoint, open_bus  # noqa: E402
+from slamlens.common.keys import Keys  # noqa: E402
+from slamlens.common.messages import Health, Observations, Odometry, SlamState, Truth  # noqa: E402
+from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus  # noqa: E402
 from tests.fuzz import bad_payloads, valid  # noqa: E402
 from tests.procs import spawn, stop  # noqa: E402
 
@@ -124,7 +124,7 @@ def fuzz_viewer(ep: str, count: int) -> None:
 
     import cv2
 
-    from common.messages import CameraFrame, Registration
+    from slamlens.common.messages import CameraFrame, Registration
 
     camera = "cam1"
     with tempfile.TemporaryDirectory() as recordings:

@@ -59,10 +59,10 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as the services run (docs/monitor.md)
 
-from common.keys import Keys  # noqa: E402
-from common.memory import keep_freed_memory  # noqa: E402
-from common.messages import Health  # noqa: E402
-from common.session import BusSettings, free_tcp_endpoint, open_bus  # noqa: E402
+from slamlens.common.keys import Keys  # noqa: E402
+from slamlens.common.memory import keep_freed_memory  # noqa: E402
+from slamlens.common.messages import Health  # noqa: E402
+from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus  # noqa: E402
 from tests.procs import Service, spawn, stop  # noqa: E402
 
 KEYS = Keys()
@@ -288,7 +288,7 @@ def _detection(output: str) -> dict[str, int]:
 def _fill_to_1000(est, events) -> None:
     """Feed ``events`` (an iterator: what is left goes on from there) straight into the
     filter ``est`` until its map has 1000 landmarks."""
-    from common.messages import Observations, Odometry
+    from slamlens.common.messages import Observations, Odometry
 
     for m in events:
         if isinstance(m, Odometry):
@@ -304,13 +304,13 @@ def profile_estimator(events: int = 300) -> None:
     import cProfile
     import pstats
 
-    from common.messages import Observations, Odometry, SlamState
-    from services.slam import ekf
-    from services.slam.estimator_service import EstimatorService
-    from services.slam.input_order import Input
-    from services.slam.settings import EstimatorSettings
-    from services.slam.sim import Simulator
-    from services.slam.world import load_world
+    from slamlens.common.messages import Observations, Odometry, SlamState
+    from slamlens.services.slam import ekf
+    from slamlens.services.slam.estimator_service import EstimatorService
+    from slamlens.services.slam.input_order import Input
+    from slamlens.services.slam.settings import EstimatorSettings
+    from slamlens.services.slam.sim import Simulator
+    from slamlens.services.slam.world import load_world
 
     endpoint = free_tcp_endpoint()
     router = open_bus(BusSettings(listen=(endpoint,), mode="router"))
@@ -410,16 +410,16 @@ def profile_viewer(repeats: int = 9) -> None:
     import cv2
     import numpy as np
 
-    from common.geometry import all_relative_covariances, pd_size_m
-    from common.messages import SlamState
-    from services.slam.estimator import Estimator
-    from services.slam.settings import EstimatorSettings
-    from services.slam.sim import Simulator
-    from services.slam.world import load_world
-    from services.visualiser.camera_model import CameraModel
-    from services.visualiser.render import Renderer, _draw_legend, rejected_legend
-    from services.visualiser.series import SeriesStore
-    from services.visualiser.settings import ViewSettings
+    from slamlens.common.geometry import all_relative_covariances, pd_size_m
+    from slamlens.common.messages import SlamState
+    from slamlens.services.slam.estimator import Estimator
+    from slamlens.services.slam.settings import EstimatorSettings
+    from slamlens.services.slam.sim import Simulator
+    from slamlens.services.slam.world import load_world
+    from slamlens.services.visualiser.camera_model import CameraModel
+    from slamlens.services.visualiser.render import Renderer, _draw_legend, rejected_legend
+    from slamlens.services.visualiser.series import SeriesStore
+    from slamlens.services.visualiser.settings import ViewSettings
 
     est = Estimator(EstimatorSettings(robot=ROBOT))
     _fill_to_1000(est, Simulator(load_world("large"), loops=2, seed=0).events())

@@ -5,7 +5,7 @@ initialised from the start pose, then the robot alternates predict and an update
 landmarks, so half the states are predicts (map block untouched: the fast path) and half
 are updates (every pair compared). Target: median ≤ 2 ms per state at n = 100 (a monitor
 keeping up with 100 Hz states). A naive baseline is measured in the same run on the same
-update states: the pair check as a per-pair loop of P_d (common.geometry) and
+update states: the pair check as a per-pair loop of P_d (slamlens.common.geometry) and
 numpy.linalg.eigvalsh of the difference; the ratio is naive / ours for that check. The
 machine is shared: run it a few times, quote medians; set OPENBLAS_NUM_THREADS=1 (as the
 monitor service should run) or see the latency of a multi-threaded Cholesky under load.
@@ -28,12 +28,12 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from common.geometry import relative_covariance  # noqa: E402
-from common.messages import SlamState, Truth  # noqa: E402
-from services.slam import monitor_checks as checks  # noqa: E402
-from services.slam.estimator import Estimator  # noqa: E402
-from services.slam.monitor import Monitor  # noqa: E402
-from services.slam.settings import EstimatorSettings, MonitorSettings  # noqa: E402
+from slamlens.common.geometry import relative_covariance  # noqa: E402
+from slamlens.common.messages import SlamState, Truth  # noqa: E402
+from slamlens.services.slam import monitor_checks as checks  # noqa: E402
+from slamlens.services.slam.estimator import Estimator  # noqa: E402
+from slamlens.services.slam.monitor import Monitor  # noqa: E402
+from slamlens.services.slam.settings import EstimatorSettings, MonitorSettings  # noqa: E402
 
 
 def make_run(n: int, count: int, seed: int = 0) -> tuple[list[SlamState], list[Truth]]:

@@ -31,10 +31,10 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from common.config import load_settings  # noqa: E402
-from services.slam import tuning  # noqa: E402
-from services.slam.mrclam import load_mrclam  # noqa: E402
-from services.slam.settings import EstimatorSettings  # noqa: E402
+from slamlens.common.config import load_settings  # noqa: E402
+from slamlens.services.slam import tuning  # noqa: E402
+from slamlens.services.slam.mrclam import load_mrclam  # noqa: E402
+from slamlens.services.slam.settings import EstimatorSettings  # noqa: E402
 from tests.mrclam_pipeline import DATA, PROFILE, run_pipeline  # noqa: E402
 
 HEADER = (f"{'robot':>6} {'run':>9} {'NEES':>7} {'windows':>8} {'states':>7} {'lm RMSE':>8} "

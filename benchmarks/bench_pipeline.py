@@ -29,16 +29,16 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from common.keys import Keys  # noqa: E402
-from common.messages import Observations, SlamState  # noqa: E402
-from common.session import BusSettings, free_tcp_endpoint, open_bus  # noqa: E402
+from slamlens.common.keys import Keys  # noqa: E402
+from slamlens.common.messages import Observations, SlamState  # noqa: E402
+from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus  # noqa: E402
 
 KEYS = Keys()
 
 
 def _spawn(*args: str) -> subprocess.Popen:
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    return subprocess.Popen([sys.executable, "-m", "services", *args], cwd=REPO, env=env,
+    return subprocess.Popen([sys.executable, "-m", "slamlens.services", *args], cwd=REPO, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
@@ -147,7 +147,7 @@ def transport_floor(endpoint: str, samples: int, size: int) -> list[float]:
     """Bare round trip through the router and an echo process (same payload size)."""
     code = (
         "import sys,time\n"
-        "from common.session import BusSettings, open_bus\n"
+        "from slamlens.common.session import BusSettings, open_bus\n"
         f"b = open_bus(BusSettings(connect=({endpoint!r},)))\n"
         "p = b.publisher('bench/echo/out')\n"
         f"b.subscribe('bench/echo/in', lambda k, x: p.put(bytes({size})))\n"

@@ -30,13 +30,13 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from common.session import BusSettings, free_tcp_endpoint, open_bus  # noqa: E402
+from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus  # noqa: E402
 from tests.procs import spawn, stop  # noqa: E402
 
 KEY = "bench/put"
 _SUBSCRIBER = """
 import os, sys
-from common.session import BusSettings, open_bus
+from slamlens.common.session import BusSettings, open_bus
 bus = open_bus(BusSettings(connect=(sys.argv[1],)))
 got = [0]
 bus.session.declare_subscriber(sys.argv[2], lambda s: got.__setitem__(0, got[0] + 1))

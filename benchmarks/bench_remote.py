@@ -13,7 +13,7 @@ On the workstation, one phase after the other (the link carries one at a time):
 (a) **full state**: a subscriber of ``robot/R/state`` that keeps the newest, as the
     viewer's intake does (the baseline): states/s received, and latency behind the robot
     (receipt − stamp);
-(b) **summary**: a :class:`~common.summary_pull.SummaryPuller` pulling the clustered
+(b) **summary**: a :class:`~slamlens.common.summary_pull.SummaryPuller` pulling the clustered
     min/mean/max summary (``what=clusters``, float32) — the viewer's ``--source summary``
     intake — decoding each answer: states/s and latency behind the robot;
 (c) optional (``--viewer``): ``slamlens viewer --source summary`` itself, its state seq
@@ -49,7 +49,7 @@ def synthetic_state(n: int, *, seed: int = 0):
     part + a small anisotropic block per feature (PSD by construction)."""
     import numpy as np
 
-    from common.messages import SlamState
+    from slamlens.common.messages import SlamState
 
     rng = np.random.default_rng(seed)
     centres = np.array([[-0.8, 0.8], [0.9, 0.9], [0.1, -0.9]])
@@ -74,8 +74,8 @@ def role_publish(args: argparse.Namespace) -> None:
     """Robot side: publish the state at ``--rate`` with a fresh seq and stamp each time."""
     import msgpack
 
-    from common.keys import Keys
-    from common.session import BusSettings, open_bus
+    from slamlens.common.keys import Keys
+    from slamlens.common.session import BusSettings, open_bus
 
     bus = open_bus(BusSettings(connect=(f"tcp/127.0.0.1:{args.port}",)))
     if args.no_shm:
@@ -102,10 +102,10 @@ def role_publish(args: argparse.Namespace) -> None:
 
 def role_full(args: argparse.Namespace) -> None:
     """Workstation: the newest full state, as the viewer's intake keeps it."""
-    from common.keys import Keys
-    from common.latest import Latest
-    from common.messages import SlamState, peek_fields
-    from common.session import BusSettings, open_bus
+    from slamlens.common.keys import Keys
+    from slamlens.common.latest import Latest
+    from slamlens.common.messages import SlamState, peek_fields
+    from slamlens.common.session import BusSettings, open_bus
 
     bus = open_bus(BusSettings(connect=(f"tcp/127.0.0.1:{args.port}",)))
     slot: Latest[tuple[bytes, float]] = Latest()
@@ -127,9 +127,9 @@ def role_full(args: argparse.Namespace) -> None:
 def role_fullpull(args: argparse.Namespace) -> None:
     """Workstation: the full state by ``get`` on ``state`` (SPEC §7's queryable), one
     query in flight — the full-state counterpart of the summary pull."""
-    from common.keys import Keys
-    from common.messages import SlamState, peek_fields
-    from common.session import BusSettings, open_bus
+    from slamlens.common.keys import Keys
+    from slamlens.common.messages import SlamState, peek_fields
+    from slamlens.common.session import BusSettings, open_bus
 
     bus = open_bus(BusSettings(connect=(f"tcp/127.0.0.1:{args.port}",)))
     print(json.dumps({"fullpull": "ready"}), flush=True)
@@ -160,7 +160,7 @@ def role_probe_put(args: argparse.Namespace) -> None:
     block, then queryables answering large replies."""
     import zenoh
 
-    from common.session import BusSettings, open_bus
+    from slamlens.common.session import BusSettings, open_bus
 
     bus = open_bus(BusSettings(connect=(f"tcp/127.0.0.1:{args.port}",)))
     for size in PROBE_REPLY_MB:
@@ -181,7 +181,7 @@ def role_probe_put(args: argparse.Namespace) -> None:
 
 def role_probe_get(args: argparse.Namespace) -> None:
     """Workstation side of the probe: what arrives of the puts, then each reply."""
-    from common.session import BusSettings, open_bus
+    from slamlens.common.session import BusSettings, open_bus
 
     bus = open_bus(BusSettings(connect=(f"tcp/127.0.0.1:{args.port}",)))
     bus.subscribe("probe/put/*", lambda k, p: print(json.dumps(
@@ -199,11 +199,11 @@ def role_probe_get(args: argparse.Namespace) -> None:
 
 def role_summary(args: argparse.Namespace) -> None:
     """Workstation: pull the clustered summary, one query in flight."""
-    from common.keys import Keys
-    from common.messages import StateSummary
-    from common.session import BusSettings, open_bus
-    from common.summary import SummaryQuery
-    from common.summary_pull import SummaryPuller
+    from slamlens.common.keys import Keys
+    from slamlens.common.messages import StateSummary
+    from slamlens.common.session import BusSettings, open_bus
+    from slamlens.common.summary import SummaryQuery
+    from slamlens.common.summary_pull import SummaryPuller
 
     bus = open_bus(BusSettings(connect=(f"tcp/127.0.0.1:{args.port}",)))
 
@@ -314,7 +314,7 @@ def _viewer_phase(h, args: argparse.Namespace) -> list[dict]:
     from tests.netns import curl_json
 
     me = str(Path(__file__).resolve())
-    viewer = _netns_python(h.workstation, "-m", "services", "viewer", "--robot", ROBOT,
+    viewer = _netns_python(h.workstation, "-m", "slamlens.services", "viewer", "--robot", ROBOT,
                            "--source", "summary", "--http", "127.0.0.1:8080", "--connect",
                            f"tcp/127.0.0.1:{PORT}")
     try:
@@ -415,12 +415,12 @@ def main() -> None:
     try:
         h.shape(args.link, burst="32kbit", latency="400ms")
         WORKSTATION_NS.add(h.workstation)
-        ws_router = _netns_python(h.workstation, "-m", "services", "router", "--listen",
+        ws_router = _netns_python(h.workstation, "-m", "slamlens.services", "router", "--listen",
                                   f"tcp/{h.workstation_ip}:{PORT}", "--listen",
                                   f"tcp/127.0.0.1:{PORT}")
         procs.append(ws_router)
         _wait_line(ws_router, "router ready")
-        robot_router = _netns_python(h.robot, "-m", "services", "router", "--listen",
+        robot_router = _netns_python(h.robot, "-m", "slamlens.services", "router", "--listen",
                                      f"tcp/127.0.0.1:{PORT}", "--connect",
                                      f"tcp/{h.workstation_ip}:{PORT}")
         procs.append(robot_router)
@@ -428,7 +428,7 @@ def main() -> None:
         if args.probe:
             _probe(h, args, robot_router)
             return
-        summary = _netns_python(h.robot, "-m", "services", "summary", "--robot", ROBOT,
+        summary = _netns_python(h.robot, "-m", "slamlens.services", "summary", "--robot", ROBOT,
                                 "--connect", f"tcp/127.0.0.1:{PORT}")
         procs.append(summary)
         _wait_line(summary, "summary ready")

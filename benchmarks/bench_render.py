@@ -38,12 +38,12 @@ from collections.abc import Callable
 import cv2
 import numpy as np
 
-from common.geometry import all_relative_covariances, make_T, pd_size_m
-from common.messages import SlamState
-from services.visualiser.camera_model import CameraModel
-from services.visualiser.glyphs import eig_sym2
-from services.visualiser.render import Renderer
-from services.visualiser.settings import ViewSettings
+from slamlens.common.geometry import all_relative_covariances, make_T, pd_size_m
+from slamlens.common.messages import SlamState
+from slamlens.services.visualiser.camera_model import CameraModel
+from slamlens.services.visualiser.glyphs import eig_sym2
+from slamlens.services.visualiser.render import Renderer
+from slamlens.services.visualiser.settings import ViewSettings
 
 
 def paper_like_state(n: int, *, seed: int = 0, arena_m: float = 3.0) -> SlamState:
@@ -203,7 +203,7 @@ def grid_state(n: int, *, spacing: float = 1.0, seed: int = 0) -> SlamState:
 
 
 def large(repeat: int) -> None:
-    from services.visualiser.scene import min_mean_max, plan_overview
+    from slamlens.services.visualiser.scene import min_mean_max, plan_overview
 
     n = 1000
     grid = grid_state(n)
@@ -288,7 +288,7 @@ def _path_case(state: SlamState, camera: CameraModel, frame: np.ndarray, xy: np.
                points: int, repeat: int) -> list[list[float]]:
     """CPU ms of a picture whose path grows by a point each time, from ``points`` on, and
     of the whole path drawn straight (the baseline), interleaved."""
-    from services.visualiser.draw import draw_polylines, project_polyline
+    from slamlens.services.visualiser.draw import draw_polylines, project_polyline
 
     renderer = Renderer()
     for k in range(points):

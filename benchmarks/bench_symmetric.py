@@ -21,8 +21,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from common.arrays import bytes_backed_array  # noqa: E402
-from services.slam import ekf  # noqa: E402
+from slamlens.common.arrays import bytes_backed_array  # noqa: E402
+from slamlens.services.slam import ekf  # noqa: E402
 
 
 def copy_then_mirror(L: np.ndarray, N: int, out: np.ndarray) -> np.ndarray:

@@ -31,11 +31,11 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from common.bus import ZenohBus  # noqa: E402
-from common.certs import extend_authority  # noqa: E402
-from common.keys import Keys  # noqa: E402
-from common.messages import Observations, SlamState  # noqa: E402
-from common.session import BusSettings, free_tcp_endpoint, open_bus  # noqa: E402
+from slamlens.common.bus import ZenohBus  # noqa: E402
+from slamlens.common.certs import extend_authority  # noqa: E402
+from slamlens.common.keys import Keys  # noqa: E402
+from slamlens.common.messages import Observations, SlamState  # noqa: E402
+from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus  # noqa: E402
 
 KEYS = Keys()
 ROBOT = "lat"
@@ -44,7 +44,7 @@ ECHO_IN, ECHO_OUT = "slamlens/robot/lat/echo/in", "slamlens/robot/lat/echo/out"
 
 def _spawn(*args: str) -> subprocess.Popen:
     env = dict(os.environ, PYTHONUNBUFFERED="1")
-    return subprocess.Popen([sys.executable, "-m", "services", *args], cwd=REPO, env=env,
+    return subprocess.Popen([sys.executable, "-m", "slamlens.services", *args], cwd=REPO, env=env,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
 
 
@@ -102,7 +102,7 @@ class Pipeline:
 # the echo answers as the robot would: its identity may publish under slamlens/robot/lat/**
 _ECHO = """
 import sys, time
-from common.session import BusSettings, open_bus
+from slamlens.common.session import BusSettings, open_bus
 args = sys.argv[1:]
 flags = dict(zip(args[1::2], args[2::2]))
 b = open_bus(BusSettings(connect=(args[0],), secure=flags.get('--secure'),

@@ -34,16 +34,16 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_render import median_ms, overhead_camera, paper_like_state  # noqa: E402
 
-from common.keys import Keys  # noqa: E402
-from common.messages import CameraFrame, Registration, SlamState  # noqa: E402
-from common.session import (  # noqa: E402
+from slamlens.common.keys import Keys  # noqa: E402
+from slamlens.common.messages import CameraFrame, Registration, SlamState  # noqa: E402
+from slamlens.common.session import (  # noqa: E402
     BusSettings,
     free_tcp_endpoint,
     open_bus,
     router_settings,
 )
-from services.visualiser.render import Renderer  # noqa: E402
-from services.visualiser.settings import ViewSettings  # noqa: E402
+from slamlens.services.visualiser.render import Renderer  # noqa: E402
+from slamlens.services.visualiser.settings import ViewSettings  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[1]
 PHOTO = REPO.parent / "shared" / "data" / "fiducials" / "apriltag" / "33369213973_9d9bb4cc96_c.jpg"
@@ -80,7 +80,8 @@ class Viewer:
     def __init__(self, endpoint: str, *extra: str) -> None:
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "services", "viewer", "--robot", ROBOT, "--connect", endpoint,
+            [sys.executable, "-m", "slamlens.services", "viewer", "--robot", ROBOT,
+             "--connect", endpoint,
              "--http", "127.0.0.1:0", "-q", *extra],
             cwd=REPO, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         assert self.proc.stdout is not None

@@ -41,9 +41,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from bench_render import paper_like_state  # noqa: E402
 
-from common.keys import Keys  # noqa: E402
-from common.messages import SlamState  # noqa: E402
-from common.session import BusSettings, free_tcp_endpoint, open_bus, router_settings  # noqa: E402
+from slamlens.common.keys import Keys  # noqa: E402
+from slamlens.common.messages import SlamState  # noqa: E402
+from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus, router_settings  # noqa: E402
 
 REPO = Path(os.environ.get("SLAMLENS_REPO", Path(__file__).resolve().parents[1]))
 KEYS = Keys()
@@ -58,7 +58,8 @@ class Viewer:
 
     def __init__(self, endpoint: str, *extra: str) -> None:
         self.proc = subprocess.Popen(
-            [sys.executable, "-m", "services", "viewer", "--robot", ROBOT, "--connect", endpoint,
+            [sys.executable, "-m", "slamlens.services", "viewer", "--robot", ROBOT,
+             "--connect", endpoint,
              "--http", "127.0.0.1:0", "-q", "--late-join-timeout-s", "0", *extra],
             cwd=REPO, env=dict(os.environ, PYTHONUNBUFFERED="1"), stdout=subprocess.PIPE,
             stderr=subprocess.PIPE, text=True)

@@ -15,7 +15,7 @@ from typing import Any, TypeGuard
 
 import numpy as np
 
-from common.errors import MessageError
+from slamlens.common.errors import MessageError
 
 _WIRE_DTYPES = {"<f8", "<f4", "<i8", "<i4", "|u1", "<u1", "|b1"}
 _DTYPES: dict[str, np.dtype] = {}
@@ -122,7 +122,7 @@ def _describe(value: Any) -> str:
 
 
 def is_frozen_view(data: Any) -> TypeGuard[memoryview]:
-    """A read-only byte memoryview (into an immutable payload: common.messages'
+    """A read-only byte memoryview (into an immutable payload: slamlens.common.messages'
     ``unpack_in_place``), taken as array data without a copy, as ``bytes`` is."""
     return (type(data) is memoryview and data.readonly and data.ndim == 1
             and data.format == "B" and isinstance(data.obj, bytes))

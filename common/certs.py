@@ -17,7 +17,7 @@ certificate already copied to another machine. Only a router identity asked for 
 does not cover yet is re-issued, with the same key and the union of its hosts.
 
 The role of an identity is its name's form (``robot-R``, ``camera-C``, ``monitor-R``,
-``viewer-…``, ``router-…``), see :mod:`common.security`.
+``viewer-…``, ``router-…``), see :mod:`slamlens.common.security`.
 """
 
 from __future__ import annotations
@@ -30,8 +30,8 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from common.errors import ConfigError, SecurityError
-from common.keys import check_name
+from slamlens.common.errors import ConfigError, SecurityError
+from slamlens.common.keys import check_name
 
 CA_CERT = "ca.pem"
 CA_KEY = "ca.key"

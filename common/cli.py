@@ -1,6 +1,6 @@
 """Pieces every service's ``cli.py`` shares: common flags, logging, stop signals, errors.
 
-Common flags (SPEC §9) are settings too (:mod:`common.config`), declared once below:
+Common flags (SPEC §9) are settings too (:mod:`slamlens.common.config`), declared once below:
 :class:`BusFlags` (``--connect ENDPOINT`` repeatable, ``--listen ENDPOINT``,
 ``--zenoh-config FILE``, ``--prefix``, ``--secure DIR --name NAME`` for mutual TLS with an
 identity, SPEC §7b) for every command on the bus, ``--config FILE`` for
@@ -20,10 +20,10 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
-from common.config import add_flags, flag_values, setting, settings_from_mapping
-from common.errors import SlamlensError
-from common.keys import DEFAULT_PREFIX, Keys
-from common.session import BusSettings
+from slamlens.common.config import add_flags, flag_values, setting, settings_from_mapping
+from slamlens.common.errors import SlamlensError
+from slamlens.common.keys import DEFAULT_PREFIX, Keys
+from slamlens.common.session import BusSettings
 
 log = logging.getLogger("slamlens")
 

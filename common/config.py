@@ -38,7 +38,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
 
-from common.errors import ConfigError
+from slamlens.common.errors import ConfigError
 
 T = TypeVar("T")
 

@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from common.errors import ConfigError
+from slamlens.common.errors import ConfigError
 
 
 def wrap_angle(angle: float | np.ndarray) -> float | np.ndarray:

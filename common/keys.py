@@ -9,7 +9,7 @@ from __future__ import annotations
 import re
 from dataclasses import dataclass
 
-from common.errors import ConfigError
+from slamlens.common.errors import ConfigError
 
 DEFAULT_PREFIX = "slamlens"
 _SEGMENT = re.compile(r"^[^/*$?#\s]+$")

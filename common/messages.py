@@ -1,8 +1,8 @@
 """The messages of SPEC §7: frozen dataclasses with msgpack encoding and validation.
 
 Every message is a msgpack map with ``"schema": 1``. Arrays travel as
-``{"dtype", "shape", "data"}`` maps (see :mod:`common.arrays`). Decoders ignore unknown
-fields; anything malformed raises :class:`~common.errors.MessageError` naming the field,
+``{"dtype", "shape", "data"}`` maps (see :mod:`slamlens.common.arrays`). Decoders ignore unknown
+fields; anything malformed raises :class:`~slamlens.common.errors.MessageError` naming the field,
 what was expected and what arrived. Arrays held by a message are read-only copies, and
 equality compares array contents (a plain dataclass ``__eq__`` would not).
 
@@ -29,7 +29,7 @@ from typing import Any, ClassVar, Self
 import msgpack
 import numpy as np
 
-from common.arrays import (
+from slamlens.common.arrays import (
     check_finite,
     check_int,
     check_str,
@@ -40,7 +40,7 @@ from common.arrays import (
     is_frozen_view,
     values_equal,
 )
-from common.errors import MessageError, SlamlensError
+from slamlens.common.errors import MessageError, SlamlensError
 
 SCHEMA = 1
 #: binary values of at least this many bytes are written as parts of their own (wire_parts)

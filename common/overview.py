@@ -81,7 +81,7 @@ def tile_groups(xy: np.ndarray, budget: int) -> tuple[np.ndarray, float]:
 def pair_relative_covariances(P: np.ndarray, first: np.ndarray,
                               second: np.ndarray) -> np.ndarray:
     """P_d (k, 2, 2) of the pairs (first[k], second[k]) of landmark indices — the same
-    arithmetic as ``common.geometry.all_relative_covariances``, for these pairs only."""
+    arithmetic as ``slamlens.common.geometry.all_relative_covariances``, for these pairs only."""
     lm = 3 + 2 * np.arange((P.shape[0] - 3) // 2)
     a_, b_, d_ = P[lm, lm], P[lm + 1, lm], P[lm + 1, lm + 1]
     r, c = lm[first], lm[second]

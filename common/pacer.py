@@ -13,10 +13,10 @@ import threading
 import time
 from collections import deque
 
-from common.bus import Bus
-from common.errors import MessageError
-from common.keys import Keys
-from common.messages import peek_fields
+from slamlens.common.bus import Bus
+from slamlens.common.errors import MessageError
+from slamlens.common.keys import Keys
+from slamlens.common.messages import peek_fields
 
 log = logging.getLogger("slamlens.driver")
 

@@ -13,8 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.errors import RenderError
-from common.geometry import pd_size_m
+from slamlens.common.errors import RenderError
+from slamlens.common.geometry import pd_size_m
 
 
 def pair_size(Pd: np.ndarray) -> np.ndarray:

@@ -1,7 +1,7 @@
 """Mutual TLS and role-based access control for slamlens sessions (SPEC §7b), in Zenoh's terms.
 
 ``--secure DIR --name NAME`` makes a session speak TLS only, with the identity ``NAME`` of the
-authority in ``DIR`` (see :mod:`common.certs`): the authority's ``ca.pem`` is the only root
+authority in ``DIR`` (see :mod:`slamlens.common.certs`): the authority's ``ca.pem`` is the only root
 trusted, the peer must present a certificate too (mutual TLS), and a client checks that the
 router's certificate names the host it dialled.
 
@@ -15,7 +15,8 @@ common name, default deny:
   ``PREFIX/robot/R/**`` only; ``camera-C`` under ``PREFIX/camera/C/**`` only; ``monitor-R``
   on ``PREFIX/robot/R/health`` only; ``viewer-…`` nothing; ``router-…`` links routers and may
   send anything under the prefix (a router enforces the roles of its own clients);
-* every identity ``NAME`` may also announce and answer its own status (:mod:`common.status`):
+* every identity ``NAME`` may also announce and answer its own status
+  (:mod:`slamlens.common.status`):
   hold a liveliness token, declare a queryable and reply under ``PREFIX/status/NAME/**``.
 
 Zenoh's advanced publishers and subscribers (SPEC §7a) talk in key spaces under the data key:
@@ -37,7 +38,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from common.certs import (
+from slamlens.common.certs import (
     CA_CERT,
     Identity,
     common_name,
@@ -46,8 +47,8 @@ from common.certs import (
     load_key,
     parse_name,
 )
-from common.errors import ConfigError, SecurityError
-from common.session import effective_endpoints
+from slamlens.common.errors import ConfigError, SecurityError
+from slamlens.common.session import effective_endpoints
 
 #: every message kind Zenoh's access control filters
 ALL_MESSAGES = ("put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",

@@ -13,7 +13,7 @@ A router listens where ``--listen`` says, else where its Zenoh config file says,
 ``tcp/127.0.0.1:7447``: flags override only what they name.
 
 ``--secure DIR --name NAME`` (SPEC §7b) makes every link mutual TLS with that identity and,
-on a router, enforces the roles of every identity in DIR (:mod:`common.security`); the
+on a router, enforces the roles of every identity in DIR (:mod:`slamlens.common.security`); the
 default endpoint is then ``tls/127.0.0.1:7447`` and a ``tcp/`` endpoint is an error.
 """
 
@@ -27,9 +27,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from common.bus import ZenohBus
-from common.errors import BusError, ConfigError
-from common.keys import DEFAULT_PREFIX
+from slamlens.common.bus import ZenohBus
+from slamlens.common.errors import BusError, ConfigError
+from slamlens.common.keys import DEFAULT_PREFIX
 
 log = logging.getLogger(__name__)
 
@@ -129,7 +129,7 @@ def build_config(settings: BusSettings):  # -> zenoh.Config
     except Exception as exc:
         raise ConfigError(f"bad Zenoh setting: {zenoh_reason(exc)}") from None
     if settings.secure and settings.name:
-        from common import security
+        from slamlens.common import security
 
         security.apply(conf, directory=settings.secure, name=settings.name,
                        prefix=settings.prefix, mode=mode or json.loads(conf.get_json("mode")))

@@ -12,12 +12,12 @@ The status protocol (docs/protocol.md):
   liveliness query (or subscriber) on ``PREFIX/status/**``, and sees one vanish when its
   process dies.
 * **Answer.** A queryable on the same key answers a ``get`` with a
-  :class:`~common.messages.ServiceStatus`: robot, camera, state, epoch, counts and rates,
+  :class:`~slamlens.common.messages.ServiceStatus`: robot, camera, state, epoch, counts and rates,
   drops, version. A worker thread rebuilds it once a second from the service's own
   counters (its *provider*); the Zenoh callback only hands over those bytes, never waits.
 * **Access control.** Every identity may declare the queryable, reply and hold the token
   under ``PREFIX/status/{its own name}/**`` and nothing else there
-  (:func:`common.security.access_control`); reading it is everyone's ``read`` rule.
+  (:func:`slamlens.common.security.access_control`); reading it is everyone's ``read`` rule.
 
 A service's ``cli.py`` registers its provider with :func:`announce`; the service modules
 themselves need not know.
@@ -38,10 +38,10 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from common.bus import Bus
-from common.cli import bus_flags
-from common.keys import Keys
-from common.messages import ServiceStatus
+from slamlens.common.bus import Bus
+from slamlens.common.cli import bus_flags
+from slamlens.common.keys import Keys
+from slamlens.common.messages import ServiceStatus
 
 log = logging.getLogger("slamlens.status")
 

@@ -9,8 +9,8 @@ what it will draw instead of receiving the whole covariance (32 MB at n = 1000):
   the largest relative covariance P_d = P_ii + P_jj − P_ij − P_ji over the pairs between
   them (the viewer's clustered min/mean/max picture). The groups are the single-linkage
   clusters at ``threshold`` (or ``count``), with ids kept stable from state to state by a
-  :class:`~common.clusters.ClusterTracker` per clustering; with a glyph ``budget`` the
-  viewer's rule applies (:mod:`common.overview`): too many clusters for the budget, and
+  :class:`~slamlens.common.clusters.ClusterTracker` per clustering; with a glyph ``budget`` the
+  viewer's rule applies (:mod:`slamlens.common.overview`): too many clusters for the budget, and
   the groups become square map tiles;
 * ``pairs``: the blocks, and the P_d of every pair inside one cluster (``cluster=K``, a
   stable id of a previous ``clusters`` answer with the same clustering) or of one feature
@@ -32,11 +32,11 @@ from typing import Any
 
 import numpy as np
 
-from common import overview
-from common.clusters import ClusterTracker, cluster_labels
-from common.errors import SlamlensError
-from common.geometry import pd_size_m
-from common.messages import SlamState, StateSummary
+from slamlens.common import overview
+from slamlens.common.clusters import ClusterTracker, cluster_labels
+from slamlens.common.errors import SlamlensError
+from slamlens.common.geometry import pd_size_m
+from slamlens.common.messages import SlamState, StateSummary
 
 #: the parameters a summary query may carry, and what each means (for the error text)
 PARAMETERS = {

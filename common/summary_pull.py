@@ -20,11 +20,11 @@ from dataclasses import replace
 
 import msgpack
 
-from common.bus import Bus
-from common.drops import DropCounter
-from common.errors import MessageError
-from common.messages import peek_fields
-from common.summary import SummaryQuery
+from slamlens.common.bus import Bus
+from slamlens.common.drops import DropCounter
+from slamlens.common.errors import MessageError
+from slamlens.common.messages import peek_fields
+from slamlens.common.summary import SummaryQuery
 
 log = logging.getLogger("slamlens.summary")
 

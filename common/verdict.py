@@ -13,7 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 
-from common.messages import Health, Violation
+from slamlens.common.messages import Health, Violation
 
 #: the verdict in words, as every view shows it
 WORDS = {"ok": "ok", "fault": "estimator fault",

@@ -17,8 +17,8 @@ import matplotlib.pyplot as plt  # noqa: E402
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from services.slam.consistency import monte_carlo  # noqa: E402
-from services.slam.world import load_world  # noqa: E402
+from slamlens.services.slam.consistency import monte_carlo  # noqa: E402
+from slamlens.services.slam.world import load_world  # noqa: E402
 
 
 def main() -> None:

@@ -1,6 +1,6 @@
 """``slamlens certs DIR --name NAME [--name NAME …] [--host HOST …]`` (SPEC §7b).
 
-Creates or extends the small certificate authority in DIR (:mod:`common.certs`) and prints
+Creates or extends the small certificate authority in DIR (:mod:`slamlens.common.certs`) and prints
 one line per identity it created, kept or re-issued, then what to copy where.
 """
 
@@ -8,9 +8,9 @@ from __future__ import annotations
 
 import argparse
 
-from common.certs import CA_CERT, CA_KEY, extend_authority
-from common.config import settings_from_args
-from services.settings import CertsSettings
+from slamlens.common.certs import CA_CERT, CA_KEY, extend_authority
+from slamlens.common.config import settings_from_args
+from slamlens.services.settings import CertsSettings
 
 
 def run(command: str, args: argparse.Namespace) -> int:

@@ -2,10 +2,10 @@
 
 Each command is a row of :data:`COMMANDS`: the module whose ``run(command, args) -> int``
 runs it, its one-line help, and the settings dataclass its flags are built from
-(:func:`common.config.add_flags`; every field a TOML key of ``--config FILE`` and a flag).
+(:func:`slamlens.common.config.add_flags`; every field a TOML key of ``--config FILE`` and a flag).
 Modules are imported only when needed, so ``slamlens sim`` never loads OpenCV and
 ``slamlens --help`` is instant; ``--help`` of a command loads only its settings module.
-docs/cli.md is generated from the same parsers (``python -m services.cli_reference``).
+docs/cli.md is generated from the same parsers (``python -m slamlens.services.cli_reference``).
 """
 
 from __future__ import annotations
@@ -16,18 +16,21 @@ import sys
 from dataclasses import dataclass
 from typing import Any
 
-from common.cli import add_common_flags, run_cli
-from common.config import add_flags
-from common.memory import keep_freed_memory
+from slamlens.common.cli import add_common_flags, run_cli
+from slamlens.common.config import add_flags
+from slamlens.common.memory import keep_freed_memory
+
+PACKAGE = "slamlens.services"  #: where the commands' modules are
 
 
 @dataclass(frozen=True)
 class Command:
     """One ``slamlens`` command."""
 
-    module: str  #: module with ``run(command, args) -> int``
+    module: str  #: module with ``run(command, args) -> int``, under ``slamlens.services``
     help: str  #: one line, for ``slamlens --help`` and the command's own
-    settings: str = ""  #: "module:Class" of its settings (flags + TOML keys); "" = none
+    settings: str = ""  #: "module:Class" of its settings (flags + TOML keys), under
+    #: ``slamlens.services``; "" = none
     bus: bool = True  #: takes the common bus flags (--connect, --listen, --zenoh-config …)
     config: bool = True  #: its settings may come from --config FILE (False: flags only)
 
@@ -35,55 +38,60 @@ class Command:
         if not self.settings:
             return None
         module, _, name = self.settings.partition(":")
-        cls: type = getattr(importlib.import_module(module), name)
+        cls: type = getattr(import_service_module(module), name)
         return cls
 
 
+def import_service_module(name: str) -> Any:
+    """The module ``slamlens.services.NAME``."""
+    return importlib.import_module(f"{PACKAGE}.{name}")
+
+
 COMMANDS: dict[str, Command] = {
-    "router": Command("services.router", "a Zenoh router, in-process (no binary to install)",
-                      "services.settings:RouterSettings", config=False),
-    "sim": Command("services.slam.cli", "simulated robot: odometry, observations, truth",
-                   "services.slam.settings:SimSettings"),
-    "estimator": Command("services.slam.cli", "the EKF-SLAM estimator service",
-                         "services.slam.settings:EstimatorSettings"),
-    "replay": Command("services.slam.cli", "a recorded dataset (MRCLAM) as a robot driver",
-                      "services.slam.settings:ReplaySettings"),
-    "serial": Command("services.slam.cli", "a real robot on a serial line",
-                      "services.slam.settings:SerialSettings"),
-    "monitor": Command("services.slam.cli", "the covariance behaviour monitor",
-                       "services.slam.settings:MonitorSettings"),
-    "summary": Command("services.slam.cli", "what remote viewers draw of the newest state, "
-                       "on request (issue 13)", "services.slam.settings:SummarySettings"),
-    "tune": Command("services.slam.cli", "noise settings fitted to runs with ground truth",
-                    "services.slam.settings:TuneSettings", bus=False),
-    "registration": Command("services.registration.cli",
+    "router": Command("router", "a Zenoh router, in-process (no binary to install)",
+                      "settings:RouterSettings", config=False),
+    "sim": Command("slam.cli", "simulated robot: odometry, observations, truth",
+                   "slam.settings:SimSettings"),
+    "estimator": Command("slam.cli", "the EKF-SLAM estimator service",
+                         "slam.settings:EstimatorSettings"),
+    "replay": Command("slam.cli", "a recorded dataset (MRCLAM) as a robot driver",
+                      "slam.settings:ReplaySettings"),
+    "serial": Command("slam.cli", "a real robot on a serial line",
+                      "slam.settings:SerialSettings"),
+    "monitor": Command("slam.cli", "the covariance behaviour monitor",
+                       "slam.settings:MonitorSettings"),
+    "summary": Command("slam.cli", "what remote viewers draw of the newest state, "
+                       "on request", "slam.settings:SummarySettings"),
+    "tune": Command("slam.cli", "noise settings fitted to runs with ground truth",
+                    "slam.settings:TuneSettings", bus=False),
+    "registration": Command("registration.cli",
                             "camera capture and fiducial registration",
-                            "services.registration.settings:RegistrationSettings"),
-    "calibrate": Command("services.registration.cli",
+                            "registration.settings:RegistrationSettings"),
+    "calibrate": Command("registration.cli",
                          "camera intrinsics from ChArUco board images",
-                         "services.registration.settings:CalibrateSettings", bus=False),
-    "viewer": Command("services.visualiser.cli", "the AR renderer and its web viewers",
-                      "services.visualiser.settings:ViewerConfig"),
-    "figures": Command("services.figures",
+                         "registration.settings:CalibrateSettings", bus=False),
+    "viewer": Command("visualiser.cli", "the AR renderer and its web viewers",
+                      "visualiser.settings:ViewerConfig"),
+    "figures": Command("figures",
                        "regenerate the paper's Figs. 3-8 (into docs/figures by default)",
-                       "services.settings:FigureSettings", bus=False),
-    "demo": Command("services.demo", "all of it on one machine, with a browser link",
-                    "services.settings:DemoSettings"),
-    "record": Command("services.recorder.cli", "record the bus into an MCAP file (with "
-                      "Foxglove channels)", "services.recorder.settings:RecordSettings"),
-    "play": Command("services.recorder.cli", "publish an MCAP recording back on the bus",
-                    "services.recorder.settings:PlaySettings"),
-    "foxglove": Command("services.recorder.cli", "the live scene over Foxglove's WebSocket "
-                        "protocol", "services.recorder.settings:FoxgloveSettings"),
-    "certs": Command("services.certs", "create or extend the certificate authority of "
-                     "SPEC §7b", "services.settings:CertsSettings", bus=False, config=False),
-    "launch": Command("services.launch", "a described group of services, supervised: order, "
-                      "readiness, respawn, one log", "services.settings:LaunchSettings",
+                       "settings:FigureSettings", bus=False),
+    "demo": Command("demo", "all of it on one machine, with a browser link",
+                    "settings:DemoSettings"),
+    "record": Command("recorder.cli", "record the bus into an MCAP file (with "
+                      "Foxglove channels)", "recorder.settings:RecordSettings"),
+    "play": Command("recorder.cli", "publish an MCAP recording back on the bus",
+                    "recorder.settings:PlaySettings"),
+    "foxglove": Command("recorder.cli", "the live scene over Foxglove's WebSocket "
+                        "protocol", "recorder.settings:FoxgloveSettings"),
+    "certs": Command("certs", "create or extend the certificate authority for "
+                     "mutual TLS", "settings:CertsSettings", bus=False, config=False),
+    "launch": Command("launch", "a described group of services, supervised: order, "
+                      "readiness, respawn, one log", "settings:LaunchSettings",
                       bus=False, config=False),
-    "status": Command("services.status", "every live service across hosts, with rates, drops "
-                      "and epoch", "services.settings:StatusSettings", config=False),
-    "register": Command("services.register", "re-register a camera and print the new "
-                        "registration", "services.settings:RegisterSettings", config=False),
+    "status": Command("status", "every live service across hosts, with rates, drops "
+                      "and epoch", "settings:StatusSettings", config=False),
+    "register": Command("register", "re-register a camera and print the new "
+                        "registration", "settings:RegisterSettings", config=False),
 }
 
 
@@ -121,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
     name = argv[0]
     args = command_parser(name).parse_args(argv[1:])
     keep_freed_memory()  # before the command starts any thread (common/memory.py)
-    module = importlib.import_module(COMMANDS[name].module)
+    module = import_service_module(COMMANDS[name].module)
     return run_cli(lambda: module.run(name, args))
 
 

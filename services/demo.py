@@ -1,6 +1,6 @@
 """``slamlens demo``: the whole system on one machine, as real separate processes.
 
-The demo is a launch (:mod:`services.launch`): from its settings it builds a launch plan —
+The demo is a launch (:mod:`slamlens.services.launch`): from its settings it builds a launch plan —
 a Zenoh router on loopback, the estimator, the behaviour monitor, the synthetic overhead
 camera with registration, the AR viewer and, once they are all ready, the simulated robot
 (which first stands still while the camera registers) — writes it to ``LOG_DIR/demo.toml``
@@ -29,17 +29,17 @@ from typing import Any
 
 import numpy as np
 
-from common.cli import bus_flags, setup_logging, stop_event
-from common.config import settings_from_args
-from common.errors import ConfigError, MessageError, ServiceError
-from common.geometry import all_relative_covariances, pd_size_m
-from common.keys import Keys
-from common.messages import Health, SlamState
-from common.session import BusSettings, free_tcp_endpoint, open_bus
-from common.verdict import summary_text
-from services.launch import Supervisor
-from services.launch_file import plan_from_mapping, to_toml
-from services.settings import DemoSettings
+from slamlens.common.cli import bus_flags, setup_logging, stop_event
+from slamlens.common.config import settings_from_args
+from slamlens.common.errors import ConfigError, MessageError, ServiceError
+from slamlens.common.geometry import all_relative_covariances, pd_size_m
+from slamlens.common.keys import Keys
+from slamlens.common.messages import Health, SlamState
+from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus
+from slamlens.common.verdict import summary_text
+from slamlens.services.launch import Supervisor
+from slamlens.services.launch_file import plan_from_mapping, to_toml
+from slamlens.services.settings import DemoSettings
 
 log = logging.getLogger("slamlens.demo")
 
@@ -85,7 +85,7 @@ def _check_http(host_port: str) -> str:
 
 def demo_launch(s: DemoSettings, *, endpoint: str, prefix: str, http: str | None,
                 camera: str | None) -> dict[str, Any]:
-    """The demo as a launch file's tables (:mod:`services.launch_file`)."""
+    """The demo as a launch file's tables (:mod:`slamlens.services.launch_file`)."""
     bus = {"connect": [endpoint], "prefix": prefix}
     services: dict[str, dict[str, Any]] = {
         "router": {"command": "router", "listen": [endpoint], "prefix": prefix},
@@ -185,8 +185,8 @@ def run(command: str, args: argparse.Namespace) -> int:
     stop = stop_event(grace_s=None)  # its own stop is bounded: services killed after 1.5 s
     keys = Keys(flags.prefix)
     endpoint = _router_endpoint(flags.listen)
-    have_camera = importlib.util.find_spec("services.registration.service") is not None
-    have_viewer = importlib.util.find_spec("services.visualiser.service") is not None
+    have_camera = importlib.util.find_spec("slamlens.services.registration.service") is not None
+    have_viewer = importlib.util.find_spec("slamlens.services.visualiser.service") is not None
     http = _check_http(s.http) if have_viewer else None
     camera = s.camera if have_camera and s.synthetic_camera else None
     raw = demo_launch(s, endpoint=endpoint, prefix=flags.prefix, http=http, camera=camera)

@@ -25,7 +25,8 @@ photographs.
 
 This is a composition-level tool, like ``services/demo.py``: it joins the simulator and the
 estimator (SLAM), the synthetic camera (registration) and the renderer (viewer) in one
-process, which no service may do. Its settings are :class:`services.settings.FigureSettings`.
+process, which no service may do. Its settings are
+:class:`slamlens.services.settings.FigureSettings`.
 """
 
 from __future__ import annotations
@@ -38,26 +39,26 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from common.cli import setup_logging
-from common.config import settings_from_args
-from common.errors import RenderError
-from common.geometry import invert_T
-from common.messages import Odometry, SlamState, Truth
-from services.registration.synthetic import (
+from slamlens.common.cli import setup_logging
+from slamlens.common.config import settings_from_args
+from slamlens.common.errors import RenderError
+from slamlens.common.geometry import invert_T
+from slamlens.common.messages import Odometry, SlamState, Truth
+from slamlens.services.registration.synthetic import (
     ImagingSettings,
     SceneSettings,
     SyntheticCamera,
     look_at,
 )
-from services.settings import FigureSettings
-from services.slam.estimator import Estimator
-from services.slam.settings import EstimatorSettings
-from services.slam.sim import Simulator
-from services.slam.world import load_world
-from services.visualiser.camera_model import CameraModel
-from services.visualiser.draw import text
-from services.visualiser.render import Renderer
-from services.visualiser.settings import ViewSettings
+from slamlens.services.settings import FigureSettings
+from slamlens.services.slam.estimator import Estimator
+from slamlens.services.slam.settings import EstimatorSettings
+from slamlens.services.slam.sim import Simulator
+from slamlens.services.slam.world import load_world
+from slamlens.services.visualiser.camera_model import CameraModel
+from slamlens.services.visualiser.draw import text
+from slamlens.services.visualiser.render import Renderer
+from slamlens.services.visualiser.settings import ViewSettings
 
 log = logging.getLogger("slamlens.figures")
 

@@ -1,6 +1,6 @@
 """``slamlens launch FILE.toml``: a described group of services, supervised as one.
 
-Like ``ros2 launch``: each service of the file (:mod:`services.launch_file`) runs as its
+Like ``ros2 launch``: each service of the file (:mod:`slamlens.services.launch_file`) runs as its
 own ``slamlens`` process, and the supervisor
 
 * **orders** them: a service starts once every service in its ``after`` is ready — has
@@ -34,12 +34,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, TextIO
 
-from common.backoff import Backoff
-from common.cli import setup_logging, stop_event
-from common.config import settings_from_args
-from common.errors import ServiceError
-from services.launch_file import LaunchPlan, ServiceSpec, load_launch
-from services.settings import LaunchSettings
+from slamlens.common.backoff import Backoff
+from slamlens.common.cli import setup_logging, stop_event
+from slamlens.common.config import settings_from_args
+from slamlens.common.errors import ServiceError
+from slamlens.services.launch_file import LaunchPlan, ServiceSpec, load_launch
+from slamlens.services.settings import LaunchSettings
 
 #: a service that stays up this long after it was ready starts its back-off afresh
 STABLE_S = 60.0
@@ -152,7 +152,7 @@ class Supervisor:
 
     def _start(self, child: Child) -> None:
         spec = child.spec
-        argv = [sys.executable, "-m", "services", spec.command, *spec.argv]
+        argv = [sys.executable, "-m", "slamlens.services", spec.command, *spec.argv]
         if self.log_dir is not None and spec.name not in self._files:
             self._files[spec.name] = (self.log_dir / f"{spec.name}.log").open("a")
         proc = subprocess.Popen(argv, env=self.env, stdin=subprocess.DEVNULL,

@@ -43,8 +43,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from common.cli import BusFlags, LogFlags, bus_settings
-from common.config import (
+from slamlens.common.cli import BusFlags, LogFlags, bus_settings
+from slamlens.common.config import (
     check_value,
     flag_names,
     read_toml,
@@ -53,8 +53,8 @@ from common.config import (
     settings_from_mapping,
     spec_of,
 )
-from common.errors import ConfigError, SlamlensError
-from services.cli import COMMANDS, command_parser
+from slamlens.common.errors import ConfigError, SlamlensError
+from slamlens.services.cli import COMMANDS, command_parser
 
 #: the line each command prints on stdout when it is ready to serve
 READY_LINES = {"router": "router ready", "estimator": "estimator ready",
@@ -232,7 +232,7 @@ def _parse_whole(command: str, argv: list[str], where: str) -> None:
 
 
 def _check_bus(command: str, args: argparse.Namespace) -> None:
-    from common.session import build_config, router_settings
+    from slamlens.common.session import build_config, router_settings
 
     bus = bus_settings(args)
     if command == "router":

@@ -1,6 +1,6 @@
 """``slamlens register --camera C [--robot R]``: re-register a camera, and say the result.
 
-It asks the camera's registration service (a :class:`~common.messages.CameraControl`
+It asks the camera's registration service (a :class:`~slamlens.common.messages.CameraControl`
 ``reregister`` on ``slamlens/camera/C/control``), waits for the registration made from the
 frames after the request, and prints it. The robot must stand still at its map origin,
 marker in view, while the camera averages its frames (paper §3.1).
@@ -18,14 +18,14 @@ import time
 
 import numpy as np
 
-from common.bus import Bus
-from common.cli import bus_settings, keys_from, setup_logging, stop_event
-from common.config import settings_from_args
-from common.errors import BusError, MessageError, ServiceError
-from common.keys import Keys, check_name
-from common.messages import CameraControl, Registration
-from common.session import open_bus
-from services.settings import RegisterSettings
+from slamlens.common.bus import Bus
+from slamlens.common.cli import bus_settings, keys_from, setup_logging, stop_event
+from slamlens.common.config import settings_from_args
+from slamlens.common.errors import BusError, MessageError, ServiceError
+from slamlens.common.keys import Keys, check_name
+from slamlens.common.messages import CameraControl, Registration
+from slamlens.common.session import open_bus
+from slamlens.services.settings import RegisterSettings
 
 REREGISTERING = "reregistering"  #: the status a camera says while it averages anew
 

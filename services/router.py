@@ -8,8 +8,8 @@ where they are given. It listens where ``--listen`` says, else where the file sa
 (e.g. the robot's to the workstation's).
 
 With ``--secure DIR --name router-X`` it serves mutual TLS only and enforces the roles of
-every identity in DIR (SPEC §7b, :mod:`common.security`); what it refuses shows in its log
-(:mod:`services.router_log`).
+every identity in DIR (SPEC §7b, :mod:`slamlens.common.security`); what it refuses shows in its log
+(:mod:`slamlens.services.router_log`).
 """
 
 from __future__ import annotations
@@ -18,13 +18,13 @@ import argparse
 import json
 import logging
 
-from common.bus import ZenohBus
-from common.cli import bus_settings, setup_logging, stop_event
-from common.config import settings_from_args
-from common.session import build_config, effective_endpoints, open_bus, router_settings
-from common.status import Report, announce
-from services.router_log import ZenohLog
-from services.settings import RouterSettings
+from slamlens.common.bus import ZenohBus
+from slamlens.common.cli import bus_settings, setup_logging, stop_event
+from slamlens.common.config import settings_from_args
+from slamlens.common.session import build_config, effective_endpoints, open_bus, router_settings
+from slamlens.common.status import Report, announce
+from slamlens.services.router_log import ZenohLog
+from slamlens.services.settings import RouterSettings
 
 log = logging.getLogger("slamlens.router")
 

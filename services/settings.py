@@ -2,7 +2,7 @@
 ``slamlens router`` and ``slamlens certs``.
 
 Like every service's settings: each field a TOML key of ``--config FILE`` and a flag over it
-(:func:`common.config.setting`; docs/cli.md lists them all). ``slamlens router`` and
+(:func:`slamlens.common.config.setting`; docs/cli.md lists them all). ``slamlens router`` and
 ``slamlens certs`` take flags only: Zenoh's own configuration is ``--zenoh-config FILE``.
 """
 
@@ -10,9 +10,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from common.config import setting
-from services.slam.settings import FAULT_KINDS, MAP_UPDATE
-from services.visualiser.settings import ViewSettings
+from slamlens.common.config import setting
+from slamlens.services.slam.settings import FAULT_KINDS, MAP_UPDATE
+from slamlens.services.visualiser.settings import ViewSettings
 
 #: features planted faulty by ``--faulty`` (ids of the paper world; one per cluster pair)
 DEFAULT_FAULTY = (3, 12)

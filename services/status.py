@@ -1,7 +1,8 @@
 """``slamlens status``: every live service on every host linked to the router, as a table.
 
 Each service holds a liveliness token on its status key and answers a ``get`` there with a
-:class:`~common.messages.ServiceStatus` (the protocol is in :mod:`common.status`). This
+:class:`~slamlens.common.messages.ServiceStatus` (the protocol is in
+:mod:`slamlens.common.status`). This
 command asks both — which services are alive (liveliness) and what they say (a query on
 ``PREFIX/status/**``) — and prints one row per service: what it runs, its identity and
 host, its robot and camera, what it is doing, its main rate, what it dropped or lost, the
@@ -18,14 +19,14 @@ import sys
 import time
 from typing import Any
 
-from common.bus import Bus
-from common.cli import bus_settings, keys_from, setup_logging, stop_event
-from common.config import settings_from_args
-from common.errors import MessageError
-from common.keys import Keys
-from common.messages import ServiceStatus
-from common.session import open_bus
-from services.settings import StatusSettings
+from slamlens.common.bus import Bus
+from slamlens.common.cli import bus_settings, keys_from, setup_logging, stop_event
+from slamlens.common.config import settings_from_args
+from slamlens.common.errors import MessageError
+from slamlens.common.keys import Keys
+from slamlens.common.messages import ServiceStatus
+from slamlens.common.session import open_bus
+from slamlens.services.settings import StatusSettings
 
 COLUMNS = ("SERVICE", "NAME", "HOST", "ROBOT", "CAMERA", "STATE", "RATE", "DROPPED", "LOST",
            "EPOCH", "VERSION", "UP")

@@ -16,8 +16,8 @@ import json
 import sys
 import threading
 
-from common.cli import add_common_flags, bus_settings, run_cli, stop_event
-from common.session import open_bus
+from slamlens.common.cli import add_common_flags, bus_settings, run_cli, stop_event
+from slamlens.common.session import open_bus
 
 
 def main() -> int:

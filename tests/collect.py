@@ -12,7 +12,7 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from common.session import BusSettings, open_bus
+from slamlens.common.session import BusSettings, open_bus
 
 
 class StateCollector:

@@ -19,7 +19,7 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from common.messages import (
+from slamlens.common.messages import (
     CameraControl,
     CameraFrame,
     CameraPose,

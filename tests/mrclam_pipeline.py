@@ -3,7 +3,7 @@
 ``run_pipeline`` starts a router, ``slamlens estimator --config deploy/mrclam.toml``,
 ``slamlens monitor`` and ``slamlens replay --rate 0`` as separate processes on a free
 loopback port, receives every state (a recovering subscriber) and every Health, scores the
-states against the dataset's ground truth (:class:`services.slam.tuning.Scorer`, truth
+states against the dataset's ground truth (:class:`slamlens.services.slam.tuning.Scorer`, truth
 interpolated at each state's stamp) and returns the figures with the services' final lines.
 """
 
@@ -15,11 +15,11 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from common.keys import Keys
-from common.messages import Health, SlamState
-from common.session import BusSettings, free_tcp_endpoint, open_bus
-from services.slam.mrclam import load_mrclam
-from services.slam.tuning import Evaluation, Scorer, TruthTrack, dead_reckoning_track
+from slamlens.common.keys import Keys
+from slamlens.common.messages import Health, SlamState
+from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus
+from slamlens.services.slam.mrclam import load_mrclam
+from slamlens.services.slam.tuning import Evaluation, Scorer, TruthTrack, dead_reckoning_track
 from tests.procs import REPO, spawn, stop
 
 DATA = REPO.parent / "shared" / "data" / "mrclam6"

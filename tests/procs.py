@@ -23,7 +23,7 @@ REPO = Path(__file__).resolve().parents[1]
 
 def slamlens_cmd(*args: str) -> list[str]:
     """Command line running the slamlens CLI with this interpreter (no PATH needed)."""
-    return [sys.executable, "-m", "services", *args]
+    return [sys.executable, "-m", "slamlens.services", *args]
 
 
 class Service:

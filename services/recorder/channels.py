@@ -15,7 +15,7 @@ log_time_ns)``) and returns the Foxglove messages they make (docs/recording.md):
   (``foxglove.FrameTransform`` from ``map`` to ``camera_C``), so Foxglove's Image panel can
   draw the scene over the camera picture as the viewer does.
 
-A malformed payload raises :class:`~common.errors.MessageError` (the caller counts it).
+A malformed payload raises :class:`~slamlens.common.errors.MessageError` (the caller counts it).
 """
 
 from __future__ import annotations
@@ -36,13 +36,13 @@ from foxglove.messages import (
     Vector3,
 )
 
-from common.arrays import decode_array
-from common.errors import MessageError
-from common.geometry import all_relative_covariances, invert_T, pd_size_m
-from common.messages import CameraFrame, Health, Registration, SlamState, peek_fields
-from services.recorder.layout import message_of_key
-from services.recorder.scene import MAP_FRAME, scene_update, timestamp
-from services.recorder.settings import SceneSettings
+from slamlens.common.arrays import decode_array
+from slamlens.common.errors import MessageError
+from slamlens.common.geometry import all_relative_covariances, invert_T, pd_size_m
+from slamlens.common.messages import CameraFrame, Health, Registration, SlamState, peek_fields
+from slamlens.services.recorder.layout import message_of_key
+from slamlens.services.recorder.scene import MAP_FRAME, scene_update, timestamp
+from slamlens.services.recorder.settings import SceneSettings
 
 PATH_PERIOD_S = 1.0  #: the path entity is sent at most once per this much robot time
 MAX_PLOTTED_PAIRS = 1000  #: beyond this many pairs the covariance message has no per-pair list

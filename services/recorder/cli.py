@@ -1,6 +1,7 @@
 """Commands ``record``, ``play`` and ``foxglove`` (docs/recording.md).
 
-Each: its settings (:mod:`services.recorder.settings`) from ``--config FILE`` with the flags
+Each: its settings (:mod:`slamlens.services.recorder.settings`) from ``--config FILE`` with the
+flags
 over it, a bus from the common flags, the service until SIGINT/SIGTERM (or the end of the
 recording), a final line saying what it did, and a clean close of the Zenoh session.
 """
@@ -12,11 +13,11 @@ import json
 import logging
 import os
 
-from common.cli import bus_settings, keys_from, setup_logging, stop_event
-from common.config import settings_from_args
-from common.errors import ConfigError
-from common.session import open_bus
-from services.recorder.settings import FoxgloveSettings, PlaySettings, RecordSettings
+from slamlens.common.cli import bus_settings, keys_from, setup_logging, stop_event
+from slamlens.common.config import settings_from_args
+from slamlens.common.errors import ConfigError
+from slamlens.common.session import open_bus
+from slamlens.services.recorder.settings import FoxgloveSettings, PlaySettings, RecordSettings
 
 log = logging.getLogger("slamlens")
 
@@ -28,7 +29,7 @@ def run(command: str, args: argparse.Namespace) -> int:
 
 
 def _run_record(args: argparse.Namespace) -> int:
-    from services.recorder.record import Recorder
+    from slamlens.services.recorder.record import Recorder
 
     settings = settings_from_args(RecordSettings, args)
     if settings.nice and hasattr(os, "nice"):
@@ -54,8 +55,8 @@ def _parse_address(address: str) -> tuple[str, int]:
 
 
 def _run_play(args: argparse.Namespace) -> int:
-    from services.recorder.play import Player
-    from services.recorder.reading import Recording
+    from slamlens.services.recorder.play import Player
+    from slamlens.services.recorder.reading import Recording
 
     settings = settings_from_args(PlaySettings, args)
     recording = Recording(settings.path)  # a bad file is one line before any bus
@@ -67,7 +68,7 @@ def _run_play(args: argparse.Namespace) -> int:
         player = Player(bus, settings=settings, keys=keys_from(args), recording=recording)
         player.check_estimators(stop)
         if settings.control:
-            from services.recorder.control import ControlServer
+            from slamlens.services.recorder.control import ControlServer
 
             host, port = _parse_address(settings.control)
             control = ControlServer(player, host=host, port=port)
@@ -96,7 +97,7 @@ def _run_play(args: argparse.Namespace) -> int:
 
 
 def _run_foxglove(args: argparse.Namespace) -> int:
-    from services.recorder.live import FoxgloveLive
+    from slamlens.services.recorder.live import FoxgloveLive
 
     settings = settings_from_args(FoxgloveSettings, args)
     stop = stop_event()

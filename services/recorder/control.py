@@ -17,8 +17,8 @@ from typing import Any
 
 from aiohttp import web
 
-from common.errors import ConfigError
-from services.recorder.play import Player
+from slamlens.common.errors import ConfigError
+from slamlens.services.recorder.play import Player
 
 log = logging.getLogger("slamlens.play")
 

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import re
 
-from common.errors import SourceError
+from slamlens.common.errors import SourceError
 
 MESSAGE_ENCODING = "msgpack"
 METADATA_NAME = "slamlens"

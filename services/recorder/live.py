@@ -22,13 +22,13 @@ from typing import Any
 import foxglove
 from foxglove.websocket import Capability
 
-from common.bus import Bus, Channel
-from common.drops import DropCounter
-from common.errors import ConfigError, MessageError, SlamlensError
-from common.keys import Keys
-from common.messages import SlamState
-from services.recorder.channels import FoxgloveMessage, FoxgloveTranslator
-from services.recorder.settings import FoxgloveSettings, SceneSettings
+from slamlens.common.bus import Bus, Channel
+from slamlens.common.drops import DropCounter
+from slamlens.common.errors import ConfigError, MessageError, SlamlensError
+from slamlens.common.keys import Keys
+from slamlens.common.messages import SlamState
+from slamlens.services.recorder.channels import FoxgloveMessage, FoxgloveTranslator
+from slamlens.services.recorder.settings import FoxgloveSettings, SceneSettings
 
 log = logging.getLogger("slamlens.foxglove")
 
@@ -99,7 +99,7 @@ class FoxgloveLive:
         if changes:
             try:
                 new = dataclasses.replace(self.translator.settings, **changes)
-                from common.config import settings_from_mapping
+                from slamlens.common.config import settings_from_mapping
 
                 new = settings_from_mapping(SceneSettings, dataclasses.asdict(new),
                                             source="Foxglove parameters")

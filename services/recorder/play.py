@@ -5,7 +5,7 @@ service published it (SPEC §7a): inputs and states through advanced publishers 
 (a consumer that needs everything recovers what it missed), camera frames best effort; the
 newest ``state``, ``health`` and ``registration`` also answer a ``get``, so a viewer that
 joins late shows the current picture at once. Timing is the recorded log times × ``rate``
-(0: no timing; with ``--inputs-only`` paced on the estimator, :class:`common.pacer.Pacer`).
+(0: no timing; with ``--inputs-only`` paced on the estimator, :class:`slamlens.common.pacer.Pacer`).
 
 ``--inputs-only`` publishes only odometry and observations, renumbered from 1 with one
 ``input_seq`` counter over both keys per robot (as a driver does), for a fresh estimator.
@@ -26,15 +26,15 @@ from typing import Any
 
 import msgpack
 
-from common.bus import Bus, Publisher
-from common.errors import ConfigError, MessageError
-from common.keys import Keys
-from common.messages import peek_fields
-from common.pacer import Pacer
-from services.recorder.layout import message_of_key
-from services.recorder.reading import Played, Recording
-from services.recorder.settings import PlaySettings
-from services.recorder.timeline import PlayClock
+from slamlens.common.bus import Bus, Publisher
+from slamlens.common.errors import ConfigError, MessageError
+from slamlens.common.keys import Keys
+from slamlens.common.messages import peek_fields
+from slamlens.common.pacer import Pacer
+from slamlens.services.recorder.layout import message_of_key
+from slamlens.services.recorder.reading import Played, Recording
+from slamlens.services.recorder.settings import PlaySettings
+from slamlens.services.recorder.timeline import PlayClock
 
 log = logging.getLogger("slamlens.play")
 

@@ -3,7 +3,7 @@
 :class:`Recording` opens an MCAP file for ``slamlens play``:
 
 * a file that does not exist, or is not MCAP (no magic), is one clear
-  :class:`~common.errors.SourceError`;
+  :class:`~slamlens.common.errors.SourceError`;
 * a file without its summary (a recorder killed with SIGKILL, a copy cut short) is read
   sequentially up to its last complete record, with a warning; its end is then unknown;
 * a channel whose message encoding is not ``msgpack`` is skipped (Foxglove channels are
@@ -26,9 +26,9 @@ from mcap.reader import SeekingReader
 from mcap.records import Channel, Message
 from mcap.stream_reader import CRCValidationError, StreamReader
 
-from common.drops import DropCounter
-from common.errors import SourceError
-from services.recorder.layout import FOXGLOVE_PREFIX, MESSAGE_ENCODING, check_topic_key
+from slamlens.common.drops import DropCounter
+from slamlens.common.errors import SourceError
+from slamlens.services.recorder.layout import FOXGLOVE_PREFIX, MESSAGE_ENCODING, check_topic_key
 
 log = logging.getLogger("slamlens.play")
 

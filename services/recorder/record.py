@@ -24,11 +24,11 @@ from typing import Any
 
 from mcap.writer import CompressionType, Writer
 
-from common.bus import Bus, Channel, Sample
-from common.drops import DropCounter
-from common.errors import ConfigError, MessageError
-from services.recorder.channels import FoxgloveMessage, FoxgloveTranslator
-from services.recorder.layout import (
+from slamlens.common.bus import Bus, Channel, Sample
+from slamlens.common.drops import DropCounter
+from slamlens.common.errors import ConfigError, MessageError
+from slamlens.services.recorder.channels import FoxgloveMessage, FoxgloveTranslator
+from slamlens.services.recorder.layout import (
     MESSAGE_ENCODING,
     METADATA_NAME,
     PROFILE,
@@ -36,7 +36,7 @@ from services.recorder.layout import (
     ntp64_to_ns,
     record_expressions,
 )
-from services.recorder.settings import RecordSettings
+from slamlens.services.recorder.settings import RecordSettings
 
 log = logging.getLogger("slamlens.record")
 

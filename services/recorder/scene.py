@@ -45,11 +45,11 @@ from foxglove.messages import (
     Vector3,
 )
 
-from common.clusters import cluster_labels
-from common.geometry import all_relative_covariances, eig_sym2, pd_size_m, semi_axes
-from common.messages import Health, SlamState
-from common.pairs import min_mean_max, select_pairs
-from services.recorder.settings import SceneSettings
+from slamlens.common.clusters import cluster_labels
+from slamlens.common.geometry import all_relative_covariances, eig_sym2, pd_size_m, semi_axes
+from slamlens.common.messages import Health, SlamState
+from slamlens.common.pairs import min_mean_max, select_pairs
+from slamlens.services.recorder.settings import SceneSettings
 
 MAP_FRAME = "map"
 RGB = tuple[float, float, float]

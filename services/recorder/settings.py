@@ -1,7 +1,7 @@
 """Settings of ``slamlens record``, ``slamlens play`` and ``slamlens foxglove``.
 
 Each is one frozen dataclass whose fields are declared once with
-:func:`common.config.setting` (TOML key, flag, help and docs/cli.md row in one).
+:func:`slamlens.common.config.setting` (TOML key, flag, help and docs/cli.md row in one).
 :class:`SceneSettings` is what the Foxglove scene shows (SPEC §6: the three modes and the
 cluster threshold); the recorder's and the live server's settings inherit its fields, so
 they are flags of both.
@@ -12,9 +12,9 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
-from common.config import setting
-from common.errors import ConfigError
-from common.keys import check_name
+from slamlens.common.config import setting
+from slamlens.common.errors import ConfigError
+from slamlens.common.keys import check_name
 
 MODES = ("all", "inter", "minmeanmax")
 GLYPHS = ("sigma", "linear")

@@ -11,31 +11,31 @@ from collections.abc import Callable
 
 import numpy as np
 
-from common.bus import Bus
-from common.errors import ConfigError, SourceError
-from common.keys import Keys
-from services.registration.board import MarkerBoard, default_board, load_board
-from services.registration.calibration import (
+from slamlens.common.bus import Bus
+from slamlens.common.errors import ConfigError, SourceError
+from slamlens.common.keys import Keys
+from slamlens.services.registration.board import MarkerBoard, default_board, load_board
+from slamlens.services.registration.calibration import (
     CameraCalibration,
     load_calibration,
     synthetic_calibration,
 )
-from services.registration.markers import MarkerDetector, WindowedDetector
-from services.registration.service import (
+from slamlens.services.registration.markers import MarkerDetector, WindowedDetector
+from slamlens.services.registration.service import (
     CameraParts,
     CameraPipeline,
     CameraSettings,
     RegistrationService,
     TrackerPoses,
 )
-from services.registration.settings import RegistrationSettings
-from services.registration.sources import (
+from slamlens.services.registration.settings import RegistrationSettings
+from slamlens.services.registration.sources import (
     FrameSource,
     ReconnectingSource,
     SyntheticSource,
     open_capture,
 )
-from services.registration.synthetic import (
+from slamlens.services.registration.synthetic import (
     ImagingSettings,
     SceneSettings,
     SyntheticCamera,
@@ -46,7 +46,7 @@ from services.registration.synthetic import (
     overhead_pose,
     stereo_poses,
 )
-from services.registration.tracking import Registrar, RegistrarSettings
+from slamlens.services.registration.tracking import Registrar, RegistrarSettings
 
 log = logging.getLogger(__name__)
 

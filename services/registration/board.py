@@ -24,12 +24,17 @@ from typing import Any
 import cv2
 import numpy as np
 
-from common.config import read_toml
-from common.errors import ConfigError
-from common.geometry import invert_T, make_T, transform_points
-from services.registration.calibration import CameraCalibration
-from services.registration.markers import DEFAULT_DICTIONARY, DICTIONARIES, Detection, is_custom
-from services.registration.pose import (
+from slamlens.common.config import read_toml
+from slamlens.common.errors import ConfigError
+from slamlens.common.geometry import invert_T, make_T, transform_points
+from slamlens.services.registration.calibration import CameraCalibration
+from slamlens.services.registration.markers import (
+    DEFAULT_DICTIONARY,
+    DICTIONARIES,
+    Detection,
+    is_custom,
+)
+from slamlens.services.registration.pose import (
     PoseError,
     T_from_rvec_tvec,
     marker_object_points,

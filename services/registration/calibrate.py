@@ -16,10 +16,10 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from common.errors import CalibrationError, ConfigError
-from services.registration.calibration import CameraCalibration
-from services.registration.markers import get_dictionary, to_gray
-from services.registration.pose import T_from_rvec_tvec, reprojection_rms
+from slamlens.common.errors import CalibrationError, ConfigError
+from slamlens.services.registration.calibration import CameraCalibration
+from slamlens.services.registration.markers import get_dictionary, to_gray
+from slamlens.services.registration.pose import T_from_rvec_tvec, reprojection_rms
 
 log = logging.getLogger(__name__)
 

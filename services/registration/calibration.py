@@ -15,7 +15,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from common.errors import CalibrationError
+from slamlens.common.errors import CalibrationError
 
 # OpenCV's distortion models take 4, 5, 8, 12 or 14 coefficients (k1 k2 p1 p2 [k3 [k4 k5 k6
 # [s1 s2 s3 s4 [τx τy]]]]); any other count is a malformed file.

@@ -1,7 +1,7 @@
 """Commands ``slamlens registration`` (camera capture + fiducial registration) and
 ``slamlens calibrate`` (intrinsics from ChArUco board photos).
 
-Settings: :mod:`services.registration.settings` (flags built from them by services/cli.py).
+Settings: :mod:`slamlens.services.registration.settings` (flags built from them by services/cli.py).
 """
 
 from __future__ import annotations
@@ -11,12 +11,12 @@ import json
 import logging
 from pathlib import Path
 
-from common.cli import bus_settings, keys_from, log_flags, setup_logging, stop_event
-from common.config import settings_from_args
-from common.errors import ConfigError
-from common.session import open_bus
-from common.status import Report, announce
-from services.registration.settings import CalibrateSettings, RegistrationSettings
+from slamlens.common.cli import bus_settings, keys_from, log_flags, setup_logging, stop_event
+from slamlens.common.config import settings_from_args
+from slamlens.common.errors import ConfigError
+from slamlens.common.session import open_bus
+from slamlens.common.status import Report, announce
+from slamlens.services.registration.settings import CalibrateSettings, RegistrationSettings
 
 log = logging.getLogger("slamlens")
 
@@ -31,7 +31,7 @@ def run(command: str, args: argparse.Namespace) -> int:
 def _run_registration(args: argparse.Namespace) -> int:
     import cv2
 
-    from services.registration.assemble import build_service
+    from slamlens.services.registration.assemble import build_service
 
     if not log_flags(args).verbose:  # our own one-line messages say when a camera is missing
         cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
@@ -71,8 +71,8 @@ def _run_registration(args: argparse.Namespace) -> int:
 
 def check_inputs(settings: RegistrationSettings) -> None:
     """The files the settings name exist and read (ConfigError naming the file if not)."""
-    from services.registration.calibration import load_calibration
-    from services.registration.sources import open_capture
+    from slamlens.services.registration.calibration import load_calibration
+    from slamlens.services.registration.sources import open_capture
 
     if not settings.synthetic:
         open_capture(settings.source)  # a missing path fails here; a device is not opened
@@ -86,8 +86,8 @@ def check_inputs(settings: RegistrationSettings) -> None:
 def _run_calibrate(args: argparse.Namespace) -> int:
     import cv2
 
-    from services.registration.calibrate import calibrate_charuco
-    from services.registration.calibration import save_calibration
+    from slamlens.services.registration.calibrate import calibrate_charuco
+    from slamlens.services.registration.calibration import save_calibration
 
     s = settings_from_args(CalibrateSettings, args)
     images = []

@@ -22,7 +22,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from common.errors import ConfigError, GeometryError, SourceError
+from slamlens.common.errors import ConfigError, GeometryError, SourceError
 
 log = logging.getLogger(__name__)
 

@@ -15,10 +15,10 @@ from collections.abc import Sequence
 import cv2
 import numpy as np
 
-from common.errors import GeometryError
-from common.geometry import T_from_pose2, invert_T, make_T
-from services.registration.calibration import CameraCalibration
-from services.registration.markers import Detection
+from slamlens.common.errors import GeometryError
+from slamlens.common.geometry import T_from_pose2, invert_T, make_T
+from slamlens.services.registration.calibration import CameraCalibration
+from slamlens.services.registration.markers import Detection
 
 
 class PoseError(GeometryError):

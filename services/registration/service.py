@@ -4,12 +4,12 @@ Per camera (two for stereo) a :class:`CameraPipeline` runs two threads:
 
 * capture: read the source at its rate, JPEG-encode, publish ``CameraFrame`` latest-wins
   (congestion *drop*: a slow subscriber gets the newest frame and never slows the camera),
-  and leave the raw image in a keep-newest slot (:class:`~common.latest.Latest`);
+  and leave the raw image in a keep-newest slot (:class:`~slamlens.common.latest.Latest`);
 * processing: take the newest image (skipping any it had no time for), detect markers,
-  feed the :class:`~services.registration.tracking.Registrar`, publish ``Registration``
+  feed the :class:`~slamlens.services.registration.tracking.Registrar`, publish ``Registration``
   (also answered to ``get``), the tracked robot pose and, head-mounted, ``CameraPose``.
 
-Control: a :class:`~common.messages.CameraControl` (``{"schema": 1, "command":
+Control: a :class:`~slamlens.common.messages.CameraControl` (``{"schema": 1, "command":
 "reregister", "robot": R, "requester": …}``) put on ``keys.camera_control(camera)``, or
 sent as the payload of a Zenoh query on that key (what a viewer may do under ``--secure``:
 it may query, not publish), re-registers from the next frames. A re-registration that would
@@ -42,14 +42,14 @@ import cv2
 import msgpack
 import numpy as np
 
-from common.arrays import decode_array
-from common.bus import Bus
-from common.drops import DropCounter
-from common.errors import MessageError, SlamlensError
-from common.geometry import invert_T
-from common.keys import Keys
-from common.latest import Latest
-from common.messages import (
+from slamlens.common.arrays import decode_array
+from slamlens.common.bus import Bus
+from slamlens.common.drops import DropCounter
+from slamlens.common.errors import MessageError, SlamlensError
+from slamlens.common.geometry import invert_T
+from slamlens.common.keys import Keys
+from slamlens.common.latest import Latest
+from slamlens.common.messages import (
     CameraControl,
     CameraFrame,
     CameraPose,
@@ -57,11 +57,11 @@ from common.messages import (
     Truth,
     peek_fields,
 )
-from services.registration.board import MarkerBoard, camera_pose_from_board
-from services.registration.calibration import CameraCalibration
-from services.registration.markers import MarkerDetector, WindowedDetector
-from services.registration.sources import FrameSource, SourceEnded, SyntheticSource
-from services.registration.tracking import (
+from slamlens.services.registration.board import MarkerBoard, camera_pose_from_board
+from slamlens.services.registration.calibration import CameraCalibration
+from slamlens.services.registration.markers import MarkerDetector, WindowedDetector
+from slamlens.services.registration.sources import FrameSource, SourceEnded, SyntheticSource
+from slamlens.services.registration.tracking import (
     STATUS_WAITING,
     FrameResult,
     Registrar,

@@ -1,7 +1,7 @@
 """Settings of ``slamlens registration`` and ``slamlens calibrate``: one frozen dataclass each.
 
 Every field is a TOML key of ``--config FILE`` (see deploy/camera_overhead.toml) and a flag
-over it (:func:`common.config.setting`; docs/cli.md lists them all). Lengths in metres,
+over it (:func:`slamlens.common.config.setting`; docs/cli.md lists them all). Lengths in metres,
 angles in degrees, rates in Hz.
 """
 
@@ -9,9 +9,9 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from common.config import setting
-from common.errors import ConfigError
-from common.keys import check_name
+from slamlens.common.config import setting
+from slamlens.common.errors import ConfigError
+from slamlens.common.keys import check_name
 
 MODES = ("overhead", "head-mounted")
 POSE_SOURCES = ("board", "tracker")

@@ -3,9 +3,9 @@
 A :class:`FrameSource` hands out ``(stamp, image_bgr)`` pairs. ``read`` returns ``None``
 when no frame is ready right now; it raises :class:`SourceEnded` when a finite source
 (a video file or a folder, without ``loop``) has nothing more, and
-:class:`~common.errors.SourceError` when the source failed (a device unplugged, a folder
+:class:`~slamlens.common.errors.SourceError` when the source failed (a device unplugged, a folder
 deleted). :class:`ReconnectingSource` turns failures into one log line, a counter and a
-capped exponential back-off of reopen attempts (:class:`~common.backoff.Backoff`), so a
+capped exponential back-off of reopen attempts (:class:`~slamlens.common.backoff.Backoff`), so a
 vanished camera never ends the service.
 
 ``live`` sources (devices, streams) pace themselves: ``read`` blocks until the next frame.
@@ -26,10 +26,10 @@ from typing import Protocol
 import cv2
 import numpy as np
 
-from common.backoff import Backoff
-from common.errors import ConfigError, SourceError
-from common.messages import Truth
-from services.registration.synthetic import SyntheticCamera
+from slamlens.common.backoff import Backoff
+from slamlens.common.errors import ConfigError, SourceError
+from slamlens.common.messages import Truth
+from slamlens.services.registration.synthetic import SyntheticCamera
 
 log = logging.getLogger(__name__)
 

@@ -31,7 +31,7 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from common.geometry import T_from_pose2, invert_T, make_T, rot_z, transform_points
+from slamlens.common.geometry import T_from_pose2, invert_T, make_T, rot_z, transform_points
 
 #: BGR colours of the scene
 FLOOR_TONES = ((178, 186, 196), (152, 162, 174))
@@ -188,7 +188,7 @@ def _project(K: np.ndarray, T_camera_from_world: np.ndarray, points_world: np.nd
 @lru_cache(maxsize=16)
 def _marker_bgra(dictionary: str, marker_id: int, module_px: int = 16) -> np.ndarray:
     """The marker image with its white quiet zone, BGRA, opaque; read-only."""
-    from services.registration.markers import get_dictionary
+    from slamlens.services.registration.markers import get_dictionary
 
     d = get_dictionary(dictionary)  # a built-in name or a custom FILE.yml
     bits = d.markerSize + 2  # data bits plus the black border
@@ -203,7 +203,7 @@ def _marker_bgra(dictionary: str, marker_id: int, module_px: int = 16) -> np.nda
 
 def quiet_zone_scale(dictionary: str) -> float:
     """Outer size of marker + white border relative to the black square."""
-    from services.registration.markers import get_dictionary
+    from slamlens.services.registration.markers import get_dictionary
 
     bits = get_dictionary(dictionary).markerSize + 2
     return 1.0 + 2.0 * QUIET_ZONE_MODULES / bits

@@ -27,10 +27,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.geometry import invert_T, make_T, rotation_angle_deg
-from services.registration.calibration import CameraCalibration
-from services.registration.markers import Detection, mean_detection
-from services.registration.pose import (
+from slamlens.common.geometry import invert_T, make_T, rotation_angle_deg
+from slamlens.services.registration.calibration import CameraCalibration
+from slamlens.services.registration.markers import Detection, mean_detection
+from slamlens.services.registration.pose import (
     PoseError,
     T_marker_from_map,
     marker_object_points,

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.errors import ConfigError
+from slamlens.common.errors import ConfigError
 
 MATCH, NEW, AMBIGUOUS = "match", "new", "ambiguous"
 
@@ -55,7 +55,7 @@ def mahalanobis_all(x: np.ndarray, L: np.ndarray, n: int, *, z_range: float,
     """d²_i for every landmark (float64[n]); inf where h or S⁻¹ is undefined.
 
     ``x`` and ``L`` are the estimator's state and lower-triangle covariance storage
-    (see :mod:`services.slam.ekf`). Uses z = J (m − p) + (0, −1)ᵀ θ to first order with
+    (see :mod:`slamlens.services.slam.ekf`). Uses z = J (m − p) + (0, −1)ᵀ θ to first order with
     J = Hm, so S = J C Jᵀ − (J c eᵀ + e cᵀ Jᵀ) + P_θθ e eᵀ + R, where C = Cov(m − p),
     c = Cov(m − p, θ) and e = (0, 1)ᵀ.
     """

@@ -2,7 +2,7 @@
 
 A checkpoint is one msgpack file ``DIR/estimator-{robot}.ckpt`` holding the last published
 ``SlamState`` (pose, map, covariance, seq, epoch, input stamp) plus what the state does not
-say: where each input source stood (:mod:`services.slam.input_order`), the next id for a
+say: where each input source stood (:mod:`slamlens.services.slam.input_order`), the next id for a
 landmark found by association, and the noise settings it was made with. It is written to a
 temporary file, flushed to disk and renamed over the old one, so a process killed at any
 moment leaves either the previous checkpoint or the new one, never half of one.
@@ -22,7 +22,7 @@ from typing import Any
 
 import msgpack
 
-from common.errors import SlamlensError
+from slamlens.common.errors import SlamlensError
 
 log = logging.getLogger("slamlens.estimator")
 

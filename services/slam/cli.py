@@ -1,7 +1,7 @@
 """Commands of the SLAM side: ``sim``, ``estimator``, ``replay``, ``serial``, ``monitor``,
 ``summary``.
 
-Each command: its settings (:mod:`services.slam.settings`) from ``--config FILE`` with the
+Each command: its settings (:mod:`slamlens.services.slam.settings`) from ``--config FILE`` with the
 flags over it, a bus from the common flags, the service's ``run`` until SIGINT/SIGTERM (or
 the end of the data), and a clean close of the Zenoh session. The flags themselves are
 built from the settings by ``services/cli.py``.
@@ -20,13 +20,13 @@ import time
 from pathlib import Path
 from typing import Any
 
-from common.cli import bus_settings, keys_from, setup_logging, stop_event
-from common.config import settings_from_args
-from common.errors import ConfigError
-from common.progress import count_bar, enabled, time_bar
-from common.session import open_bus
-from common.status import Report, announce, counts_of
-from services.slam.settings import (
+from slamlens.common.cli import bus_settings, keys_from, setup_logging, stop_event
+from slamlens.common.config import settings_from_args
+from slamlens.common.errors import ConfigError
+from slamlens.common.progress import count_bar, enabled, time_bar
+from slamlens.common.session import open_bus
+from slamlens.common.status import Report, announce, counts_of
+from slamlens.services.slam.settings import (
     EstimatorSettings,
     MonitorSettings,
     ReplaySettings,
@@ -68,9 +68,9 @@ def _driver_status(out: Any, state: dict[str, str]) -> Any:
 
 
 def _run_sim(args: argparse.Namespace) -> int:
-    from services.slam.drivers import Fleet, play
-    from services.slam.sim import Simulator, staggered
-    from services.slam.world import load_world
+    from slamlens.services.slam.drivers import Fleet, play
+    from slamlens.services.slam.sim import Simulator, staggered
+    from slamlens.services.slam.world import load_world
 
     s = settings_from_args(SimSettings, args)
     world = load_world(s.scenario)
@@ -151,7 +151,7 @@ def _one_blas_thread() -> None:
 
 def _run_estimator(args: argparse.Namespace) -> int:
     _one_blas_thread()
-    from services.slam.estimator_service import EstimatorService
+    from slamlens.services.slam.estimator_service import EstimatorService
 
     settings = settings_from_args(EstimatorSettings, args)
     stop = stop_event()
@@ -188,7 +188,7 @@ def _run_estimator(args: argparse.Namespace) -> int:
 
 def _replay_robots(s: ReplaySettings) -> list[tuple[int, str]]:
     """(dataset robot number, name) of each robot to replay."""
-    from services.slam.mrclam import available_robots
+    from slamlens.services.slam.mrclam import available_robots
 
     if not s.robots:
         return [(s.robot_index, s.robot)]
@@ -200,8 +200,8 @@ def _replay_robots(s: ReplaySettings) -> list[tuple[int, str]]:
 
 
 def _run_replay(args: argparse.Namespace) -> int:
-    from services.slam.drivers import Fleet, play
-    from services.slam.mrclam import load_mrclam
+    from slamlens.services.slam.drivers import Fleet, play
+    from slamlens.services.slam.mrclam import load_mrclam
 
     s = settings_from_args(ReplaySettings, args)
     robots = _replay_robots(s)
@@ -240,8 +240,8 @@ def _run_replay(args: argparse.Namespace) -> int:
 
 
 def _run_serial(args: argparse.Namespace) -> int:
-    from services.slam.drivers import RobotPublisher
-    from services.slam.serial_link import SerialLink
+    from slamlens.services.slam.drivers import RobotPublisher
+    from slamlens.services.slam.serial_link import SerialLink
 
     s = settings_from_args(SerialSettings, args)
     stop = stop_event()
@@ -263,7 +263,7 @@ def _run_serial(args: argparse.Namespace) -> int:
 
 def _run_monitor(args: argparse.Namespace) -> int:
     _one_blas_thread()
-    from services.slam.monitor_service import MonitorService
+    from slamlens.services.slam.monitor_service import MonitorService
 
     settings = settings_from_args(MonitorSettings, args)
     robot = settings.robot
@@ -295,7 +295,7 @@ def _run_monitor(args: argparse.Namespace) -> int:
 
 def _run_summary(args: argparse.Namespace) -> int:
     _one_blas_thread()
-    from services.slam.summary_service import SummaryService
+    from slamlens.services.slam.summary_service import SummaryService
 
     settings = settings_from_args(SummarySettings, args)
     stop = stop_event()
@@ -320,8 +320,8 @@ def _run_summary(args: argparse.Namespace) -> int:
 
 
 def _run_tune(args: argparse.Namespace) -> int:
-    from services.slam import tuning
-    from services.slam.mrclam import load_mrclam
+    from slamlens.services.slam import tuning
+    from slamlens.services.slam.mrclam import load_mrclam
 
     s = settings_from_args(TuneSettings, args)
     runs = [load_mrclam(s.path, robot=k, robot_name=f"robot{k}", truth_folder=s.truth or None)

@@ -18,12 +18,12 @@ from dataclasses import dataclass
 import numpy as np
 from scipy import stats
 
-from common.geometry import wrap_angle
-from common.messages import Observations, Odometry, SlamState, Truth
-from services.slam.estimator import Estimator
-from services.slam.settings import EstimatorSettings
-from services.slam.sim import Simulator
-from services.slam.world import World
+from slamlens.common.geometry import wrap_angle
+from slamlens.common.messages import Observations, Odometry, SlamState, Truth
+from slamlens.services.slam.estimator import Estimator
+from slamlens.services.slam.settings import EstimatorSettings
+from slamlens.services.slam.sim import Simulator
+from slamlens.services.slam.world import World
 
 
 @dataclass(frozen=True)

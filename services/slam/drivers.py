@@ -24,10 +24,10 @@ import time
 from collections.abc import Iterable
 from typing import Any
 
-from common.bus import Bus
-from common.keys import Keys
-from common.messages import Message, Observations, Odometry, Truth
-from common.pacer import PACE_WINDOW, Pacer
+from slamlens.common.bus import Bus
+from slamlens.common.keys import Keys
+from slamlens.common.messages import Message, Observations, Odometry, Truth
+from slamlens.common.pacer import PACE_WINDOW, Pacer
 
 log = logging.getLogger("slamlens.driver")
 
@@ -147,7 +147,7 @@ def play(events: Iterable[Message], publisher: RobotPublisher | Fleet, stop: thr
     """Publish ``events`` paced at ``rate`` × their own time (0 = as fast as possible:
     paced on the estimator if ``publisher`` has a pacer). Returns the wall seconds.
 
-    ``bar`` (:func:`common.progress.time_bar`) is advanced by the data time published.
+    ``bar`` (:func:`slamlens.common.progress.time_bar`) is advanced by the data time published.
     """
     start = time.monotonic()
     t0: float | None = None

@@ -29,8 +29,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from common.errors import EstimationError
-from common.geometry import wrap_angle
+from slamlens.common.errors import EstimationError
+from slamlens.common.geometry import wrap_angle
 
 _TWO_PI = 2.0 * math.pi
 
@@ -101,7 +101,7 @@ def _psd2(a00: float, a10: float, a11: float, tol: float) -> bool:
 
 
 def _wrap(angle: float) -> float:
-    # Scalar twin of common.geometry.wrap_angle (same formula, no numpy dispatch).
+    # Scalar twin of slamlens.common.geometry.wrap_angle (same formula, no numpy dispatch).
     return (angle + math.pi) % _TWO_PI - math.pi
 
 

@@ -1,10 +1,12 @@
-"""The EKF-SLAM estimator: a thin stateful class over the kernels of :mod:`services.slam.ekf`.
+"""The EKF-SLAM estimator: a thin stateful class over the kernels of
+:mod:`slamlens.services.slam.ekf`.
 
 It owns the state buffers (capacity doubled when the map outgrows them, so adding a
 landmark does not reallocate every time), maps landmark ids to state order, applies
 observation batches one observation at a time (SPEC §4), associates anonymous observations
-(:mod:`services.slam.association`), plants a configured fault (:mod:`services.slam.faults`)
-and turns its state into a :class:`~common.messages.SlamState`. No I/O here.
+(:mod:`slamlens.services.slam.association`), plants a configured fault
+(:mod:`slamlens.services.slam.faults`)
+and turns its state into a :class:`~slamlens.common.messages.SlamState`. No I/O here.
 """
 
 from __future__ import annotations
@@ -17,12 +19,12 @@ from typing import Any
 
 import numpy as np
 
-from common.arrays import RecycledBuffers
-from common.errors import EstimationError
-from common.messages import SlamState, finite_by_construction
-from services.slam import association, ekf, faults
-from services.slam.plausibility import Bounds, ImplausibleInputError, InputGates
-from services.slam.settings import EstimatorSettings
+from slamlens.common.arrays import RecycledBuffers
+from slamlens.common.errors import EstimationError
+from slamlens.common.messages import SlamState, finite_by_construction
+from slamlens.services.slam import association, ekf, faults
+from slamlens.services.slam.plausibility import Bounds, ImplausibleInputError, InputGates
+from slamlens.services.slam.settings import EstimatorSettings
 
 log = logging.getLogger("slamlens.estimator")
 
@@ -56,7 +58,8 @@ class ObserveReport:
 class Refusal:
     """The last input (or step) the estimator refused, and why (for logs and status)."""
 
-    reason: str  #: a plausibility reason (services.slam.plausibility) or non-finite / not-psd
+    #: a plausibility reason (slamlens.services.slam.plausibility) or non-finite / not-psd
+    reason: str
     detail: str  #: one sentence
     stamp: float  #: the input's stamp
     input: str  #: the input, abridged
@@ -208,7 +211,7 @@ class Estimator:
         """Apply one observation batch, one observation at a time in message order.
 
         A known id updates, an unknown id is initialised (and not also used to update), id
-        −1 is associated (:mod:`services.slam.association`). Malformed input (NaN, negative
+        −1 is associated (:mod:`slamlens.services.slam.association`). Malformed input (NaN, negative
         range, ids < −1, mismatched lengths) raises EstimationError before anything changes,
         and so does a batch outside a plausibility bound (:class:`ImplausibleInputError`).
         A known id whose NIS is above ``innovation_gate_chi2`` is not applied (``gated``);

@@ -3,7 +3,7 @@
 Inputs: one recovering channel on the robot's odometry and observations keys (advanced subscribers:
 what congestion, a link cut or a router restart made it miss comes back from the drivers'
 caches). Its Zenoh callback only queues the sample; one worker thread decodes, puts the
-inputs in publication order exactly once (:mod:`services.slam.input_order`) and applies
+inputs in publication order exactly once (:mod:`slamlens.services.slam.input_order`) and applies
 them. After every event applied it publishes one ``SlamState`` through an advanced
 publisher with a cache (congestion control drop: a slow subscriber never slows it) and
 keeps its bytes as the answer to a ``get``. A liveliness token announces the estimator.
@@ -18,7 +18,7 @@ is one input. Large states (a big map's, through shared memory) go out at once.
 Epochs: a map started from scratch gets a new ``epoch`` (the wall-clock nanoseconds at its
 start: unique in practice and increasing); with ``--checkpoint DIR`` the service saves its
 whole state there and, started again, resumes the same epoch and seq numbering, asking the
-drivers' caches for the inputs published since (:mod:`services.slam.checkpoint`).
+drivers' caches for the inputs published since (:mod:`slamlens.services.slam.checkpoint`).
 """
 
 from __future__ import annotations
@@ -34,17 +34,17 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from common.bus import BurstPuts, Bus, Payload, Sample, joined
-from common.drops import DropCounter
-from common.errors import EstimationError, MessageError
-from common.keys import Keys
-from common.messages import Observations, Odometry, SlamState
-from services.slam import checkpoint as ckpt
-from services.slam.ekf import RefusedStepError
-from services.slam.estimator import Estimator
-from services.slam.input_order import Input, InputOrder
-from services.slam.plausibility import ImplausibleInputError
-from services.slam.settings import EstimatorSettings
+from slamlens.common.bus import BurstPuts, Bus, Payload, Sample, joined
+from slamlens.common.drops import DropCounter
+from slamlens.common.errors import EstimationError, MessageError
+from slamlens.common.keys import Keys
+from slamlens.common.messages import Observations, Odometry, SlamState
+from slamlens.services.slam import checkpoint as ckpt
+from slamlens.services.slam.ekf import RefusedStepError
+from slamlens.services.slam.estimator import Estimator
+from slamlens.services.slam.input_order import Input, InputOrder
+from slamlens.services.slam.plausibility import ImplausibleInputError
+from slamlens.services.slam.settings import EstimatorSettings
 
 log = logging.getLogger("slamlens.estimator")
 

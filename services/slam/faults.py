@@ -2,7 +2,7 @@
 
 A fault acts only on the features whose ids are listed (``--faulty-features``) and only on
 events whose stamp is ≥ ``onset`` (s). With no fault the estimator never calls this module:
-the correct filter runs exactly as written in :mod:`services.slam.ekf`.
+the correct filter runs exactly as written in :mod:`slamlens.services.slam.ekf`.
 
 ``map-update`` (paper §4: "the covariance of certain mapped features is updated incorrectly")
     After every observation batch that updated at least one landmark, each faulty feature's
@@ -29,9 +29,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.errors import ConfigError
-from services.slam import ekf
-from services.slam.settings import CROSS_COVARIANCE, FAULT_KINDS, MAP_UPDATE, NONE
+from slamlens.common.errors import ConfigError
+from slamlens.services.slam import ekf
+from slamlens.services.slam.settings import CROSS_COVARIANCE, FAULT_KINDS, MAP_UPDATE, NONE
 
 DEFAULT_MAGNITUDE = {
     MAP_UPDATE: 2e-3,  # m² per update batch: σ grows ~4.5 cm in 1 s of 10 Hz batches

@@ -28,12 +28,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from common.arrays import frozen_array
-from common.geometry import compose2, inverse2, transform2
-from common.messages import Health, SlamState, Truth, Violation
-from services.slam import monitor_checks as checks
-from services.slam.monitor_blame import Evidence, blame_weights
-from services.slam.monitor_stats import (
+from slamlens.common.arrays import frozen_array
+from slamlens.common.geometry import compose2, inverse2, transform2
+from slamlens.common.messages import Health, SlamState, Truth, Violation
+from slamlens.services.slam import monitor_checks as checks
+from slamlens.services.slam.monitor_blame import Evidence, blame_weights
+from slamlens.services.slam.monitor_stats import (
     BlockTerms,
     FeatureWindows,
     WindowTest,
@@ -43,8 +43,8 @@ from services.slam.monitor_stats import (
     pose_nees,
     quadratic_forms_2x2,
 )
-from services.slam.monitor_verdict import Verdict
-from services.slam.settings import MonitorSettings
+from slamlens.services.slam.monitor_verdict import Verdict
+from slamlens.services.slam.settings import MonitorSettings
 
 log = logging.getLogger(__name__)
 

@@ -26,14 +26,14 @@ import logging
 import threading
 import time
 
-from common.bus import BurstPuts, Bus, Sample
-from common.drops import DropCounter
-from common.errors import MessageError
-from common.keys import Keys
-from common.messages import Health, SlamState, Truth
-from services.slam.monitor import Monitor
-from services.slam.monitor_verdict import WORDS
-from services.slam.settings import MonitorSettings
+from slamlens.common.bus import BurstPuts, Bus, Sample
+from slamlens.common.drops import DropCounter
+from slamlens.common.errors import MessageError
+from slamlens.common.keys import Keys
+from slamlens.common.messages import Health, SlamState, Truth
+from slamlens.services.slam.monitor import Monitor
+from slamlens.services.slam.monitor_verdict import WORDS
+from slamlens.services.slam.settings import MonitorSettings
 
 log = logging.getLogger("slamlens.monitor")
 

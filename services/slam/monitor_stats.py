@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2
 
-from common.geometry import wrap_angle
+from slamlens.common.geometry import wrap_angle
 
 
 def chi2_band(dof: float, alpha: float) -> tuple[float, float]:

@@ -23,8 +23,8 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass
 
-from common.messages import Violation
-from common.verdict import WORDS, summary_text  # noqa: F401  (the one wording: common/verdict.py)
+from slamlens.common.messages import Violation
+from slamlens.common.verdict import WORDS, summary_text  # noqa: F401  (the one wording: common/verdict.py)
 
 FAULT_KINDS = ("pair", "feature", "prediction", "symmetry", "psd", "correlation")
 TUNING_KINDS = ("nees", "nis")

@@ -36,10 +36,10 @@ from pathlib import Path
 
 import numpy as np
 
-from common.arrays import frozen_array
-from common.errors import SourceError
-from common.geometry import wrap_angle
-from common.messages import Observations, Odometry, Truth
+from slamlens.common.arrays import frozen_array
+from slamlens.common.errors import SourceError
+from slamlens.common.geometry import wrap_angle
+from slamlens.common.messages import Observations, Odometry, Truth
 
 log = logging.getLogger("slamlens.mrclam")
 

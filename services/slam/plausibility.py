@@ -2,7 +2,7 @@
 
 A well-formed message can still be absurd: ``dt = 1e200``, a range of 1e300 m, a batch of a
 thousand new landmarks. Each gate has a documented bound in SI units
-(:class:`~services.slam.settings.EstimatorSettings`, group "plausibility gates"; 0 turns a
+(:class:`~slamlens.services.slam.settings.EstimatorSettings`, group "plausibility gates"; 0 turns a
 bound off). An input outside any bound is refused *whole* before the filter sees it:
 :class:`ImplausibleInputError` names the reason, the estimator counts it by reason and the
 service logs the first of each reason and publishes no state for it.
@@ -22,7 +22,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from common.errors import EstimationError
+from slamlens.common.errors import EstimationError
 
 REASONS = ("dt", "speed", "turn_rate", "range", "bearing", "stamp_jump", "batch_size",
            "map_size")

@@ -15,7 +15,7 @@ Numbers are decimal (SI units, radians; stamp and dt in seconds); ids are intege
 checksums, NaN, wrong counts, out-of-range values and unknown record types are dropped and
 counted in ``parser.stats``; it never raises. :class:`SerialLink` wraps pyserial's
 ``serial_for_url`` (a device path, ``loop://``, ``socket://host:port``, …) and reopens the
-port with exponential backoff (:class:`~common.backoff.Backoff`) when it vanishes.
+port with exponential backoff (:class:`~slamlens.common.backoff.Backoff`) when it vanishes.
 """
 
 from __future__ import annotations
@@ -30,9 +30,9 @@ from dataclasses import dataclass, fields
 import numpy as np
 import serial
 
-from common.backoff import Backoff
-from common.errors import MessageError, SlamlensError, SourceError
-from common.messages import Observations, Odometry
+from slamlens.common.backoff import Backoff
+from slamlens.common.errors import MessageError, SlamlensError, SourceError
+from slamlens.common.messages import Observations, Odometry
 
 log = logging.getLogger("slamlens.serial")
 

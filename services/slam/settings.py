@@ -1,7 +1,7 @@
 """Settings of the SLAM side: ``sim``, ``replay``, ``serial``, ``estimator`` and ``monitor``.
 
 One frozen dataclass per command; every field is a TOML key of ``--config FILE`` and a
-flag over it (:func:`common.config.setting`; docs/cli.md lists them all). No numpy here:
+flag over it (:func:`slamlens.common.config.setting`; docs/cli.md lists them all). No numpy here:
 ``slamlens estimator --help`` must not load it before the one-BLAS-thread default is set.
 """
 
@@ -10,8 +10,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 
-from common.config import setting
-from common.errors import ConfigError
+from slamlens.common.config import setting
+from slamlens.common.errors import ConfigError
 
 #: planted fault kinds (services/slam/faults.py says what each does)
 NONE, MAP_UPDATE, CROSS_COVARIANCE = "none", "map-update", "cross-covariance"
@@ -289,7 +289,7 @@ class EstimatorSettings:
         if any(s < 0 for s in self.initial_pose_sigma):
             raise ConfigError("setting 'initial_pose_sigma': standard deviations must be ≥ 0")
         # imported here: faults needs numpy, which --help must not load (module docstring)
-        from services.slam import faults
+        from slamlens.services.slam import faults
 
         try:
             faults.make_fault(self.fault, self.faulty_features, magnitude=self.fault_magnitude,

@@ -23,11 +23,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.arrays import frozen_array
-from common.errors import ConfigError
-from common.geometry import compose2, inverse2, transform2, wrap_angle
-from common.messages import Observations, Odometry, Truth
-from services.slam.world import World
+from slamlens.common.arrays import frozen_array
+from slamlens.common.errors import ConfigError
+from slamlens.common.geometry import compose2, inverse2, transform2, wrap_angle
+from slamlens.common.messages import Observations, Odometry, Truth
+from slamlens.services.slam.world import World
 
 _EMPTY_I8 = frozen_array(np.zeros(0), "<i8")
 _EMPTY_F8 = frozen_array(np.zeros(0), "<f8")

@@ -1,8 +1,8 @@
 """``slamlens summary``: what remote viewers draw of the newest state, on request (issue 13).
 
 It runs beside the estimator (on the robot, where states arrive through shared memory)
-and answers the queryable ``robot/R/summary`` with a :class:`~common.messages.StateSummary`
-of the newest state (``common.summary``: the map's blocks, the clustered min / mean / max
+and answers the queryable ``robot/R/summary`` with a :class:`~slamlens.common.messages.StateSummary`
+of the newest state (``slamlens.common.summary``: the map's blocks, the clustered min / mean / max
 of the relative covariances, or the pairs of one cluster or feature, in float32). A viewer
 pulls: it asks again when the previous answer arrived, with ``after=SEQ`` — the query is
 held until a newer state exists (at most ``hold_s``) — so the rate adapts to its link and
@@ -25,13 +25,13 @@ from dataclasses import dataclass
 
 import msgpack
 
-from common.bus import Bus, Reply
-from common.drops import DropCounter
-from common.errors import MessageError
-from common.keys import Keys
-from common.messages import SCHEMA, SlamState
-from common.summary import Summariser, SummaryQuery, SummaryQueryError, parse_query
-from services.slam.settings import SummarySettings
+from slamlens.common.bus import Bus, Reply
+from slamlens.common.drops import DropCounter
+from slamlens.common.errors import MessageError
+from slamlens.common.keys import Keys
+from slamlens.common.messages import SCHEMA, SlamState
+from slamlens.common.summary import Summariser, SummaryQuery, SummaryQueryError, parse_query
+from slamlens.services.slam.settings import SummarySettings
 
 log = logging.getLogger("slamlens.summary")
 

@@ -6,7 +6,8 @@ How a profile is made (docs/estimator.md, "Tuning on real data"):
 1. **Sensor residuals.** For every measurement, the range and bearing predicted from the
    ground-truth pose (interpolated at its stamp) and the true landmark; e = z − h. The
    range variance is modelled as σr² + (k·r)² + (k_off·r·φ²)² (the last two are the
-   opt-in terms of :class:`~services.slam.settings.EstimatorSettings`), the bearing variance
+   opt-in terms of :class:`~slamlens.services.slam.settings.EstimatorSettings`), the bearing
+   variance
    as σφ², and fitted by a trimmed Gaussian maximum likelihood (zero mean: a bias is an
    error the filter sees; residuals beyond 3σ are dropped and the fit repeated, then the
    variances corrected for the trimming) — robust to the gross outliers the innovation gate
@@ -25,7 +26,7 @@ How a profile is made (docs/estimator.md, "Tuning on real data"):
    refuses other observations at another scale, so a few passes). The last pass is the
    check: each run's NEES against the band (:meth:`TuneResult.passes`).
 
-No I/O besides reading the dataset (through :mod:`services.slam.mrclam`).
+No I/O besides reading the dataset (through :mod:`slamlens.services.slam.mrclam`).
 """
 
 from __future__ import annotations
@@ -38,12 +39,12 @@ from typing import Any
 import numpy as np
 from scipy import optimize, stats
 
-from common.errors import ConfigError, EstimationError
-from common.geometry import wrap_angle
-from common.messages import Observations, Odometry, SlamState, Truth
-from services.slam.estimator import Estimator
-from services.slam.mrclam import MrclamRun
-from services.slam.settings import EstimatorSettings
+from slamlens.common.errors import ConfigError, EstimationError
+from slamlens.common.geometry import wrap_angle
+from slamlens.common.messages import Observations, Odometry, SlamState, Truth
+from slamlens.services.slam.estimator import Estimator
+from slamlens.services.slam.mrclam import MrclamRun
+from slamlens.services.slam.settings import EstimatorSettings
 
 #: window lengths of the odometry residuals, s (up to the longest blind drives of MRCLAM)
 WINDOWS_S = (1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0)

@@ -16,7 +16,7 @@ A world file is small and documented (``worlds/paper.toml`` is the reference, SP
 
 Coordinates in the file are in the world frame. :func:`load_world` accepts the name of a
 packaged world ("paper", "grid", "large") or a path; unknown keys and bad values raise
-:class:`~common.errors.ConfigError` naming the key.
+:class:`~slamlens.common.errors.ConfigError` naming the key.
 """
 
 from __future__ import annotations
@@ -30,9 +30,9 @@ from typing import Any
 
 import numpy as np
 
-from common.arrays import frozen_array, values_equal
-from common.config import settings_from_mapping
-from common.errors import ConfigError
+from slamlens.common.arrays import frozen_array, values_equal
+from slamlens.common.config import settings_from_mapping
+from slamlens.common.errors import ConfigError
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -153,7 +153,7 @@ _POSITIVE = {
 
 def packaged_worlds() -> list[str]:
     """Names of the worlds shipped in ``services/slam/worlds/``."""
-    folder = resources.files("services.slam") / "worlds"
+    folder = resources.files("slamlens.services.slam") / "worlds"
     return sorted(p.name[:-5] for p in folder.iterdir() if p.name.endswith(".toml"))
 
 
@@ -169,7 +169,7 @@ def load_world(name_or_path: str | Path) -> World:
             raise ConfigError(f"world file {path}: cannot read ({exc.strerror})") from None
         source = str(path)
     else:
-        resource = resources.files("services.slam") / "worlds" / f"{text_path}.toml"
+        resource = resources.files("slamlens.services.slam") / "worlds" / f"{text_path}.toml"
         if not resource.is_file():
             raise ConfigError(f"unknown world {text_path!r}; packaged worlds: "
                               f"{', '.join(packaged_worlds())} (or give a path to a .toml)")

@@ -1,8 +1,8 @@
 """What the web layer asks of the viewer: JSON answers, and the pictures of a view.
 
-:class:`ViewerApi` is the one object :mod:`services.visualiser.web` talks to. Its JSON
+:class:`ViewerApi` is the one object :mod:`slamlens.services.visualiser.web` talks to. Its JSON
 methods return plain dicts (the web layer only adds HTTP); bad settings raise
-:class:`~common.errors.ConfigError` naming the field.
+:class:`~slamlens.common.errors.ConfigError` naming the field.
 """
 
 from __future__ import annotations
@@ -14,18 +14,18 @@ from typing import Any
 
 import numpy as np
 
-from common.drops import DropCounter
-from common.errors import ConfigError
-from common.verdict import WORDS, summary_text, violation_text
-from services.visualiser.clients import ClientRegistry
-from services.visualiser.compose import registration_status
-from services.visualiser.intake import Intake, RobotInputs
-from services.visualiser.pipeline import RenderPipeline
-from services.visualiser.render import ROBOT_COLOURS
-from services.visualiser.robots import RobotHistories
-from services.visualiser.series import SeriesStore
-from services.visualiser.settings import ViewSettings
-from services.visualiser.views import EyeChooser, Rendered, project_features
+from slamlens.common.drops import DropCounter
+from slamlens.common.errors import ConfigError
+from slamlens.common.verdict import WORDS, summary_text, violation_text
+from slamlens.services.visualiser.clients import ClientRegistry
+from slamlens.services.visualiser.compose import registration_status
+from slamlens.services.visualiser.intake import Intake, RobotInputs
+from slamlens.services.visualiser.pipeline import RenderPipeline
+from slamlens.services.visualiser.render import ROBOT_COLOURS
+from slamlens.services.visualiser.robots import RobotHistories
+from slamlens.services.visualiser.series import SeriesStore
+from slamlens.services.visualiser.settings import ViewSettings
+from slamlens.services.visualiser.views import EyeChooser, Rendered, project_features
 
 
 def _css(bgr: tuple[int, int, int]) -> str:

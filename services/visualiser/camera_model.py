@@ -21,9 +21,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from common.errors import CalibrationError
-from common.geometry import make_T
-from common.messages import Registration
+from slamlens.common.errors import CalibrationError
+from slamlens.common.geometry import make_T
+from slamlens.common.messages import Registration
 
 NEAR_M = 1e-3  #: points closer than this to the camera plane are not projected
 

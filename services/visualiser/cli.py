@@ -1,6 +1,6 @@
 """``slamlens viewer``: the AR renderer and its web viewers.
 
-Settings: :class:`services.visualiser.settings.ViewerConfig` (flags built from it by
+Settings: :class:`slamlens.services.visualiser.settings.ViewerConfig` (flags built from it by
 services/cli.py).
 """
 
@@ -10,20 +10,20 @@ import argparse
 import json
 import logging
 
-from common.cli import bus_settings, keys_from, setup_logging, stop_event
-from common.config import settings_from_args
-from common.session import open_bus
-from common.status import Report, announce
-from services.visualiser.settings import ViewerConfig
+from slamlens.common.cli import bus_settings, keys_from, setup_logging, stop_event
+from slamlens.common.config import settings_from_args
+from slamlens.common.session import open_bus
+from slamlens.common.status import Report, announce
+from slamlens.services.visualiser.settings import ViewerConfig
 
 log = logging.getLogger("slamlens.viewer")
 
 
 def run(command: str, args: argparse.Namespace) -> int:
     # imported here so that `slamlens viewer --help` does not load the web stack
-    from services.visualiser.service import ViewerService
-    from services.visualiser.web import WebServer, parse_http
-    from services.visualiser.web_access import is_loopback, new_token, read_token
+    from slamlens.services.visualiser.service import ViewerService
+    from slamlens.services.visualiser.web import WebServer, parse_http
+    from slamlens.services.visualiser.web_access import is_loopback, new_token, read_token
 
     setup_logging(args, "viewer")
     config = settings_from_args(ViewerConfig, args)

@@ -24,12 +24,12 @@ from typing import Any
 
 import numpy as np
 
-from common.errors import SlamlensError
-from common.memory import release_freed_memory
-from services.visualiser.intake import RateMeter
-from services.visualiser.recording import Recorder, RecordingRefused
-from services.visualiser.settings import ViewSettings
-from services.visualiser.views import Rendered
+from slamlens.common.errors import SlamlensError
+from slamlens.common.memory import release_freed_memory
+from slamlens.services.visualiser.intake import RateMeter
+from slamlens.services.visualiser.recording import Recorder, RecordingRefused
+from slamlens.services.visualiser.settings import ViewSettings
+from slamlens.services.visualiser.views import Rendered
 
 #: makes the recorder of one client's view: (client, source of its pictures, its settings)
 RecorderFactory = Callable[[str, Callable[[], np.ndarray | None], Callable[[], ViewSettings]],

@@ -19,10 +19,10 @@ from typing import Any
 
 import numpy as np
 
-from common.drops import DropCounter
-from common.messages import Health, SlamState
-from services.visualiser.intake import CameraInputs, Inputs, Intake, RobotInputs
-from services.visualiser.render import (
+from slamlens.common.drops import DropCounter
+from slamlens.common.messages import Health, SlamState
+from slamlens.services.visualiser.intake import CameraInputs, Inputs, Intake, RobotInputs
+from slamlens.services.visualiser.render import (
     LegendRow,
     RobotLegend,
     draw_robots_legend,
@@ -30,9 +30,9 @@ from services.visualiser.render import (
     robot_settings,
     side_by_side,
 )
-from services.visualiser.robots import RobotHistories
-from services.visualiser.settings import ViewSettings
-from services.visualiser.views import CameraView, Eye, EyeChooser, placeholder
+from slamlens.services.visualiser.robots import RobotHistories
+from slamlens.services.visualiser.settings import ViewSettings
+from slamlens.services.visualiser.views import CameraView, Eye, EyeChooser, placeholder
 
 RESTART_COLOUR = (0, 165, 255)  # BGR orange: news, not a fault
 

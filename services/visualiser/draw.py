@@ -23,8 +23,8 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from services.visualiser.camera_model import NEAR_M, CameraModel
-from services.visualiser.glyphs import ImageEllipses, ellipse_polygons, unit_circle
+from slamlens.services.visualiser.camera_model import NEAR_M, CameraModel
+from slamlens.services.visualiser.glyphs import ImageEllipses, ellipse_polygons, unit_circle
 
 SHIFT = 4  #: fractional bits of the fixed-point coordinates given to OpenCV
 _ONE = 1 << SHIFT

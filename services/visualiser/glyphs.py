@@ -19,8 +19,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common.geometry import eig_sym2, semi_axes
-from services.visualiser.camera_model import NEAR_M, CameraModel
+from slamlens.common.geometry import eig_sym2, semi_axes
+from slamlens.services.visualiser.camera_model import NEAR_M, CameraModel
 
 MIN_MINOR_PX = 0.5  #: thinnest drawn glyph, pixels
 

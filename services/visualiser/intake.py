@@ -2,7 +2,7 @@
 
 A Zenoh callback only stores the raw payload and its receipt time and wakes the viewer
 (O(1), no decoding), so a slow viewer never slows the estimator or the camera. State,
-frames and registrations are kept latest-wins (:class:`~common.latest.Latest`); health
+frames and registrations are kept latest-wins (:class:`~slamlens.common.latest.Latest`); health
 verdicts in a bounded FIFO (:class:`Queue`: every verdict feeds the plots). Frames are
 decoded on the ``viewer-decode`` thread as they arrive; states on ``viewer-prepare``
 (newest first), which hands each to ``prepare`` (the viewer computes its scenes) and then
@@ -10,7 +10,7 @@ to the render thread — a state's callback keeps only a getter of its payload
 (``Bus.subscribe_lazy``), so only the newest is copied out of Zenoh's buffer when that
 thread takes it, and the states it skips are never copied; everything else when the
 render thread calls :meth:`Intake.ingest`. A bad payload is logged (the first few of
-each kind, then one line in a hundred: :class:`~common.drops.DropCounter`), counted and
+each kind, then one line in a hundred: :class:`~slamlens.common.drops.DropCounter`), counted and
 dropped; so is a registration no camera model can be made of (or larger than
 ``max_frame_pixels``), and a frame whose JPEG header (read without decoding) claims another
 size than its message or more pixels than allowed (a decode bomb).
@@ -45,18 +45,18 @@ from typing import Any, TypeVar
 import cv2
 import numpy as np
 
-from common.bus import Bus
-from common.drops import DropCounter
-from common.errors import MessageError
-from common.keys import Keys
-from common.latest import Latest
-from common.messages import CameraFrame, Health, Registration, SlamState, Truth
-from common.summary import SummaryQuery
-from common.summary_pull import SummaryPuller
-from common.verdict import violation_text
-from services.visualiser.camera_model import CameraModel
-from services.visualiser.jpeg import JpegError, jpeg_size
-from services.visualiser.summary_view import decode_summary_state
+from slamlens.common.bus import Bus
+from slamlens.common.drops import DropCounter
+from slamlens.common.errors import MessageError
+from slamlens.common.keys import Keys
+from slamlens.common.latest import Latest
+from slamlens.common.messages import CameraFrame, Health, Registration, SlamState, Truth
+from slamlens.common.summary import SummaryQuery
+from slamlens.common.summary_pull import SummaryPuller
+from slamlens.common.verdict import violation_text
+from slamlens.services.visualiser.camera_model import CameraModel
+from slamlens.services.visualiser.jpeg import JpegError, jpeg_size
+from slamlens.services.visualiser.summary_view import decode_summary_state
 
 log = logging.getLogger("slamlens.viewer")
 

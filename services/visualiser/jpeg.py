@@ -7,7 +7,7 @@ segments up to it (ITU-T T.81 B.1.1) and reads its height and width, touching no
 
 from __future__ import annotations
 
-from common.errors import SlamlensError
+from slamlens.common.errors import SlamlensError
 
 
 class JpegError(SlamlensError):

@@ -19,10 +19,10 @@ from typing import Any
 import cv2
 import numpy as np
 
-from services.visualiser.clients import ClientRegistry, RenderBudget, View
-from services.visualiser.compose import Composer, Frame
-from services.visualiser.settings import ViewSettings
-from services.visualiser.views import Rendered
+from slamlens.services.visualiser.clients import ClientRegistry, RenderBudget, View
+from slamlens.services.visualiser.compose import Composer, Frame
+from slamlens.services.visualiser.settings import ViewSettings
+from slamlens.services.visualiser.views import Rendered
 
 log = logging.getLogger("slamlens.viewer")
 

@@ -28,7 +28,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from common.errors import ConfigError, RenderError, SlamlensError
+from slamlens.common.errors import ConfigError, RenderError, SlamlensError
 
 log = logging.getLogger("slamlens.viewer")
 

@@ -32,16 +32,22 @@ from typing import Generic, TypeVar
 import cv2
 import numpy as np
 
-from common.clusters import ClusterTracker, cluster_colour, cluster_labels
-from common.messages import Health, SlamState
-from common.verdict import summary_text
-from services.visualiser import draw
-from services.visualiser.camera_model import CameraModel
-from services.visualiser.glyphs import ImageEllipses, project_ellipsoids
-from services.visualiser.scene import ROLE_NAMES, ROLE_PAIR, Scene, build_scene, plan_overview
-from services.visualiser.settings import ViewSettings
-from services.visualiser.summary_view import SummarisedState, summary_scene
-from services.visualiser.trail import Trail
+from slamlens.common.clusters import ClusterTracker, cluster_colour, cluster_labels
+from slamlens.common.messages import Health, SlamState
+from slamlens.common.verdict import summary_text
+from slamlens.services.visualiser import draw
+from slamlens.services.visualiser.camera_model import CameraModel
+from slamlens.services.visualiser.glyphs import ImageEllipses, project_ellipsoids
+from slamlens.services.visualiser.scene import (
+    ROLE_NAMES,
+    ROLE_PAIR,
+    Scene,
+    build_scene,
+    plan_overview,
+)
+from slamlens.services.visualiser.settings import ViewSettings
+from slamlens.services.visualiser.summary_view import SummarisedState, summary_scene
+from slamlens.services.visualiser.trail import Trail
 
 T = TypeVar("T")
 
@@ -859,7 +865,7 @@ TUNING_COLOUR = (0, 165, 255)
 
 
 def _health_row(health: Health, settings: ViewSettings) -> LegendRow:
-    """The monitor's verdict, as the page and the terminal say it (common.verdict)."""
+    """The monitor's verdict, as the page and the terminal say it (slamlens.common.verdict)."""
     colour = {"fault": settings.colour_violation, "tuning": TUNING_COLOUR}.get(health.verdict)
     return [(f"verdict: {summary_text(health)}", colour)]
 

@@ -1,8 +1,8 @@
 """What the viewer remembers of each robot it shows: path, clusters, plots, tracked pose.
 
-One :class:`RobotHistory` per robot (a :class:`~services.visualiser.render.Renderer` for
-its path and cluster identities, a :class:`~services.visualiser.tracked.TrackedMatch`,
-a :class:`~services.visualiser.series.SeriesStore`), created the first time the robot is
+One :class:`RobotHistory` per robot (a :class:`~slamlens.services.visualiser.render.Renderer` for
+its path and cluster identities, a :class:`~slamlens.services.visualiser.tracked.TrackedMatch`,
+a :class:`~slamlens.services.visualiser.series.SeriesStore`), created the first time the robot is
 seen and emptied when its estimator starts a new map (:meth:`RobotHistory.new_map`).
 """
 
@@ -11,9 +11,9 @@ from __future__ import annotations
 import threading
 from collections.abc import Callable
 
-from services.visualiser.render import Renderer
-from services.visualiser.series import SeriesStore
-from services.visualiser.tracked import TrackedMatch
+from slamlens.services.visualiser.render import Renderer
+from slamlens.services.visualiser.series import SeriesStore
+from slamlens.services.visualiser.tracked import TrackedMatch
 
 
 class RobotHistory:

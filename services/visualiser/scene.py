@@ -8,7 +8,7 @@ Modes (SPEC §6, paper §3.2):
   glyphs: the smallest P_d, the element-wise mean P_d and the largest P_d over the
   inter-cluster pairs of that cluster pair.
 
-"Smallest" and "largest" are by ``common.geometry.pd_size_m``, √λmax of P_d (the 1-σ major
+"Smallest" and "largest" are by ``slamlens.common.geometry.pd_size_m``, √λmax of P_d (the 1-σ major
 semi-axis, m), the one size measure slamlens uses everywhere (monitor, viewer plots, demo).
 It is Loewner-monotone, so a shrinking P_d never looks larger, and it is what the eye reads
 from a glyph: its longest axis. The mean glyph is not ranked and, being an element-wise mean,
@@ -30,13 +30,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from common import overview
-from common.errors import RenderError
-from common.geometry import all_relative_covariances
-from common.messages import SlamState
-from common.pairs import min_mean_max, pair_size, select_pairs
-from services.visualiser.glyphs import Ellipsoids, ellipsoids_from_pd
-from services.visualiser.settings import ViewSettings
+from slamlens.common import overview
+from slamlens.common.errors import RenderError
+from slamlens.common.geometry import all_relative_covariances
+from slamlens.common.messages import SlamState
+from slamlens.common.pairs import min_mean_max, pair_size, select_pairs
+from slamlens.services.visualiser.glyphs import Ellipsoids, ellipsoids_from_pd
+from slamlens.services.visualiser.settings import ViewSettings
 
 ROLE_PAIR, ROLE_MIN, ROLE_MEAN, ROLE_MAX = 0, 1, 2, 3
 ROLE_NAMES = ("pair", "min", "mean", "max")
@@ -86,7 +86,7 @@ class Overview:
 
 def plan_overview(state: SlamState, settings: ViewSettings,
                   cluster_ids: np.ndarray | None) -> Overview | None:
-    """The glyph budget rule (``common.overview``): None when the mode's
+    """The glyph budget rule (``slamlens.common.overview``): None when the mode's
     pairs fit ``settings.glyph_budget`` (or a feature or a cluster is selected, or the
     budget is 0 = off); else the groups of the min/mean/max overview and the note.
     ``cluster_ids`` (stable, the view's clustering) must be given for every mode here."""

@@ -14,7 +14,7 @@ history keeps, per sample, the ``KEEP_LARGEST`` largest pairs and the pairs plot
 recently (``to_json`` asked for them: up to ``WATCHED`` pairs), so a pair's plot begins when
 it was first among the largest or first plotted (before: null). At n = 1000 every sample
 of every pair would be 2 MB, 1.2 GB for the 600 samples. The cluster min / mean / max of a
-large map come from the whole-matrix kernel (``common.overview.group_min_mean_max``), and
+large map come from the whole-matrix kernel (``slamlens.common.overview.group_min_mean_max``), and
 a sample is taken at most every ``COST_FACTOR`` × its own computing time (the plots take at
 most 1/20 of the viewer's time, whatever n).
 """
@@ -31,9 +31,9 @@ from typing import Any
 
 import numpy as np
 
-from common import overview
-from common.geometry import all_relative_covariances, pd_size_m
-from common.messages import Health, SlamState
+from slamlens.common import overview
+from slamlens.common.geometry import all_relative_covariances, pd_size_m
+from slamlens.common.messages import Health, SlamState
 
 #: A scalar size for each P_d of a stack (m, 2, 2) → (m,).
 SizeFn = Callable[[np.ndarray], np.ndarray]

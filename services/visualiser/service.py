@@ -2,22 +2,22 @@
 
 It is assembled from parts a reader can name, each in its own module:
 
-* :class:`~services.visualiser.intake.Intake` — subscriptions, late join, decoding
+* :class:`~slamlens.services.visualiser.intake.Intake` — subscriptions, late join, decoding
   (thread ``viewer-decode`` decodes camera frames as they arrive; ``viewer-prepare``
   decodes states and computes the open views' scenes of them, :meth:`_prepare`, and
   ``viewer-layers`` draws each onto its layers, :meth:`_finish`, meanwhile the next is
   decoded, before the render thread takes them in);
-* :class:`~services.visualiser.series.PlotSampler` — thread ``viewer-plots`` samples
+* :class:`~slamlens.services.visualiser.series.PlotSampler` — thread ``viewer-plots`` samples
   large maps for the plots;
-* :class:`~services.visualiser.pipeline.RenderPipeline` — thread ``viewer-render`` takes
+* :class:`~slamlens.services.visualiser.pipeline.RenderPipeline` — thread ``viewer-render`` takes
   in state / registration / health / tracked pose and renders every *active* view whose
   inputs changed, at most ``fps`` times a second; thread ``viewer-encode`` JPEG-encodes;
-* :class:`~services.visualiser.compose.Composer` — what a picture shows, through the eyes
-  an :class:`~services.visualiser.views.EyeChooser` picks (camera, map or stereo), with
-  the camera-tracked pose matched by :class:`~services.visualiser.tracked.TrackedMatch`;
-* :class:`~services.visualiser.clients.ClientRegistry` — each client's settings, each
+* :class:`~slamlens.services.visualiser.compose.Composer` — what a picture shows, through the eyes
+  an :class:`~slamlens.services.visualiser.views.EyeChooser` picks (camera, map or stereo), with
+  the camera-tracked pose matched by :class:`~slamlens.services.visualiser.tracked.TrackedMatch`;
+* :class:`~slamlens.services.visualiser.clients.ClientRegistry` — each client's settings, each
   distinct view's picture, the video recorders;
-* :class:`~services.visualiser.api.ViewerApi` — what the web layer asks.
+* :class:`~slamlens.services.visualiser.api.ViewerApi` — what the web layer asks.
 
 None of the threads is a Zenoh callback; callbacks only store bytes (see :mod:`intake`).
 """
@@ -32,25 +32,25 @@ from typing import Any
 import msgpack
 import numpy as np
 
-from common.bus import Bus
-from common.clusters import ClusterTracker, cluster_labels
-from common.drops import DropCounter
-from common.errors import ConfigError
-from common.keys import Keys
-from common.messages import CameraControl, Health, SlamState
-from common.summary import SummaryQuery
-from services.visualiser.api import ViewerApi
-from services.visualiser.clients import ClientRegistry
-from services.visualiser.compose import Composer
-from services.visualiser.intake import Intake
-from services.visualiser.pipeline import RenderPipeline
-from services.visualiser.recording import MB, Recorder, recording_name
-from services.visualiser.render import Renderer
-from services.visualiser.robots import RobotHistories
-from services.visualiser.series import DENSE_PAIRS, PlotSampler, SeriesStore
-from services.visualiser.settings import ViewerConfig, ViewSettings
-from services.visualiser.summary_view import SummarisedState
-from services.visualiser.views import EyeChooser
+from slamlens.common.bus import Bus
+from slamlens.common.clusters import ClusterTracker, cluster_labels
+from slamlens.common.drops import DropCounter
+from slamlens.common.errors import ConfigError
+from slamlens.common.keys import Keys
+from slamlens.common.messages import CameraControl, Health, SlamState
+from slamlens.common.summary import SummaryQuery
+from slamlens.services.visualiser.api import ViewerApi
+from slamlens.services.visualiser.clients import ClientRegistry
+from slamlens.services.visualiser.compose import Composer
+from slamlens.services.visualiser.intake import Intake
+from slamlens.services.visualiser.pipeline import RenderPipeline
+from slamlens.services.visualiser.recording import MB, Recorder, recording_name
+from slamlens.services.visualiser.render import Renderer
+from slamlens.services.visualiser.robots import RobotHistories
+from slamlens.services.visualiser.series import DENSE_PAIRS, PlotSampler, SeriesStore
+from slamlens.services.visualiser.settings import ViewerConfig, ViewSettings
+from slamlens.services.visualiser.summary_view import SummarisedState
+from slamlens.services.visualiser.views import EyeChooser
 
 log = logging.getLogger("slamlens.viewer")
 

@@ -1,7 +1,7 @@
 """Settings of the viewer: ``ViewerConfig`` (the service) and ``ViewSettings`` (each view).
 
 ``ViewerConfig`` is ``slamlens viewer``'s: every field a TOML key of ``--config FILE`` and a
-flag over it (:func:`common.config.setting`; docs/cli.md lists them all).
+flag over it (:func:`slamlens.common.config.setting`; docs/cli.md lists them all).
 
 ``ViewSettings`` is what one viewer wants to see (SPEC §6, paper §3.2), one frozen object
 per client. Colours are OpenCV BGR tuples with the paper's defaults (robot and path green,
@@ -9,7 +9,7 @@ heading arrow yellow, features cyan, pair lines yellow, correlation ellipsoids r
 violations and suspects are magenta, which the paper does not use, so they cannot be
 mistaken for ordinary glyphs. Every field can come from a TOML file (``load_settings``),
 from a web page's query string (``from_query``) or from code (``replace``); bad values raise
-:class:`~common.errors.ConfigError` naming the field.
+:class:`~slamlens.common.errors.ConfigError` naming the field.
 """
 
 from __future__ import annotations
@@ -20,9 +20,9 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
-from common.config import setting, settings_from_mapping
-from common.errors import ConfigError
-from common.keys import check_name
+from slamlens.common.config import setting, settings_from_mapping
+from slamlens.common.errors import ConfigError
+from slamlens.common.keys import check_name
 
 VIEWS = ("auto", "camera", "map", "stereo")
 CODECS = ("mp4v", "MJPG")

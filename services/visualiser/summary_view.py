@@ -1,6 +1,6 @@
 """A picture from a robot's summary instead of its full state (``--source summary``, pure).
 
-A viewer behind a slow link pulls a :class:`~common.messages.StateSummary` (issue 13,
+A viewer behind a slow link pulls a :class:`~slamlens.common.messages.StateSummary` (issue 13,
 docs/remote_viewers.md): the map's blocks and the clustered min / mean / max of the
 relative covariances, never the whole matrix. :func:`summarised_state` makes of it a
 :class:`SummarisedState` — a ``SlamState`` whose covariance holds only what arrived (the
@@ -20,11 +20,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from common.messages import SlamState, StateSummary
-from common.pairs import pair_size
-from services.visualiser.glyphs import ellipsoids_from_pd
-from services.visualiser.scene import ROLE_PAIR, Scene, group_scene
-from services.visualiser.settings import ViewSettings
+from slamlens.common.messages import SlamState, StateSummary
+from slamlens.common.pairs import pair_size
+from slamlens.services.visualiser.glyphs import ellipsoids_from_pd
+from slamlens.services.visualiser.scene import ROLE_PAIR, Scene, group_scene
+from slamlens.services.visualiser.settings import ViewSettings
 
 
 @dataclass(frozen=True, eq=False)

@@ -14,7 +14,7 @@ from collections import deque
 
 import numpy as np
 
-from common.messages import Truth
+from slamlens.common.messages import Truth
 
 #: the newest tracked pose is compared with the estimate of the state nearest its stamp,
 #: if one is within this (s): the robot moves, so only the same instant is a fair comparison

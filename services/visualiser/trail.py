@@ -28,8 +28,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from services.visualiser import draw
-from services.visualiser.camera_model import CameraModel
+from slamlens.services.visualiser import draw
+from slamlens.services.visualiser.camera_model import CameraModel
 
 MAX_POINTS = 20_000  #: beyond this the older path is thinned (every other point)
 MAX_TRACES = 4  #: views' traces kept (distinct cameras, colours, widths), oldest out first

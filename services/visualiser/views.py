@@ -16,9 +16,9 @@ from typing import Any
 import cv2
 import numpy as np
 
-from common.messages import Registration, SlamState
-from services.visualiser.camera_model import CameraModel
-from services.visualiser.settings import ViewSettings
+from slamlens.common.messages import Registration, SlamState
+from slamlens.services.visualiser.camera_model import CameraModel
+from slamlens.services.visualiser.settings import ViewSettings
 
 #: map-view bounds snap to this grid, so the virtual camera moves rarely, not every state
 BOUNDS_STEP_M = 0.5

@@ -16,7 +16,7 @@ Endpoints (every ``client`` is a browser tab's random id; without one, the defau
 
 User input never causes a 500: bad values answer 400 with ``{"error": "..."}``, a body
 over ``MAX_BODY_BYTES`` 413, a view or recording beyond the viewer's limits 503; each
-refusal is one log line. Before any of it, :class:`~services.visualiser.web_access.
+refusal is one log line. Before any of it, :class:`~slamlens.services.visualiser.web_access.
 AccessGuard` checks Host, Origin and the access token (403 / 401).
 """
 
@@ -33,14 +33,14 @@ from typing import Any
 
 from aiohttp import WSMsgType, web
 
-from common.drops import DropCounter
-from common.errors import ConfigError, SlamlensError
-from services.visualiser.api import ViewerApi
-from services.visualiser.clients import TooManyViews
-from services.visualiser.recording import NAME_PATTERN, RecordingRefused, encode_png
-from services.visualiser.service import ViewerService
-from services.visualiser.settings import ViewSettings
-from services.visualiser.web_access import AccessGuard, QuietServerLog
+from slamlens.common.drops import DropCounter
+from slamlens.common.errors import ConfigError, SlamlensError
+from slamlens.services.visualiser.api import ViewerApi
+from slamlens.services.visualiser.clients import TooManyViews
+from slamlens.services.visualiser.recording import NAME_PATTERN, RecordingRefused, encode_png
+from slamlens.services.visualiser.service import ViewerService
+from slamlens.services.visualiser.settings import ViewSettings
+from slamlens.services.visualiser.web_access import AccessGuard, QuietServerLog
 
 log = logging.getLogger("slamlens.viewer.web")
 
@@ -143,7 +143,7 @@ class _Watch:
 class WebServer:
     """Serves a :class:`ViewerService` (through its :class:`ViewerApi`) over HTTP on a
     background thread. With a ``token`` every request must carry it; Host and Origin are
-    always checked (:class:`~services.visualiser.web_access.AccessGuard`)."""
+    always checked (:class:`~slamlens.services.visualiser.web_access.AccessGuard`)."""
 
     def __init__(self, service: ViewerService, *, host: str = "127.0.0.1",
                  port: int = 8080, token: str | None = None,

@@ -14,7 +14,7 @@ Every request, the websocket upgrade included, passes :class:`AccessGuard` first
    ``Authorization: Bearer``. Without it: 401, on every route.
 
 Each refusal is one log line with the reason (the first few of a kind, then one in a
-hundred: :class:`~common.drops.DropCounter`) and is counted; none is a traceback. The
+hundred: :class:`~slamlens.common.drops.DropCounter`) and is counted; none is a traceback. The
 same goes for requests aiohttp's parser refuses (an oversized request line or header):
 :class:`QuietServerLog` makes its tracebacks one line.
 """
@@ -37,8 +37,8 @@ from urllib.parse import urlencode
 from aiohttp import web
 from aiohttp.http_exceptions import HttpProcessingError
 
-from common.drops import DropCounter
-from common.errors import ConfigError
+from slamlens.common.drops import DropCounter
+from slamlens.common.errors import ConfigError
 
 log = logging.getLogger("slamlens.viewer.web")
 

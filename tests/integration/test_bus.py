@@ -6,7 +6,7 @@ import subprocess
 import sys
 import time
 
-from common.session import BusSettings, build_config
+from slamlens.common.session import BusSettings, build_config
 from tests.routes import put_until_seen
 
 
@@ -113,7 +113,7 @@ def test_a_callback_that_blocks_never_stops_the_channel_or_the_publisher(make_cl
 
 
 def test_channel_push_never_waits_and_bounds_memory() -> None:
-    from common.bus import QueueChannel, Sample
+    from slamlens.common.bus import QueueChannel, Sample
 
     ch = QueueChannel(name="t", max_bytes=1000)
     for i in range(300):  # nobody reads: push must not block
@@ -183,7 +183,7 @@ def test_get_and_liveliness(make_client) -> None:
 def test_unclosed_session_does_not_hang_interpreter(router_endpoint: str) -> None:
     """A process that forgets to close its bus still exits (atexit closes it)."""
     code = (
-        "from common.session import BusSettings, open_bus\n"
+        "from slamlens.common.session import BusSettings, open_bus\n"
         f"bus = open_bus(BusSettings(connect=({router_endpoint!r},)))\n"
         "bus.subscribe('t/x', lambda k, p: None)\n"
         "ch = bus.channel('t/y')\n"
@@ -205,7 +205,7 @@ def test_explicit_endpoints_turn_multicast_off() -> None:
 def test_a_client_waits_for_a_router_that_starts_later() -> None:
     import threading
 
-    from common.session import BusSettings, free_tcp_endpoint, open_bus, router_settings
+    from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus, router_settings
 
     endpoint = free_tcp_endpoint()
     routers = []
@@ -238,7 +238,7 @@ def test_a_client_waits_for_a_router_that_starts_later() -> None:
 def test_large_payloads_go_through_shared_memory_on_one_host(router_endpoint) -> None:
     """Issue 13: a state-sized payload reaches a subscriber on the same host through
     shared memory and one that cannot map it (as across a network) as bytes."""
-    from common.session import BusSettings, open_bus
+    from slamlens.common.session import BusSettings, open_bus
 
     pub_bus = open_bus(BusSettings(connect=(router_endpoint,)))
     local = open_bus(BusSettings(connect=(router_endpoint,)))
@@ -288,7 +288,7 @@ def test_large_samples_wait_uncopied_and_only_the_newest_of_a_key(router_endpoin
     """The monitor's intake on a large map (``newest_above``): small samples all come, in
     order; of the large ones only the newest still waiting is kept, the others counted as
     superseded, and what is taken is the payload that was put (from shared memory)."""
-    from common.session import BusSettings, open_bus
+    from slamlens.common.session import BusSettings, open_bus
 
     pub_bus = open_bus(BusSettings(connect=(router_endpoint,)))
     sub_bus = open_bus(BusSettings(connect=(router_endpoint,)))

@@ -11,10 +11,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.geometry import all_relative_covariances
-from services.slam.consistency import monte_carlo, run
-from services.slam.settings import EstimatorSettings
-from services.slam.world import load_world
+from slamlens.common.geometry import all_relative_covariances
+from slamlens.services.slam.consistency import monte_carlo, run
+from slamlens.services.slam.settings import EstimatorSettings
+from slamlens.services.slam.world import load_world
 
 WORLD = load_world("paper")
 

@@ -12,10 +12,10 @@ import math
 
 import numpy as np
 
-from common.keys import Keys
-from common.messages import Observations, Odometry, SlamState
-from services.slam.estimator_service import EstimatorService
-from services.slam.settings import EstimatorSettings
+from slamlens.common.keys import Keys
+from slamlens.common.messages import Observations, Odometry, SlamState
+from slamlens.services.slam.estimator_service import EstimatorService
+from slamlens.services.slam.settings import EstimatorSettings
 from tests.collect import StateCollector
 
 KEYS = Keys()

@@ -14,8 +14,8 @@ from collections.abc import Callable
 
 import numpy as np
 
-from common.keys import Keys
-from common.messages import Health, Observations, Odometry, SlamState, Truth
+from slamlens.common.keys import Keys
+from slamlens.common.messages import Health, Observations, Odometry, SlamState, Truth
 from tests.fuzz import bad_payloads, valid
 from tests.procs import spawn, stop
 
@@ -93,7 +93,7 @@ def _until(predicate: Callable[[], bool], timeout: float = 30.0) -> bool:
 
 def _status_dropped(bus, service: str) -> int:
     """What ``service`` counted as dropped, from its status (rebuilt once a second)."""
-    from common.messages import ServiceStatus
+    from slamlens.common.messages import ServiceStatus
 
     for reply in bus.get(KEYS.any_status(), timeout=2.0):
         status = ServiceStatus.from_bytes(reply.payload)
@@ -183,7 +183,7 @@ def test_registration_counts_a_control_flood_in_a_few_log_lines(router_endpoint,
                                                                 make_client) -> None:
     """Issue 15: 20 000 bad control messages are counted, logged in a handful of lines,
     and the camera keeps registering (garbage on truth and camera pose too)."""
-    from common.messages import CameraControl, Registration
+    from slamlens.common.messages import CameraControl, Registration
 
     reg = spawn("registration", "--config", "deploy/camera_overhead.toml", "--connect",
                 router_endpoint, "--fps", "10", "--width", "640", "--height", "360")
@@ -261,7 +261,7 @@ def test_viewer_survives_garbage_on_every_key_it_subscribes(router_endpoint, mak
     import cv2
     import zenoh
 
-    from common.messages import CameraFrame, Registration
+    from slamlens.common.messages import CameraFrame, Registration
     from tests.web_client import http
 
     viewer = spawn("viewer", "--robot", ROBOT, "--camera", CAMERA, "--connect",

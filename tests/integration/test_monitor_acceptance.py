@@ -19,12 +19,12 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from common.messages import Health, Odometry, SlamState, Truth
-from services.slam.estimator import Estimator
-from services.slam.monitor import Monitor
-from services.slam.settings import EstimatorSettings, MonitorSettings
-from services.slam.sim import Simulator, first_seen_times
-from services.slam.world import load_world
+from slamlens.common.messages import Health, Odometry, SlamState, Truth
+from slamlens.services.slam.estimator import Estimator
+from slamlens.services.slam.monitor import Monitor
+from slamlens.services.slam.settings import EstimatorSettings, MonitorSettings
+from slamlens.services.slam.sim import Simulator, first_seen_times
+from slamlens.services.slam.world import load_world
 
 SEEDS = range(20)
 ONSET = 20.0  # s

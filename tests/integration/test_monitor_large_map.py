@@ -14,12 +14,12 @@ import math
 
 import numpy as np
 
-from common.bus import InProcessBus
-from common.keys import Keys
-from common.messages import Health
-from services.slam.estimator import Estimator
-from services.slam.monitor_service import MonitorService
-from services.slam.settings import EstimatorSettings, MonitorSettings
+from slamlens.common.bus import InProcessBus
+from slamlens.common.keys import Keys
+from slamlens.common.messages import Health
+from slamlens.services.slam.estimator import Estimator
+from slamlens.services.slam.monitor_service import MonitorService
+from slamlens.services.slam.settings import EstimatorSettings, MonitorSettings
 
 KEYS = Keys("t")
 ROBOT = "r1"

@@ -21,10 +21,10 @@ import cv2
 import numpy as np
 import pytest
 
-from services.registration.calibrate import CharucoSpec, charuco_board_pose, detect_charuco
-from services.registration.calibration import load_calibration
-from services.registration.markers import DetectorTuning, MarkerDetector
-from services.registration.pose import T_from_rvec_tvec
+from slamlens.services.registration.calibrate import CharucoSpec, charuco_board_pose, detect_charuco
+from slamlens.services.registration.calibration import load_calibration
+from slamlens.services.registration.markers import DetectorTuning, MarkerDetector
+from slamlens.services.registration.pose import T_from_rvec_tvec
 
 FIXTURES = Path(__file__).resolve().parents[1] / "fixtures" / "fiducials"
 ARUCO = FIXTURES / "opencv_aruco"

@@ -14,10 +14,10 @@ import cv2
 import numpy as np
 import pytest
 
-from common.keys import Keys
-from common.messages import Registration
-from services.registration.calibration import CameraCalibration, save_calibration
-from services.registration.markers import get_dictionary, is_custom
+from slamlens.common.keys import Keys
+from slamlens.common.messages import Registration
+from slamlens.services.registration.calibration import CameraCalibration, save_calibration
+from slamlens.services.registration.markers import get_dictionary, is_custom
 from tests.procs import REPO, spawn, stop
 
 ARUCO = REPO.parent / "shared" / "data" / "fiducials" / "opencv_aruco"

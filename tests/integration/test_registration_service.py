@@ -19,14 +19,14 @@ import msgpack
 import numpy as np
 import pytest
 
-from common.geometry import T_from_pose2, invert_T, rotation_angle_deg
-from common.keys import Keys
-from common.messages import CameraFrame, CameraPose, Registration, Truth
-from services.registration.assemble import build_service
-from services.registration.calibration import save_calibration, synthetic_calibration
-from services.registration.service import RegistrationService
-from services.registration.settings import RegistrationSettings
-from services.registration.synthetic import (
+from slamlens.common.geometry import T_from_pose2, invert_T, rotation_angle_deg
+from slamlens.common.keys import Keys
+from slamlens.common.messages import CameraFrame, CameraPose, Registration, Truth
+from slamlens.services.registration.assemble import build_service
+from slamlens.services.registration.calibration import save_calibration, synthetic_calibration
+from slamlens.services.registration.service import RegistrationService
+from slamlens.services.registration.settings import RegistrationSettings
+from slamlens.services.registration.synthetic import (
     ImagingSettings,
     SceneSettings,
     SyntheticCamera,
@@ -35,8 +35,8 @@ from services.registration.synthetic import (
     overhead_pose,
     stereo_poses,
 )
-from services.slam.sim import Simulator
-from services.slam.world import load_world
+from slamlens.services.slam.sim import Simulator
+from slamlens.services.slam.world import load_world
 from tests.procs import spawn, stop
 from tests.routes import put_until_seen
 
@@ -446,7 +446,7 @@ def test_head_mounted_with_an_external_tracker(make_client, run_service) -> None
 
 
 def test_calibrate_command_writes_a_loadable_calibration(tmp_path: Path) -> None:
-    from services.registration.calibration import load_calibration
+    from slamlens.services.registration.calibration import load_calibration
     from tests.procs import REPO
 
     photos = REPO / "tests" / "fixtures" / "fiducials" / "opencv_aruco"

@@ -22,10 +22,10 @@ import pytest
 import zenoh
 import zenoh.ext as zx
 
-from common.bus import ZenohBus
-from common.certs import extend_authority
-from common.errors import BusError, SecurityError
-from common.session import BusSettings, free_tcp_endpoint, open_bus
+from slamlens.common.bus import ZenohBus
+from slamlens.common.certs import extend_authority
+from slamlens.common.errors import BusError, SecurityError
+from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus
 from tests.procs import REPO, slamlens_cmd, spawn, stop
 
 NAMES = ["router-ws", "robot-r1", "robot-r2", "camera-overhead", "monitor-r1", "viewer-lab"]
@@ -228,9 +228,9 @@ def test_every_identity_announces_its_own_status_and_only_its_own(connect,
     """The status protocol (common/status.py) through the roles: each identity holds its
     token and answers under slamlens/status/NAME/**; one robot posing as another is
     refused both, and the reader never sees it."""
-    from common.keys import Keys
-    from common.messages import ServiceStatus
-    from common.status import Report, StatusAnnouncer
+    from slamlens.common.keys import Keys
+    from slamlens.common.messages import ServiceStatus
+    from slamlens.common.status import Report, StatusAnnouncer
 
     keys = Keys()
     reader = connect("viewer-lab")

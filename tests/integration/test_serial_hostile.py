@@ -9,9 +9,9 @@ import time
 import tty
 from pathlib import Path
 
-from common.keys import Keys
-from common.messages import Observations, Odometry
-from services.slam.serial_link import checksum
+from slamlens.common.keys import Keys
+from slamlens.common.messages import Observations, Odometry
+from slamlens.services.slam.serial_link import checksum
 from tests.procs import spawn, stop
 
 KEYS = Keys()

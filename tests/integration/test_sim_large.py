@@ -7,9 +7,9 @@ import time
 import msgpack
 import numpy as np
 
-from common.keys import Keys
-from common.messages import SlamState
-from services.slam.world import load_world
+from slamlens.common.keys import Keys
+from slamlens.common.messages import SlamState
+from slamlens.services.slam.world import load_world
 from tests.procs import spawn, stop, wait_for_line
 
 KEYS = Keys()

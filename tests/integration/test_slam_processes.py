@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 import zenoh
 
-from common.keys import Keys
-from common.messages import SlamState
+from slamlens.common.keys import Keys
+from slamlens.common.messages import SlamState
 from tests.collect import StateCollector
 from tests.procs import spawn, stop, wait_for_line
 

@@ -15,7 +15,7 @@ import time
 
 import pytest
 
-from common.session import free_tcp_endpoint
+from slamlens.common.session import free_tcp_endpoint
 from tests.procs import REPO, Service, slamlens_cmd, spawn, stop
 
 CALIBRATION = "deploy/calibration_synthetic_1280x720.yml"

@@ -15,10 +15,10 @@ from pathlib import Path
 
 import pytest
 
-from common.keys import Keys
-from services.visualiser.service import ViewerService
-from services.visualiser.settings import ViewerConfig
-from services.visualiser.web import WebServer
+from slamlens.common.keys import Keys
+from slamlens.services.visualiser.service import ViewerService
+from slamlens.services.visualiser.settings import ViewerConfig
+from slamlens.services.visualiser.web import WebServer
 from tests.web_client import ROUTES, http, post_json, websocket
 
 KEYS = Keys()
@@ -93,7 +93,7 @@ def test_a_foreign_host_is_refused_on_every_route_and_the_websocket(
     status = json.loads(http(url + "/api/status")[2])
     assert status["recording"] == [] and status["refused"] == {"web host": refused}
     # one line per refusal, with the reason and no traceback (the first few of a kind,
-    # then one in a hundred: common.drops.DropCounter)
+    # then one in a hundred: slamlens.common.drops.DropCounter)
     lines = refusal_lines(caplog, "host")
     assert len(lines) == 5
     assert all("attacker.example" in r.getMessage() and r.exc_info is None for r in lines)

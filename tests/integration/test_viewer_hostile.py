@@ -23,9 +23,9 @@ import cv2
 import numpy as np
 import pytest
 
-from common.keys import Keys
-from common.messages import CameraFrame, Registration
-from services.visualiser.jpeg import JpegError, jpeg_size
+from slamlens.common.keys import Keys
+from slamlens.common.messages import CameraFrame, Registration
+from slamlens.services.visualiser.jpeg import JpegError, jpeg_size
 from tests.procs import Service, spawn, stop
 from tests.routes import put_until_seen
 from tests.web_client import http, post_json

@@ -19,11 +19,11 @@ from typing import Any
 import numpy as np
 import pytest
 
-from common.keys import Keys
-from common.messages import SlamState
-from services.visualiser.service import ViewerService
-from services.visualiser.settings import ViewerConfig
-from services.visualiser.web import WebServer
+from slamlens.common.keys import Keys
+from slamlens.common.messages import SlamState
+from slamlens.services.visualiser.service import ViewerService
+from slamlens.services.visualiser.settings import ViewerConfig
+from slamlens.services.visualiser.web import WebServer
 from tests.routes import put_until_seen
 from tests.web_client import http, post_json
 

@@ -18,11 +18,11 @@ import msgpack
 import numpy as np
 import pytest
 
-from common.keys import Keys
-from common.messages import CameraFrame, Health, Registration, SlamState, Violation
-from services.visualiser.service import ViewerService
-from services.visualiser.settings import ViewerConfig
-from services.visualiser.web import WebServer
+from slamlens.common.keys import Keys
+from slamlens.common.messages import CameraFrame, Health, Registration, SlamState, Violation
+from slamlens.services.visualiser.service import ViewerService
+from slamlens.services.visualiser.settings import ViewerConfig
+from slamlens.services.visualiser.web import WebServer
 from tests.routes import put_until_seen
 
 KEYS = Keys()
@@ -569,7 +569,7 @@ def colour_pixels(image: np.ndarray, uv: tuple[int, int], bgr: tuple[int, int, i
 
 def test_one_viewer_shows_several_robots_each_through_its_own_registration(
         start_viewer, publisher) -> None:
-    from services.visualiser.render import ROBOT_COLOURS
+    from slamlens.services.visualiser.render import ROBOT_COLOURS
 
     _, url = start_viewer(camera=CAMERA, robot=f"{ROBOT},r2")
     publisher(KEYS.registration(CAMERA, ROBOT), make_registration().to_bytes())
@@ -636,7 +636,7 @@ def test_the_reregister_button_asks_the_registration_service_by_a_query(start_vi
                                                                        make_client) -> None:
     """A viewer may publish nothing (SPEC §7b): it asks by a Zenoh query carrying a
     CameraControl, which the registration service answers."""
-    from common.messages import CameraControl
+    from slamlens.common.messages import CameraControl
 
     _, url = start_viewer(camera=CAMERA, reregister_timeout_s=1.0)
     status, _, body = http(url + "/api/reregister", data={})

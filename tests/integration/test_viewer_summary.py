@@ -10,9 +10,9 @@ from contextlib import contextmanager
 
 import numpy as np
 
-from common.keys import Keys
-from services.slam.settings import SummarySettings
-from services.slam.summary_service import SummaryService
+from slamlens.common.keys import Keys
+from slamlens.services.slam.settings import SummarySettings
+from slamlens.services.slam.summary_service import SummaryService
 from tests.integration.test_viewer_service import (  # noqa: F401  (fixtures)
     CAMERA,
     HEIGHT,

@@ -19,12 +19,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from common.keys import Keys
-from common.messages import Health, SlamState, Violation
-from common.verdict import summary_text, violation_text
-from services.visualiser.service import ViewerService
-from services.visualiser.settings import ViewerConfig
-from services.visualiser.web import WebServer
+from slamlens.common.keys import Keys
+from slamlens.common.messages import Health, SlamState, Violation
+from slamlens.common.verdict import summary_text, violation_text
+from slamlens.services.visualiser.service import ViewerService
+from slamlens.services.visualiser.settings import ViewerConfig
+from slamlens.services.visualiser.web import WebServer
 
 CHROMIUM = os.environ.get("SLAMLENS_CHROMIUM", "/usr/bin/chromium")
 CHROMIUM_ARGS = ["--headless", "--no-sandbox", "--disable-gpu", "--disable-quic", "--no-first-run",

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import pytest
 
-from common.session import free_tcp_endpoint
+from slamlens.common.session import free_tcp_endpoint
 from tests.procs import REPO, slamlens_cmd
 
 

@@ -16,9 +16,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from common.keys import Keys
-from common.messages import SlamState, peek_fields
-from common.session import BusSettings, free_tcp_endpoint, open_bus
+from slamlens.common.keys import Keys
+from slamlens.common.messages import SlamState, peek_fields
+from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus
 from tests.collect import StateCollector
 from tests.procs import REPO, Service, spawn, stop
 

@@ -8,9 +8,9 @@ import time
 
 import pytest
 
-from common.keys import Keys
-from common.messages import Health
-from common.session import BusSettings, free_tcp_endpoint, open_bus
+from slamlens.common.keys import Keys
+from slamlens.common.messages import Health
+from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus
 from tests.procs import REPO, slamlens_cmd, spawn, stop, wait_for_line
 
 DEPLOY = REPO / "deploy"

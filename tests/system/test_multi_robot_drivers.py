@@ -10,9 +10,9 @@ import subprocess
 import time
 from pathlib import Path
 
-from common.keys import Keys
-from common.messages import Health
-from common.session import BusSettings, free_tcp_endpoint, open_bus
+from slamlens.common.keys import Keys
+from slamlens.common.messages import Health
+from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus
 from tests.procs import REPO, Service, slamlens_cmd, spawn, stop
 
 FIXTURE = REPO / "tests" / "fixtures" / "mrclam_small"

@@ -28,10 +28,10 @@ from mcap.records import Channel as McapChannel
 from mcap.records import Message as McapMessage
 from mcap.stream_reader import StreamReader
 
-from common.keys import Keys
-from common.messages import SlamState, peek_fields
-from common.session import BusSettings, free_tcp_endpoint, open_bus
-from services.recorder.reading import Recording, valid_payload
+from slamlens.common.keys import Keys
+from slamlens.common.messages import SlamState, peek_fields
+from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus
+from slamlens.services.recorder.reading import Recording, valid_payload
 from tests.collect import StateCollector
 from tests.mcap_check import protobuf_class, validate
 from tests.procs import Service, spawn, stop

@@ -12,10 +12,10 @@ import time
 import numpy as np
 import pytest
 
-from common.geometry import T_from_pose2, rotation_angle_deg
-from common.keys import Keys
-from common.messages import CameraControl, Registration, Truth, peek_fields
-from common.session import BusSettings, free_tcp_endpoint, open_bus
+from slamlens.common.geometry import T_from_pose2, rotation_angle_deg
+from slamlens.common.keys import Keys
+from slamlens.common.messages import CameraControl, Registration, Truth, peek_fields
+from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus
 from tests.procs import Service, spawn, stop
 
 KEYS = Keys()

@@ -16,7 +16,7 @@ import subprocess
 import time
 from pathlib import Path
 
-from common.certs import extend_authority
+from slamlens.common.certs import extend_authority
 from tests.netns import Hosts, curl_json
 from tests.procs import REPO, Service, slamlens_cmd
 

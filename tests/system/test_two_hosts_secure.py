@@ -11,7 +11,7 @@ from __future__ import annotations
 import json
 import sys
 
-from common.certs import extend_authority
+from slamlens.common.certs import extend_authority
 from tests.netns import Hosts
 from tests.procs import REPO, Service, slamlens_cmd, spawn, stop
 

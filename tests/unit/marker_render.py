@@ -15,9 +15,9 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from services.registration.calibration import CameraCalibration
-from services.registration.markers import get_dictionary, marker_image
-from services.registration.pose import marker_object_points
+from slamlens.services.registration.calibration import CameraCalibration
+from slamlens.services.registration.markers import get_dictionary, marker_image
+from slamlens.services.registration.pose import marker_object_points
 
 
 @dataclass(frozen=True)

@@ -11,9 +11,13 @@ import cv2
 import numpy as np
 import pytest
 
-from common.errors import CalibrationError, ConfigError
-from services.registration.calibrate import CharucoSpec, calibrate_charuco, charuco_board_pose
-from services.registration.calibration import (
+from slamlens.common.errors import CalibrationError, ConfigError
+from slamlens.services.registration.calibrate import (
+    CharucoSpec,
+    calibrate_charuco,
+    charuco_board_pose,
+)
+from slamlens.services.registration.calibration import (
     CameraCalibration,
     load_calibration,
     save_calibration,

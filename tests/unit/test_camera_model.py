@@ -6,10 +6,10 @@ import cv2
 import numpy as np
 import pytest
 
-from common.errors import CalibrationError
-from common.geometry import make_T, rot_z
-from common.messages import Registration
-from services.visualiser.camera_model import CameraModel
+from slamlens.common.errors import CalibrationError
+from slamlens.common.geometry import make_T, rot_z
+from slamlens.common.messages import Registration
+from slamlens.services.visualiser.camera_model import CameraModel
 
 K = np.array([[800.0, 0.0, 640.0], [0.0, 780.0, 360.0], [0.0, 0.0, 1.0]])
 

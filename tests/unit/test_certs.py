@@ -10,8 +10,8 @@ from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
-from common.certs import extend_authority, identities_in, parse_name
-from common.errors import ConfigError, SecurityError
+from slamlens.common.certs import extend_authority, identities_in, parse_name
+from slamlens.common.errors import ConfigError, SecurityError
 
 
 def _cert(path) -> x509.Certificate:

@@ -14,21 +14,21 @@ import sys
 
 import pytest
 
-from common.cli import BusFlags, LogFlags, bus_flags, bus_settings, keys_from, log_flags
-from common.config import settings_from_args
-from common.errors import ConfigError
-from services.cli import COMMANDS, Command, command_parser, main
-from services.cli_reference import DOC, reference
-from services.recorder.settings import PlaySettings, RecordSettings
-from services.registration.settings import CalibrateSettings, RegistrationSettings
-from services.settings import (
+from slamlens.common.cli import BusFlags, LogFlags, bus_flags, bus_settings, keys_from, log_flags
+from slamlens.common.config import settings_from_args
+from slamlens.common.errors import ConfigError
+from slamlens.services.cli import COMMANDS, Command, command_parser, main
+from slamlens.services.cli_reference import DOC, reference
+from slamlens.services.recorder.settings import PlaySettings, RecordSettings
+from slamlens.services.registration.settings import CalibrateSettings, RegistrationSettings
+from slamlens.services.settings import (
     CertsSettings,
     DemoSettings,
     FigureSettings,
     LaunchSettings,
     RegisterSettings,
 )
-from services.slam.settings import (
+from slamlens.services.slam.settings import (
     EstimatorSettings,
     MonitorSettings,
     ReplaySettings,
@@ -36,7 +36,7 @@ from services.slam.settings import (
     SimSettings,
     TuneSettings,
 )
-from services.visualiser.settings import ViewerConfig, ViewSettings
+from slamlens.services.visualiser.settings import ViewerConfig, ViewSettings
 from tests.procs import REPO
 
 #: every flag each command had before its settings were declared once (must keep working)
@@ -311,7 +311,7 @@ def test_help_prints_every_flag(capsys) -> None:
 
 def test_cli_reference_is_up_to_date() -> None:
     assert DOC.read_text() == reference(), \
-        "docs/cli.md is out of date: run `python -m services.cli_reference`"
+        "docs/cli.md is out of date: run `python -m slamlens.services.cli_reference`"
 
 
 def test_cli_reference_names_every_flag_of_every_command() -> None:
@@ -331,7 +331,7 @@ def test_cli_reference_names_every_flag_of_every_command() -> None:
 
 def test_help_does_not_load_numpy_or_opencv() -> None:
     # the estimator sets one BLAS thread before numpy is imported; --help must not import it
-    code = ("import sys; from services.cli import command_parser\n"
+    code = ("import sys; from slamlens.services.cli import command_parser\n"
             "for c in ('estimator', 'monitor', 'figures', 'registration', 'viewer', 'demo'):\n"
             "    command_parser(c).format_help()\n"
             "print(sorted(m for m in ('numpy', 'cv2', 'zenoh') if m in sys.modules))")
@@ -343,7 +343,7 @@ def test_help_does_not_load_numpy_or_opencv() -> None:
 
 def test_a_command_can_take_its_settings_from_flags_only(monkeypatch) -> None:
     monkeypatch.setitem(COMMANDS, "flagsonly", Command(
-        "services.router", "x", "services.slam.settings:SerialSettings", config=False))
+        "router", "x", "slam.settings:SerialSettings", config=False))
     options = _options(command_parser("flagsonly"))
     assert "--port" in options and "--config" not in options
     assert "Flags only (no `--config`)." in reference()

@@ -7,7 +7,7 @@ import pytest
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial.distance import cdist
 
-from common.clusters import ClusterTracker, cluster_colour, cluster_labels
+from slamlens.common.clusters import ClusterTracker, cluster_colour, cluster_labels
 
 CENTRES = np.array([[1.6, -0.55], [1.55, 1.7], [-0.6, 1.3]])  # the paper world's clusters
 

@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 
 import pytest
 
-from common.config import (
+from slamlens.common.config import (
     add_flags,
     describe,
     flag_values,
@@ -16,9 +16,9 @@ from common.config import (
     setting,
     settings_from_args,
 )
-from common.errors import ConfigError
-from common.geometry import wrap_angle
-from common.keys import Keys
+from slamlens.common.errors import ConfigError
+from slamlens.common.geometry import wrap_angle
+from slamlens.common.keys import Keys
 
 
 @dataclass(frozen=True)

@@ -23,8 +23,8 @@ import msgpack
 import numpy as np
 import pytest
 
-from common.errors import MessageError
-from common.messages import MESSAGE_TYPES, Message, SlamState, Truth
+from slamlens.common.errors import MessageError
+from slamlens.common.messages import MESSAGE_TYPES, Message, SlamState, Truth
 from tests.fuzz import bad_payloads, valid
 from tests.unit.test_messages import SAMPLES
 from tests.unit.test_monitor import run

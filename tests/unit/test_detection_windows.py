@@ -9,13 +9,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.errors import ConfigError
-from common.messages import Truth
-from services.registration import assemble
-from services.registration.markers import MarkerDetector, WindowedDetector
-from services.registration.settings import RegistrationSettings
-from services.slam.sim import Simulator
-from services.slam.world import load_world
+from slamlens.common.errors import ConfigError
+from slamlens.common.messages import Truth
+from slamlens.services.registration import assemble
+from slamlens.services.registration.markers import MarkerDetector, WindowedDetector
+from slamlens.services.registration.settings import RegistrationSettings
+from slamlens.services.slam.sim import Simulator
+from slamlens.services.slam.world import load_world
 
 PAPER = RegistrationSettings(source="synthetic")
 LARGE = RegistrationSettings(source="synthetic", arena=(-1.5, -1.5, 39.5, 24.5),

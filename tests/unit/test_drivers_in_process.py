@@ -15,16 +15,16 @@ from pathlib import Path
 
 import numpy as np
 
-from common.bus import InProcessBus
-from common.keys import Keys
-from common.messages import Message, Observations, Odometry, SlamState, peek_fields
-from services.slam.drivers import Fleet, RobotPublisher, play
-from services.slam.estimator import Estimator
-from services.slam.estimator_service import EstimatorService
-from services.slam.mrclam import load_mrclam
-from services.slam.settings import EstimatorSettings
-from services.slam.sim import Simulator
-from services.slam.world import load_world
+from slamlens.common.bus import InProcessBus
+from slamlens.common.keys import Keys
+from slamlens.common.messages import Message, Observations, Odometry, SlamState, peek_fields
+from slamlens.services.slam.drivers import Fleet, RobotPublisher, play
+from slamlens.services.slam.estimator import Estimator
+from slamlens.services.slam.estimator_service import EstimatorService
+from slamlens.services.slam.mrclam import load_mrclam
+from slamlens.services.slam.settings import EstimatorSettings
+from slamlens.services.slam.sim import Simulator
+from slamlens.services.slam.world import load_world
 
 KEYS = Keys("t")
 SMALL = Path(__file__).resolve().parents[1] / "fixtures" / "mrclam_small"

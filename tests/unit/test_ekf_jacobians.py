@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from services.slam import ekf
+from slamlens.services.slam import ekf
 
 EPS = 1e-6
 TOL = 1e-7  # central differences: O(eps²) truncation plus O(1e-16/eps) rounding

@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from services.slam import ekf
+from slamlens.services.slam import ekf
 
 SIG_V, SIG_W, SIG_R, SIG_B = 0.05, 0.05, 0.05, 0.02
 RTOL = 1e-10

@@ -7,9 +7,9 @@ import inspect
 
 import pytest
 
-import common.errors as errors
-from services.registration.pose import PoseError
-from services.slam.ekf import SingularInnovationError
+import slamlens.common.errors as errors
+from slamlens.services.registration.pose import PoseError
+from slamlens.services.slam.ekf import SingularInnovationError
 from tests.procs import REPO
 
 #: builtin exceptions a slamlens module must not raise for its own reasons
@@ -52,7 +52,8 @@ def test_no_module_raises_a_bare_builtin_error() -> None:
     for path in sorted([*REPO.glob("common/**/*.py"), *REPO.glob("services/**/*.py")]):
         if str(path.relative_to(REPO)) not in _PENDING:
             found += _raised_builtins(path)
-    assert not found, "raise a common.errors.SlamlensError subclass instead:\n" + "\n".join(found)
+    assert not found, ("raise a slamlens.common.errors.SlamlensError subclass instead:\n"
+                       + "\n".join(found))
 
 
 @pytest.mark.parametrize("error", [errors.EstimationError("x"), SingularInnovationError("x")])

@@ -7,12 +7,12 @@ import math
 import numpy as np
 import pytest
 
-from common.config import load_settings
-from common.errors import ConfigError, EstimationError
-from common.messages import SlamState
-from services.slam import association, ekf
-from services.slam.estimator import Estimator
-from services.slam.settings import EstimatorSettings
+from slamlens.common.config import load_settings
+from slamlens.common.errors import ConfigError, EstimationError
+from slamlens.common.messages import SlamState
+from slamlens.services.slam import association, ekf
+from slamlens.services.slam.estimator import Estimator
+from slamlens.services.slam.settings import EstimatorSettings
 
 SIG_R, SIG_B = 0.05, 0.02
 
@@ -342,8 +342,8 @@ def test_published_covariance_is_the_full_symmetric_matrix_after_every_event(
     """A state after predicts only reuses the last published covariance and rewrites the
     robot rows/columns (P_mm untouched by a predict, SPEC §4): it must equal the matrix
     materialised from scratch, bit for bit, whatever the planted fault."""
-    from services.slam.sim import Simulator
-    from services.slam.world import load_world
+    from slamlens.services.slam.sim import Simulator
+    from slamlens.services.slam.world import load_world
 
     settings = EstimatorSettings() if fault == "none" else EstimatorSettings(
         fault=fault, faulty_features=(3, 7))

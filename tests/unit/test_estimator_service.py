@@ -13,15 +13,15 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from common.bus import InProcessBus, Sample
-from common.keys import Keys
-from common.messages import Observations, Odometry, SlamState
-from services.slam import checkpoint as ckpt
-from services.slam.estimator import Estimator
-from services.slam.estimator_service import BURST_STATES, EstimatorService
-from services.slam.settings import EstimatorSettings
-from services.slam.sim import Simulator
-from services.slam.world import load_world
+from slamlens.common.bus import InProcessBus, Sample
+from slamlens.common.keys import Keys
+from slamlens.common.messages import Observations, Odometry, SlamState
+from slamlens.services.slam import checkpoint as ckpt
+from slamlens.services.slam.estimator import Estimator
+from slamlens.services.slam.estimator_service import BURST_STATES, EstimatorService
+from slamlens.services.slam.settings import EstimatorSettings
+from slamlens.services.slam.sim import Simulator
+from slamlens.services.slam.world import load_world
 
 KEYS = Keys("t")
 ROBOT = "r1"

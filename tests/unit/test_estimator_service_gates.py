@@ -9,13 +9,13 @@ import logging
 
 import numpy as np
 
-from common.bus import InProcessBus, Sample
-from common.keys import Keys
-from common.messages import Observations, Odometry, SlamState
-from services.slam.estimator_service import EstimatorService
-from services.slam.settings import EstimatorSettings
-from services.slam.sim import Simulator
-from services.slam.world import load_world
+from slamlens.common.bus import InProcessBus, Sample
+from slamlens.common.keys import Keys
+from slamlens.common.messages import Observations, Odometry, SlamState
+from slamlens.services.slam.estimator_service import EstimatorService
+from slamlens.services.slam.settings import EstimatorSettings
+from slamlens.services.slam.sim import Simulator
+from slamlens.services.slam.world import load_world
 
 KEYS = Keys("t")
 ROBOT = "r1"

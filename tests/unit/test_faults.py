@@ -12,10 +12,10 @@ from dataclasses import dataclass
 import numpy as np
 import pytest
 
-from common.geometry import relative_covariance
-from services.slam import ekf
-from services.slam.estimator import Estimator
-from services.slam.settings import EstimatorSettings
+from slamlens.common.geometry import relative_covariance
+from slamlens.services.slam import ekf
+from slamlens.services.slam.estimator import Estimator
+from slamlens.services.slam.settings import EstimatorSettings
 
 FAULTY = (2, 5)
 LANDMARKS = {i + 1: np.array([2.2 * math.cos(a), 1.0 + 2.2 * math.sin(a)])

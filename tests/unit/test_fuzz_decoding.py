@@ -5,8 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.errors import MessageError
-from common.messages import MESSAGE_TYPES
+from slamlens.common.errors import MessageError
+from slamlens.common.messages import MESSAGE_TYPES
 from tests.fuzz import bad_payloads, field_breakers, valid
 
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from common.geometry import (
+from slamlens.common.geometry import (
     T_from_pose2,
     all_relative_covariances,
     eig2x2_max,

@@ -5,10 +5,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.errors import ConfigError
-from common.geometry import make_T, rot_z
-from services.visualiser.camera_model import CameraModel
-from services.visualiser.glyphs import (
+from slamlens.common.errors import ConfigError
+from slamlens.common.geometry import make_T, rot_z
+from slamlens.services.visualiser.camera_model import CameraModel
+from slamlens.services.visualiser.glyphs import (
     Ellipsoids,
     eig_sym2,
     ellipse_polygons,

@@ -12,21 +12,21 @@ import threading
 import numpy as np
 import pytest
 
-from common.errors import EstimationError, MessageError
-from common.messages import (
+from slamlens.common.errors import EstimationError, MessageError
+from slamlens.common.messages import (
     Observations,
     Odometry,
     SlamState,
     Truth,
     finite_by_construction,
 )
-from services.slam import ekf
-from services.slam.ekf import RefusedStepError
-from services.slam.estimator import Estimator
-from services.slam.plausibility import ImplausibleInputError
-from services.slam.settings import EstimatorSettings
-from services.slam.sim import Simulator
-from services.slam.world import load_world
+from slamlens.services.slam import ekf
+from slamlens.services.slam.ekf import RefusedStepError
+from slamlens.services.slam.estimator import Estimator
+from slamlens.services.slam.plausibility import ImplausibleInputError
+from slamlens.services.slam.settings import EstimatorSettings
+from slamlens.services.slam.sim import Simulator
+from slamlens.services.slam.world import load_world
 
 #: every plausibility bound off: what is left is the filter's own guard
 NO_GATES = dict(max_dt_s=0.0, max_speed=0.0, max_turn_rate=0.0, max_range=0.0,

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from common.messages import Observations, Odometry
-from services.slam.input_order import Input, InputOrder
+from slamlens.common.messages import Observations, Odometry
+from slamlens.services.slam.input_order import Input, InputOrder
 
 
 class Clock:

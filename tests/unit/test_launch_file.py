@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
-from common.errors import ConfigError
-from services.launch_file import load_launch, plan_from_mapping, to_toml
+from slamlens.common.errors import ConfigError
+from slamlens.services.launch_file import load_launch, plan_from_mapping, to_toml
 from tests.procs import REPO, slamlens_cmd
 
 DEPLOY = REPO / "deploy"
@@ -169,7 +169,7 @@ def test_the_shipped_launch_files_check(name: str) -> None:
 @pytest.mark.parametrize("name", ["robot_secure", "workstation_secure"])
 def test_the_secure_launch_files_name_an_identity_per_service(name: str, tmp_path: Path,
                                                              monkeypatch) -> None:
-    from common.certs import extend_authority
+    from slamlens.common.certs import extend_authority
 
     monkeypatch.setenv("HOME", str(tmp_path))
     extend_authority(tmp_path / "slamlens-pki", ["router-ws", "router-robot", "robot-robot1",

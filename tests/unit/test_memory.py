@@ -21,7 +21,7 @@ from tests.procs import REPO
 WORKLOAD = """
 import json, resource, sys, threading
 import numpy as np
-from common.memory import keep_freed_memory
+from slamlens.common.memory import keep_freed_memory
 took = keep_freed_memory() if sys.argv[1] == "policy" else None
 faults = []
 
@@ -59,7 +59,7 @@ def test_freed_large_arrays_are_reused_without_faulting_their_pages_in_again() -
 
 
 def test_the_slamlens_program_sets_the_policy_before_the_command_runs(monkeypatch) -> None:
-    import services.cli as cli
+    import slamlens.services.cli as cli
 
     calls: list[str] = []
     monkeypatch.setattr(cli, "keep_freed_memory", lambda: calls.append("policy"))

@@ -8,8 +8,8 @@ import msgpack
 import numpy as np
 import pytest
 
-from common.errors import MessageError
-from common.messages import (
+from slamlens.common.errors import MessageError
+from slamlens.common.messages import (
     MESSAGE_TYPES,
     CameraControl,
     CameraFrame,
@@ -230,7 +230,7 @@ def test_truth_may_say_the_robots_marker() -> None:
 def test_wire_parts_join_to_the_msgpack_encoding_with_large_arrays_not_copied() -> None:
     """A large state's encoding in parts (the covariance its own part, its own memory):
     joined, the same bytes msgpack would write, and the message decodes back equal."""
-    from common.arrays import bytes_backed_array
+    from slamlens.common.arrays import bytes_backed_array
 
     n = 200  # covariance 403² · 8 B = 1.3 MB, above BIG_BINARY
     N = 3 + 2 * n

@@ -10,15 +10,15 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from common.config import load_settings
-from common.errors import ConfigError
-from common.geometry import relative_covariance, wrap_angle
-from common.messages import Health, SlamState, Truth
-from services.slam import monitor_checks as checks
-from services.slam.monitor import Monitor
-from services.slam.monitor_blame import Evidence, blame_weights
-from services.slam.monitor_stats import WindowTest, pose_nees, quadratic_forms_2x2
-from services.slam.settings import MonitorSettings
+from slamlens.common.config import load_settings
+from slamlens.common.errors import ConfigError
+from slamlens.common.geometry import relative_covariance, wrap_angle
+from slamlens.common.messages import Health, SlamState, Truth
+from slamlens.services.slam import monitor_checks as checks
+from slamlens.services.slam.monitor import Monitor
+from slamlens.services.slam.monitor_blame import Evidence, blame_weights
+from slamlens.services.slam.monitor_stats import WindowTest, pose_nees, quadratic_forms_2x2
+from slamlens.services.slam.settings import MonitorSettings
 
 SIGMAS = dict(sigma_v=0.05, sigma_w=0.05, sigma_r=0.05, sigma_b=0.02)
 
@@ -157,7 +157,7 @@ def random_psd(rng: np.random.Generator, N: int, rank: int | None = None) -> np.
 
 
 def oracle_growth(P_prev: np.ndarray, P_cur: np.ndarray, n: int, tol: float) -> set:
-    """Per-pair loop: P_d from common.geometry, eigvalsh of the difference."""
+    """Per-pair loop: P_d from slamlens.common.geometry, eigvalsh of the difference."""
     out = set()
     for i in range(n):
         for j in range(i + 1, n):

@@ -11,13 +11,13 @@ import math
 import numpy as np
 import pytest
 
-from common.bus import InProcessBus
-from common.keys import Keys
-from common.messages import Health, SlamState, Truth
-from services.slam import monitor_checks as checks
-from services.slam.monitor import Monitor
-from services.slam.monitor_service import BURST_HEALTHS, MonitorService
-from services.slam.settings import MonitorSettings
+from slamlens.common.bus import InProcessBus
+from slamlens.common.keys import Keys
+from slamlens.common.messages import Health, SlamState, Truth
+from slamlens.services.slam import monitor_checks as checks
+from slamlens.services.slam.monitor import Monitor
+from slamlens.services.slam.monitor_service import BURST_HEALTHS, MonitorService
+from slamlens.services.slam.settings import MonitorSettings
 from tests.unit.test_monitor import run, with_cov
 
 SETTINGS = MonitorSettings()

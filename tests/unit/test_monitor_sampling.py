@@ -4,11 +4,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from common.bus import InProcessBus
-from common.keys import Keys
-from common.messages import Health, SlamState
-from services.slam.monitor_service import MonitorService
-from services.slam.settings import MonitorSettings
+from slamlens.common.bus import InProcessBus
+from slamlens.common.keys import Keys
+from slamlens.common.messages import Health, SlamState
+from slamlens.services.slam.monitor_service import MonitorService
+from slamlens.services.slam.settings import MonitorSettings
 
 KEYS = Keys("t")
 

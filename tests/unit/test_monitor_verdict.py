@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from common.messages import Health, Violation
-from services.slam.monitor_verdict import WORDS, Verdict
+from slamlens.common.messages import Health, Violation
+from slamlens.services.slam.monitor_verdict import WORDS, Verdict
 
 
 def v(kind: str, ids: tuple[int, ...] = (), value: float = 1.0, step: int = 0) -> Violation:

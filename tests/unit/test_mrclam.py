@@ -11,9 +11,9 @@ from typing import Any
 import numpy as np
 import pytest
 
-from common.errors import SourceError
-from common.messages import Observations, Odometry, Truth
-from services.slam.mrclam import MrclamRun, load_mrclam
+from slamlens.common.errors import SourceError
+from slamlens.common.messages import Observations, Odometry, Truth
+from slamlens.services.slam.mrclam import MrclamRun, load_mrclam
 
 ROOT = Path(__file__).parents[2]
 SMALL = ROOT / "tests" / "fixtures" / "mrclam_small"

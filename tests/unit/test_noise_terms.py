@@ -8,8 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from services.slam.estimator import Estimator
-from services.slam.settings import EstimatorSettings
+from slamlens.services.slam.estimator import Estimator
+from slamlens.services.slam.settings import EstimatorSettings
 
 OPT_IN = ("sigma_distance", "sigma_turn", "sigma_heading_per_distance", "sigma_range_per_m",
           "sigma_range_off_axis", "innovation_gate_chi2")

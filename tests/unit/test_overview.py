@@ -7,13 +7,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common import overview
-from common.geometry import all_relative_covariances, pd_size_m
-from common.messages import SlamState
-from services.visualiser.camera_model import CameraModel
-from services.visualiser.render import Renderer
-from services.visualiser.scene import ROLE_PAIR, build_scene, min_mean_max, plan_overview
-from services.visualiser.settings import ViewSettings
+from slamlens.common import overview
+from slamlens.common.geometry import all_relative_covariances, pd_size_m
+from slamlens.common.messages import SlamState
+from slamlens.services.visualiser.camera_model import CameraModel
+from slamlens.services.visualiser.render import Renderer
+from slamlens.services.visualiser.scene import ROLE_PAIR, build_scene, min_mean_max, plan_overview
+from slamlens.services.visualiser.settings import ViewSettings
 
 
 def ekf_like_state(xy: np.ndarray, *, seed: int = 0) -> SlamState:

@@ -1,4 +1,4 @@
-"""``common.pacer.Pacer.drain``: a driver at its end waits for the estimator while it makes
+"""``slamlens.common.pacer.Pacer.drain``: a driver at its end waits for the estimator while it makes
 progress (its cache holds the inputs the estimator may still recover), and gives up only when
 it applied nothing for ``timeout_s``.
 
@@ -13,9 +13,9 @@ import time
 
 import msgpack
 
-from common.bus import InProcessBus
-from common.keys import Keys
-from common.pacer import Pacer
+from slamlens.common.bus import InProcessBus
+from slamlens.common.keys import Keys
+from slamlens.common.pacer import Pacer
 
 KEYS = Keys("t")
 

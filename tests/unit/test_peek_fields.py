@@ -14,8 +14,8 @@ import msgpack
 import numpy as np
 import pytest
 
-from common.errors import MessageError
-from common.messages import SlamState, peek_fields
+from slamlens.common.errors import MessageError
+from slamlens.common.messages import SlamState, peek_fields
 
 NAMES = ("epoch", "seq", "pose", "k3", "k7", "x")
 

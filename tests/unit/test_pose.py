@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 from marker_render import PlacedMarker, look_at, render, true_corners
 
-from common.errors import ConfigError, GeometryError, SourceError
-from common.geometry import T_from_pose2, invert_T, make_T, rot_z, rotation_angle_deg
-from services.registration import markers
-from services.registration.board import (
+from slamlens.common.errors import ConfigError, GeometryError, SourceError
+from slamlens.common.geometry import T_from_pose2, invert_T, make_T, rot_z, rotation_angle_deg
+from slamlens.services.registration import markers
+from slamlens.services.registration.board import (
     BoardMarker,
     MarkerBoard,
     camera_pose_from_board,
@@ -22,8 +22,8 @@ from services.registration.board import (
     load_board,
     rotation_from_rpy_deg,
 )
-from services.registration.calibration import CameraCalibration, synthetic_calibration
-from services.registration.markers import (
+from slamlens.services.registration.calibration import CameraCalibration, synthetic_calibration
+from slamlens.services.registration.markers import (
     DICTIONARIES,
     Detection,
     DetectorTuning,
@@ -31,7 +31,7 @@ from services.registration.markers import (
     mean_detection,
     refine_corners_edges,
 )
-from services.registration.pose import (
+from slamlens.services.registration.pose import (
     PoseError,
     T_camera_from_map,
     T_marker_from_map,

@@ -6,11 +6,11 @@ import threading
 
 import numpy as np
 
-from common.bus import InProcessBus
-from common.keys import Keys
-from common.messages import Odometry, Truth
-from common.progress import NoBar, count_bar, enabled, time_bar
-from services.slam.drivers import RobotPublisher, play
+from slamlens.common.bus import InProcessBus
+from slamlens.common.keys import Keys
+from slamlens.common.messages import Odometry, Truth
+from slamlens.common.progress import NoBar, count_bar, enabled, time_bar
+from slamlens.services.slam.drivers import RobotPublisher, play
 
 
 def test_auto_shows_no_bar_off_a_terminal_and_off_never() -> None:

@@ -13,16 +13,16 @@ import numpy as np
 import pytest
 from mcap.writer import CompressionType, Writer
 
-from common.errors import SourceError
-from common.messages import Health, SlamState, Violation
-from services.recorder.channels import FoxgloveTranslator, covariance_summary
-from services.recorder.layout import message_of_key, ntp64_to_ns, record_expressions
-from services.recorder.reading import Recording
-from services.recorder.scene import VIOLATION, pair_glyphs, scene_update
-from services.recorder.settings import SceneSettings
-from services.recorder.timeline import PlayClock
-from services.visualiser.scene import build_scene
-from services.visualiser.settings import ViewSettings
+from slamlens.common.errors import SourceError
+from slamlens.common.messages import Health, SlamState, Violation
+from slamlens.services.recorder.channels import FoxgloveTranslator, covariance_summary
+from slamlens.services.recorder.layout import message_of_key, ntp64_to_ns, record_expressions
+from slamlens.services.recorder.reading import Recording
+from slamlens.services.recorder.scene import VIOLATION, pair_glyphs, scene_update
+from slamlens.services.recorder.settings import SceneSettings
+from slamlens.services.recorder.timeline import PlayClock
+from slamlens.services.visualiser.scene import build_scene
+from slamlens.services.visualiser.settings import ViewSettings
 from tests.mcap_check import protobuf_class
 from tests.procs import REPO
 
@@ -80,7 +80,7 @@ def test_the_foxglove_glyphs_are_the_viewers_glyphs(mode: str, glyph: str) -> No
     state = _state()
     mine = pair_glyphs(state, SceneSettings(mode=mode, glyph=glyph, cluster_threshold_m=0.8))
     view = ViewSettings(mode=mode, glyph=glyph, cluster_threshold_m=0.8)
-    from common.clusters import cluster_labels
+    from slamlens.common.clusters import cluster_labels
 
     labels = cluster_labels(state.landmarks, threshold_m=0.8) if mode != "all" else None
     theirs = build_scene(state, view, cluster_ids=labels)
@@ -166,7 +166,7 @@ def test_not_mcap_and_missing_files_are_one_clear_error(tmp_path: Path) -> None:
         Recording(junk)
     with pytest.raises(SourceError, match="does not exist"):
         Recording(tmp_path / "nothing.mcap")
-    proc = subprocess.run([sys.executable, "-m", "services", "play", str(junk)], cwd=REPO,
+    proc = subprocess.run([sys.executable, "-m", "slamlens.services", "play", str(junk)], cwd=REPO,
                           capture_output=True, text=True, timeout=60)
     assert proc.returncode == 1
     assert proc.stderr.strip().splitlines() == [

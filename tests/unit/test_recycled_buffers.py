@@ -1,4 +1,4 @@
-"""``common.arrays.RecycledBuffers``: a buffer is reused, or reclaimed to change in place,
+"""``slamlens.common.arrays.RecycledBuffers``: a buffer is reused, or reclaimed to change in place,
 only when nothing else can read it."""
 
 from __future__ import annotations
@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.arrays import RecycledBuffers, bytes_backed_array
+from slamlens.common.arrays import RecycledBuffers, bytes_backed_array
 
 
 def _published(pool: RecycledBuffers) -> np.ndarray:

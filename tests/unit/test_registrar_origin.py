@@ -6,9 +6,9 @@ import math
 
 import numpy as np
 
-from common.geometry import T_from_pose2
-from services.registration.calibration import CameraCalibration
-from services.registration.tracking import Registrar, RegistrarSettings, frame_change
+from slamlens.common.geometry import T_from_pose2
+from slamlens.services.registration.calibration import CameraCalibration
+from slamlens.services.registration.tracking import Registrar, RegistrarSettings, frame_change
 
 
 def _registrar() -> Registrar:

@@ -7,8 +7,8 @@ import threading
 
 import pytest
 
-from common.backoff import Backoff
-from common.latest import Latest
+from slamlens.common.backoff import Backoff
+from slamlens.common.latest import Latest
 
 
 # -- Latest -------------------------------------------------------------------------------
@@ -138,7 +138,7 @@ def test_backoff_doubles_to_its_cap_and_starts_over_after_a_success(
 def test_drop_counter_says_a_flood_in_a_few_lines() -> None:
     import logging
 
-    from common.drops import DropCounter
+    from slamlens.common.drops import DropCounter
 
     lines: list[str] = []
 

@@ -8,12 +8,12 @@ import math
 import numpy as np
 import pytest
 
-from common.geometry import invert_T, make_T
-from common.messages import Health, SlamState, Violation
-from services.registration.synthetic import SyntheticCamera, overhead_pose
-from services.visualiser.camera_model import CameraModel
-from services.visualiser.render import Renderer, pick_feature, side_by_side
-from services.visualiser.settings import ViewSettings
+from slamlens.common.geometry import invert_T, make_T
+from slamlens.common.messages import Health, SlamState, Violation
+from slamlens.services.registration.synthetic import SyntheticCamera, overhead_pose
+from slamlens.services.visualiser.camera_model import CameraModel
+from slamlens.services.visualiser.render import Renderer, pick_feature, side_by_side
+from slamlens.services.visualiser.settings import ViewSettings
 
 # the paper world's 15 features (ids 1-5, 6-10, 11-15: three clusters)
 PAPER_XY = np.array([
@@ -367,7 +367,7 @@ def test_rejected_observations_are_grey_crosses_where_they_were_seen() -> None:
     off = Renderer().render(None, state=gated, camera=camera,
                             settings=quiet.replace(rejected=False))
     assert np.array_equal(off, plain)
-    from services.visualiser.render import rejected_legend
+    from slamlens.services.visualiser.render import rejected_legend
     assert rejected_legend(gated, ViewSettings()) == [[(
         "rejected observations (gate): 2 in this update, 17 in all", (170, 170, 170))]]
     assert rejected_legend(state, ViewSettings()) == []  # a state without the gate
@@ -380,9 +380,9 @@ def test_cluster_outlines_are_the_hull_of_every_member_grown_by_the_ring() -> No
     import cv2
     from scipy.spatial import ConvexHull
 
-    from common.clusters import cluster_colour
-    from services.visualiser import draw
-    from services.visualiser.render import Canvas, _draw_cluster_outlines
+    from slamlens.common.clusters import cluster_colour
+    from slamlens.services.visualiser import draw
+    from slamlens.services.visualiser.render import Canvas, _draw_cluster_outlines
 
     state = paper_state()
     ids = np.array([4, 4, 4, 4, 4, 9, 9, -1, 2, 2, 2, 2, 2, 7, -1])  # 5, 2, 5, 1, unoutlined

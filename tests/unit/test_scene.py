@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.errors import RenderError
-from common.geometry import relative_covariance
-from common.messages import SlamState
-from services.visualiser.glyphs import eig_sym2
-from services.visualiser.scene import (
+from slamlens.common.errors import RenderError
+from slamlens.common.geometry import relative_covariance
+from slamlens.common.messages import SlamState
+from slamlens.services.visualiser.glyphs import eig_sym2
+from slamlens.services.visualiser.scene import (
     ROLE_MAX,
     ROLE_MEAN,
     ROLE_MIN,
@@ -18,7 +18,7 @@ from services.visualiser.scene import (
     pair_size,
     select_pairs,
 )
-from services.visualiser.settings import ViewSettings
+from slamlens.services.visualiser.settings import ViewSettings
 
 IDS = np.array([10, 20, 30, 40])
 XY = np.array([[0.0, 0.0], [0.2, 0.0], [2.0, 0.0], [2.2, 0.0]])  # clusters {10,20}, {30,40}

@@ -12,10 +12,10 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import NameOID
 
-from common.certs import extend_authority, identities_in
-from common.errors import ConfigError, SecurityError
-from common.security import access_control, check_identity
-from common.session import (
+from slamlens.common.certs import extend_authority, identities_in
+from slamlens.common.errors import ConfigError, SecurityError
+from slamlens.common.security import access_control, check_identity
+from slamlens.common.session import (
     BusSettings,
     build_config,
     effective_endpoints,

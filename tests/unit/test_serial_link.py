@@ -14,9 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from common.errors import SourceError
-from common.messages import Observations, Odometry
-from services.slam.serial_link import (
+from slamlens.common.errors import SourceError
+from slamlens.common.messages import Observations, Odometry
+from slamlens.services.slam.serial_link import (
     SerialLink,
     SerialParser,
     checksum,

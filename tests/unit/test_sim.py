@@ -8,16 +8,16 @@ import math
 import numpy as np
 import pytest
 
-from common.geometry import compose2, inverse2
-from common.messages import Observations, Odometry, Truth
-from services.slam.sim import (
+from slamlens.common.geometry import compose2, inverse2
+from slamlens.common.messages import Observations, Odometry, Truth
+from slamlens.services.slam.sim import (
     Simulator,
     first_seen_times,
     plan_trajectory,
     staggered,
     visible,
 )
-from services.slam.world import NoiseModel, World, load_world
+from slamlens.services.slam.world import NoiseModel, World, load_world
 
 PAPER = load_world("paper")
 
@@ -276,7 +276,7 @@ def test_each_robot_drives_the_loop_in_its_own_map_frame_and_they_stay_apart() -
 
 
 def test_more_robots_than_corners_is_refused() -> None:
-    from common.errors import ConfigError
+    from slamlens.common.errors import ConfigError
 
     with pytest.raises(ConfigError, match="at most 4 robots"):
         staggered(PAPER, 4)

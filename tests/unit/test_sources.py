@@ -10,9 +10,9 @@ import cv2
 import numpy as np
 import pytest
 
-from common.errors import ConfigError, SourceError
-from common.messages import Truth
-from services.registration.sources import (
+from slamlens.common.errors import ConfigError, SourceError
+from slamlens.common.messages import Truth
+from slamlens.services.registration.sources import (
     CaptureSource,
     FolderSource,
     ReconnectingSource,
@@ -21,7 +21,7 @@ from services.registration.sources import (
     open_capture,
     parse_source,
 )
-from services.registration.synthetic import (
+from slamlens.services.registration.synthetic import (
     ImagingSettings,
     SyntheticCamera,
     overhead_pose,
@@ -132,7 +132,7 @@ def test_vanished_folder_is_retried_with_capped_backoff_and_comes_back(
                                 backoff_initial_s=0.5, backoff_max_s=2.0, clock=clock)
     assert source.read() is not None
     shutil.rmtree(folder)
-    with caplog.at_level(logging.DEBUG, logger="services.registration.sources"):
+    with caplog.at_level(logging.DEBUG, logger="slamlens.services.registration.sources"):
         retries = []
         for _ in range(60):
             before = source.failures

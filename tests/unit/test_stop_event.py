@@ -1,4 +1,5 @@
-"""``common.cli.stop_event``: a signal starts a clean shutdown, and the shutdown is bounded.
+"""``slamlens.common.cli.stop_event``: a signal starts a clean shutdown, and the shutdown is
+bounded.
 
 A real child process each: it installs the handler, says it is ready, waits for the signal,
 then runs a "cleanup" of a given length (a hung Zenoh close, a render thread that does not
@@ -21,7 +22,7 @@ from tests.procs import REPO
 
 CHILD = textwrap.dedent("""
     import sys, time
-    from common.cli import stop_event
+    from slamlens.common.cli import stop_event
     grace = None if sys.argv[2] == "none" else float(sys.argv[2])
     stop = stop_event(grace_s=grace)
     print("ready", flush=True)

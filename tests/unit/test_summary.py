@@ -6,9 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.clusters import cluster_labels
-from common.messages import SlamState, StateSummary
-from common.summary import Summariser, SummaryQuery, SummaryQueryError, parse_query
+from slamlens.common.clusters import cluster_labels
+from slamlens.common.messages import SlamState, StateSummary
+from slamlens.common.summary import Summariser, SummaryQuery, SummaryQueryError, parse_query
 
 
 def consistent_state(n: int, *, seed: int = 0, seq: int = 1, spread: float = 0.2,

@@ -5,13 +5,13 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.messages import SlamState, StateSummary
-from common.summary import Summariser, parse_query
-from services.visualiser.camera_model import CameraModel
-from services.visualiser.render import Renderer
-from services.visualiser.scene import ROLE_MAX, ROLE_MEAN, ROLE_MIN
-from services.visualiser.settings import ViewSettings
-from services.visualiser.summary_view import (
+from slamlens.common.messages import SlamState, StateSummary
+from slamlens.common.summary import Summariser, parse_query
+from slamlens.services.visualiser.camera_model import CameraModel
+from slamlens.services.visualiser.render import Renderer
+from slamlens.services.visualiser.scene import ROLE_MAX, ROLE_MEAN, ROLE_MIN
+from slamlens.services.visualiser.settings import ViewSettings
+from slamlens.services.visualiser.summary_view import (
     decode_summary_state,
     summarised_state,
     summary_of,

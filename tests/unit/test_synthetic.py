@@ -13,11 +13,11 @@ import cv2
 import numpy as np
 import pytest
 
-from common.geometry import T_from_pose2, invert_T, rotation_angle_deg, wrap_angle
-from common.messages import Truth
-from services.registration.calibration import synthetic_calibration
-from services.registration.markers import MarkerDetector
-from services.registration.synthetic import (
+from slamlens.common.geometry import T_from_pose2, invert_T, rotation_angle_deg, wrap_angle
+from slamlens.common.messages import Truth
+from slamlens.services.registration.calibration import synthetic_calibration
+from slamlens.services.registration.markers import MarkerDetector
+from slamlens.services.registration.synthetic import (
     WALL_BGR,
     ImagingSettings,
     SceneSettings,
@@ -31,9 +31,9 @@ from services.registration.synthetic import (
     stereo_poses,
     warp_quad,
 )
-from services.registration.tracking import Registrar, RegistrarSettings
-from services.slam.sim import Simulator
-from services.slam.world import load_world
+from slamlens.services.registration.tracking import Registrar, RegistrarSettings
+from slamlens.services.slam.sim import Simulator
+from slamlens.services.slam.world import load_world
 
 W, H = 1280, 720
 MM, DEG = 5e-3, 0.5  # acceptance: registration within 5 mm and 0.5°
@@ -57,7 +57,7 @@ def overhead_camera(*, imaging: ImagingSettings = REALISTIC, yaw_deg: float = 8.
 
 
 def calib_of(camera: SyntheticCamera):
-    from services.registration.calibration import CameraCalibration
+    from slamlens.services.registration.calibration import CameraCalibration
 
     return CameraCalibration(K=camera.K, dist=np.zeros(5), width=W, height=H)
 
@@ -211,8 +211,8 @@ def test_moving_camera_registration_from_the_board_follows_the_camera(
         paper_truths: list[Truth]) -> None:
     """Head-mounted: camera pose from the world markers each frame; T_camera_from_map must
     follow the true moving camera (world = map)."""
-    from services.registration.board import camera_pose_from_board, default_board
-    from services.registration.synthetic import WorldMarker
+    from slamlens.services.registration.board import camera_pose_from_board, default_board
+    from slamlens.services.registration.synthetic import WorldMarker
 
     board = default_board()
     markers = [WorldMarker(m.marker_id, board.corners_in_world(m.marker_id))
@@ -323,9 +323,9 @@ def test_robot_marker_corners_follow_spec_orientation() -> None:
 def test_deploy_calibration_file_is_the_default_synthetic_camera() -> None:
     from pathlib import Path
 
-    from services.registration.assemble import calibration_for
-    from services.registration.calibration import load_calibration
-    from services.registration.settings import RegistrationSettings
+    from slamlens.services.registration.assemble import calibration_for
+    from slamlens.services.registration.calibration import load_calibration
+    from slamlens.services.registration.settings import RegistrationSettings
 
     path = Path(__file__).resolve().parents[2] / "deploy" / "calibration_synthetic_1280x720.yml"
     assert load_calibration(path) == calibration_for(RegistrationSettings())

@@ -11,10 +11,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.geometry import make_T
-from services.visualiser import draw, trail
-from services.visualiser.camera_model import CameraModel
-from services.visualiser.trail import Trail
+from slamlens.common.geometry import make_T
+from slamlens.services.visualiser import draw, trail
+from slamlens.services.visualiser.camera_model import CameraModel
+from slamlens.services.visualiser.trail import Trail
 from tests.unit.test_viewer_layers import MAX_ROUNDING
 
 COLOUR = (40, 200, 60)

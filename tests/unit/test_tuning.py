@@ -11,10 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from common.config import load_settings
-from services.slam import tuning
-from services.slam.mrclam import load_mrclam
-from services.slam.settings import EstimatorSettings
+from slamlens.common.config import load_settings
+from slamlens.services.slam import tuning
+from slamlens.services.slam.mrclam import load_mrclam
+from slamlens.services.slam.settings import EstimatorSettings
 from tests.procs import REPO, spawn
 
 SMALL = REPO / "tests" / "fixtures" / "mrclam_small"

@@ -13,8 +13,8 @@ import msgpack
 import numpy as np
 import pytest
 
-from common.errors import MessageError
-from common.messages import _NOT_UNPACKED, IN_PLACE_ABOVE, SlamState, unpack_in_place
+from slamlens.common.errors import MessageError
+from slamlens.common.messages import _NOT_UNPACKED, IN_PLACE_ABOVE, SlamState, unpack_in_place
 
 
 def _state(n: int, seed: int = 0) -> SlamState:

@@ -5,9 +5,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from common.messages import Health, Violation
-from common.verdict import WORDS, summary_text, verdict_text, violation_head, violation_text
-from services.slam import monitor_verdict
+from slamlens.common.messages import Health, Violation
+from slamlens.common.verdict import (
+    WORDS,
+    summary_text,
+    verdict_text,
+    violation_head,
+    violation_text,
+)
+from slamlens.services.slam import monitor_verdict
 
 
 def health(**fields: object) -> Health:

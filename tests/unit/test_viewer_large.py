@@ -11,13 +11,13 @@ import threading
 import numpy as np
 import pytest
 
-from common import overview
-from common.geometry import all_relative_covariances, pd_size_m
-from common.messages import SlamState
-from services.visualiser.camera_model import CameraModel
-from services.visualiser.render import OVERVIEW_COLOUR, Renderer
-from services.visualiser.scene import ROLE_PAIR
-from services.visualiser.series import (
+from slamlens.common import overview
+from slamlens.common.geometry import all_relative_covariances, pd_size_m
+from slamlens.common.messages import SlamState
+from slamlens.services.visualiser.camera_model import CameraModel
+from slamlens.services.visualiser.render import OVERVIEW_COLOUR, Renderer
+from slamlens.services.visualiser.scene import ROLE_PAIR
+from slamlens.services.visualiser.series import (
     DENSE_PAIRS,
     KEEP_LARGEST,
     PlotSampler,
@@ -25,7 +25,7 @@ from services.visualiser.series import (
     all_pair_sizes,
     pair_index,
 )
-from services.visualiser.settings import ViewSettings
+from slamlens.services.visualiser.settings import ViewSettings
 from tests.unit.test_overview import ekf_like_state, grid
 
 RED = (0, 0, 255)

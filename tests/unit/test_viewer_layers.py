@@ -17,13 +17,13 @@ import cv2
 import numpy as np
 import pytest
 
-from common.drops import DropCounter
-from common.keys import Keys
-from common.messages import Health, SlamState, Violation
-from services.visualiser import draw
-from services.visualiser.intake import Intake
-from services.visualiser.render import Renderer, _draw_legend, rejected_legend
-from services.visualiser.settings import ViewSettings
+from slamlens.common.drops import DropCounter
+from slamlens.common.keys import Keys
+from slamlens.common.messages import Health, SlamState, Violation
+from slamlens.services.visualiser import draw
+from slamlens.services.visualiser.intake import Intake
+from slamlens.services.visualiser.render import Renderer, _draw_legend, rejected_legend
+from slamlens.services.visualiser.settings import ViewSettings
 from tests.routes import put_until_seen
 from tests.unit.test_render import paper_state, top_down
 

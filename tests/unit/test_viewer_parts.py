@@ -11,12 +11,12 @@ import cv2
 import numpy as np
 import pytest
 
-from common.errors import ConfigError, SlamlensError
-from common.messages import Health, Registration, SlamState, Truth
-from services.visualiser.camera_model import CameraModel
-from services.visualiser.clients import ClientRegistry, RenderBudget, TooManyViews
-from services.visualiser.compose import camera_views
-from services.visualiser.intake import (
+from slamlens.common.errors import ConfigError, SlamlensError
+from slamlens.common.messages import Health, Registration, SlamState, Truth
+from slamlens.services.visualiser.camera_model import CameraModel
+from slamlens.services.visualiser.clients import ClientRegistry, RenderBudget, TooManyViews
+from slamlens.services.visualiser.compose import camera_views
+from slamlens.services.visualiser.intake import (
     CameraInputs,
     Inputs,
     Queue,
@@ -24,16 +24,16 @@ from services.visualiser.intake import (
     RobotInputs,
     is_new_map,
 )
-from services.visualiser.recording import (
+from slamlens.services.visualiser.recording import (
     Recorder,
     RecordingRefused,
     encode_png,
     recording_name,
 )
-from services.visualiser.series import SeriesStore, pair_index
-from services.visualiser.settings import ViewSettings
-from services.visualiser.tracked import TrackedMatch
-from services.visualiser.views import (
+from slamlens.services.visualiser.series import SeriesStore, pair_index
+from slamlens.services.visualiser.settings import ViewSettings
+from slamlens.services.visualiser.tracked import TrackedMatch
+from slamlens.services.visualiser.views import (
     DEFAULT_BOUNDS,
     CameraView,
     Eye,
@@ -42,7 +42,7 @@ from services.visualiser.views import (
     grow_bounds,
     project_features,
 )
-from services.visualiser.web import BadRequest, parse_http, parse_pairs
+from slamlens.services.visualiser.web import BadRequest, parse_http, parse_pairs
 
 
 def random_state(n: int, *, seq: int = 1, seed: int = 0, landmarks=None) -> SlamState:
@@ -321,7 +321,7 @@ def test_series_cluster_stats_of_many_clusters_match_a_per_pair_loop() -> None:
 
 
 def test_series_keeps_no_cluster_stats_beyond_the_cluster_pair_budget() -> None:
-    from services.visualiser.series import MAX_CLUSTER_PAIRS
+    from slamlens.services.visualiser.series import MAX_CLUSTER_PAIRS
 
     n = 70  # 70 singletons: 2415 cluster pairs, above the budget of 2000
     assert n * (n - 1) // 2 > MAX_CLUSTER_PAIRS > 60 * 59 // 2
@@ -557,8 +557,8 @@ def test_png_snapshot_round_trips() -> None:
 
 # -- configuration ------------------------------------------------------------------------
 def test_viewer_config_from_toml_and_flags(tmp_path: Path) -> None:
-    from common.config import load_settings
-    from services.visualiser.settings import ViewerConfig
+    from slamlens.common.config import load_settings
+    from slamlens.services.visualiser.settings import ViewerConfig
 
     path = tmp_path / "viewer.toml"
     path.write_text('robot = "r2"\ncamera = "head"\nview = "stereo"\nfps = 15\n')
@@ -582,10 +582,10 @@ def test_a_registration_no_camera_has_is_a_bad_message_not_a_failed_render() -> 
     (counted, one line each), so the picture never fails; a good one afterwards is used."""
     import logging
 
-    from common.bus import InProcessBus
-    from common.drops import DropCounter
-    from common.keys import Keys
-    from services.visualiser.intake import Intake
+    from slamlens.common.bus import InProcessBus
+    from slamlens.common.drops import DropCounter
+    from slamlens.common.keys import Keys
+    from slamlens.services.visualiser.intake import Intake
 
     keys, bus = Keys(), InProcessBus()
     drops = DropCounter(logging.getLogger("test"))

@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from scipy.cluster.hierarchy import fcluster, linkage
 
-from common.errors import ConfigError
-from services.slam.world import load_world, packaged_worlds
+from slamlens.common.errors import ConfigError
+from slamlens.services.slam.world import load_world, packaged_worlds
 
 WORLDS = Path(__file__).parents[2] / "services" / "slam" / "worlds"
 
