@@ -2,58 +2,24 @@
 
 Each is one frozen dataclass whose fields are declared once with
 :func:`slamlens.common.config.setting` (TOML key, flag, help and docs/cli.md row in one).
-:class:`SceneSettings` is what the Foxglove scene shows (SPEC §6: the three modes and the
-cluster threshold); the recorder's and the live server's settings inherit its fields, so
-they are flags of both.
+:class:`~slamlens.common.scene3d.SceneSettings` is what the Foxglove scene shows (the three
+modes, the clustering, the glyph); the recorder's and the live server's settings inherit its
+fields, so they are flags of both.
 """
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 
 from slamlens.common.config import setting
 from slamlens.common.errors import ConfigError
 from slamlens.common.keys import check_name
-
-MODES = ("all", "inter", "minmeanmax")
-GLYPHS = ("sigma", "linear")
+from slamlens.common.scene3d import SceneSettings
 
 
 def _names(kind: str, names: tuple[str, ...]) -> None:
     for name in names:
         check_name(kind, name)
-
-
-@dataclass(frozen=True)
-class SceneSettings:
-    """What the Foxglove scene draws (SPEC §6, paper §3.2; the viewer's defaults)."""
-
-    mode: str = setting("all", doc="pairs drawn: all | inter (pairs in different clusters) | "
-                                   "minmeanmax (per cluster pair the min / mean / max P_d)",
-                        choices=MODES, group="foxglove scene")
-    cluster_threshold_m: float = setting(
-        0.6, doc="single-linkage cut distance of the clusters (when --cluster-count is 0)",
-        unit="m", min=1e-6, flag="--cluster-threshold", metavar="M", group="foxglove scene")
-    cluster_count: int = setting(0, doc=">0: cut the dendrogram into this many clusters "
-                                        "instead", min=0, group="foxglove scene")
-    glyph: str = setting("sigma", doc="sigma: semi-axes = k·√eigenvalue of P_d | linear: "
-                                      "semi-axes = eigenvalues read as metres (the paper's)",
-                         choices=GLYPHS, group="foxglove scene")
-    sigma_k: float = setting(2.0, doc="k of the k-sigma glyph", min=1e-6,
-                             group="foxglove scene")
-    scale: float = setting(1.0, doc="extra factor on every glyph axis", min=1e-6,
-                           flag="--glyph-scale", group="foxglove scene")
-    minmeanmax_spread: float = setting(
-        0.15, doc="minmeanmax: the min and max glyphs sit this fraction of the centroid line "
-                  "before / after the mean", min=0.0, flag=False, group="foxglove scene")
-    path_points: int = setting(2000, doc="longest robot path drawn (older points thinned)",
-                               min=2, flag=False, group="foxglove scene")
-
-    def scene_settings(self) -> SceneSettings:
-        """Only the scene's fields (of a subclass's settings)."""
-        return SceneSettings(**{f.name: getattr(self, f.name)
-                                for f in dataclasses.fields(SceneSettings)})
 
 
 @dataclass(frozen=True)

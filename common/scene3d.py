@@ -1,0 +1,167 @@
+"""The picture the viewer draws, as 3D geometry in the map frame, for every 3D exporter.
+
+One state (and the monitor's health) becomes what the viewer draws over the camera, as
+numpy arrays in the ``map`` frame (z up, metres), for whatever scene format a consumer
+speaks (Foxglove's SceneUpdate, ROS 2 markers, Rerun):
+
+* the pairs of the chosen mode (``all``, ``inter``: pairs in different clusters,
+  ``minmeanmax``: per cluster pair the min / mean / max P_d on the line between the
+  centroids), each a yellow line and a red ellipsoid;
+* each ellipsoid's centre (the pair's midpoint on the floor; in ``minmeanmax`` the mean on
+  the centroid line, the min before and below it, the max after and above it), its semi-axes
+  (major, minor, height = minor) from the eigenvalues of P_d (k-sigma or the paper's linear
+  glyph) and the direction of its major axis;
+* which pairs the monitor flagged (magenta).
+
+:class:`SceneSettings` is the choice of mode, clustering and glyph, as flags and TOML keys of
+every exporter. The pair selection, clusters and eigen-decomposition are the viewer's own
+helpers (``common/pairs.py``, ``common/clusters.py``, ``common/geometry.py``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from slamlens.common.clusters import cluster_labels
+from slamlens.common.config import setting
+from slamlens.common.geometry import all_relative_covariances, eig_sym2, pd_size_m, semi_axes
+from slamlens.common.messages import Health, SlamState
+from slamlens.common.pairs import min_mean_max, select_pairs
+
+MODES = ("all", "inter", "minmeanmax")
+GLYPHS = ("sigma", "linear")
+
+
+@dataclass(frozen=True)
+class SceneSettings:
+    """What a 3D export draws of a state (paper §3.2; the viewer's defaults)."""
+
+    mode: str = setting("all", doc="pairs drawn: all | inter (pairs in different clusters) | "
+                                   "minmeanmax (per cluster pair the min / mean / max P_d)",
+                        choices=MODES, group="scene")
+    cluster_threshold_m: float = setting(
+        0.6, doc="single-linkage cut distance of the clusters (when --cluster-count is 0)",
+        unit="m", min=1e-6, flag="--cluster-threshold", metavar="M", group="scene")
+    cluster_count: int = setting(0, doc=">0: cut the dendrogram into this many clusters "
+                                        "instead", min=0, group="scene")
+    glyph: str = setting("sigma", doc="sigma: semi-axes = k·√eigenvalue of P_d | linear: "
+                                      "semi-axes = eigenvalues read as metres (the paper's)",
+                         choices=GLYPHS, group="scene")
+    sigma_k: float = setting(2.0, doc="k of the k-sigma glyph", min=1e-6,
+                             group="scene")
+    scale: float = setting(1.0, doc="extra factor on every glyph axis", min=1e-6,
+                           flag="--glyph-scale", group="scene")
+    minmeanmax_spread: float = setting(
+        0.15, doc="minmeanmax: the min and max glyphs sit this fraction of the centroid line "
+                  "before / after the mean", min=0.0, flag=False, group="scene")
+    path_points: int = setting(2000, doc="longest robot path drawn (older points thinned)",
+                               min=2, flag=False, group="scene")
+
+    def scene_settings(self) -> SceneSettings:
+        """Only the scene's fields (of a subclass's settings)."""
+        return SceneSettings(**{f.name: getattr(self, f.name)
+                                for f in dataclasses.fields(SceneSettings)})
+
+
+
+MAP_FRAME = "map"
+RGB = tuple[float, float, float]
+#: the paper's colours (the viewer's defaults, as RGB 0-1)
+ROBOT: RGB = (40 / 255, 200 / 255, 40 / 255)
+HEADING: RGB = (1.0, 230 / 255, 0.0)
+PATH: RGB = ROBOT
+FEATURE: RGB = (0.0, 230 / 255, 230 / 255)
+LINE: RGB = (1.0, 230 / 255, 0.0)
+ELLIPSOID: RGB = (220 / 255, 30 / 255, 30 / 255)
+VIOLATION: RGB = (1.0, 0.0, 1.0)
+CONE_HEIGHT_M = 0.15
+CONE_RADIUS_M = 0.045
+ROLE_NAMES = ("pair", "min", "mean", "max")
+
+
+@dataclass(frozen=True)
+class PairGlyphs:
+    """Lines and ellipsoids of the pairs one mode draws (numpy, map frame, m)."""
+
+    lines_xy: np.ndarray  #: (L, 2, 2) segment end points
+    line_flagged: np.ndarray  #: (L,) bool: the monitor flagged the pair (or cluster pair)
+    centres: np.ndarray  #: (G, 3) ellipsoid centres
+    axes: np.ndarray  #: (G, 3) semi-axes: major, minor, height (= minor)
+    yaw: np.ndarray  #: (G,) direction of the major axis, rad
+    flagged: np.ndarray  #: (G,) bool
+    role: np.ndarray  #: (G,) 0 pair, 1 min, 2 mean, 3 max
+    sizes_m: np.ndarray  #: (G,) √λmax of each glyph's P_d
+
+
+def flagged_pairs(health: Health | None) -> frozenset[tuple[int, int]]:
+    """(smaller id, larger id) of the pairs the monitor's ``pair`` violations name."""
+    if health is None:
+        return frozenset()
+    return frozenset((min(v.ids), max(v.ids)) for v in health.violations
+                     if v.kind == "pair" and len(v.ids) == 2)
+
+
+def pair_glyphs(state: SlamState, settings: SceneSettings,
+                flagged: frozenset[tuple[int, int]] = frozenset()) -> PairGlyphs:
+    """The pairs ``settings.mode`` draws for ``state``, with their glyphs."""
+    n = state.n
+    ids, xy = state.landmark_ids, state.landmarks
+    mode = settings.mode
+    clusters = None
+    if mode != "all":
+        clusters = cluster_labels(xy, threshold_m=settings.cluster_threshold_m,
+                                  count=settings.cluster_count)
+    if n < 2:
+        ii = jj = np.zeros(0, dtype=np.int64)
+        Pd = np.zeros((0, 2, 2))
+    else:
+        ii, jj = select_pairs(n, mode=mode, cluster_ids=clusters)
+        _, _, Pd_all = all_relative_covariances(state.covariance, n)
+        Pd = Pd_all[(ii * (2 * n - ii - 1)) // 2 + (jj - ii - 1)]
+    keys = list(zip(np.minimum(ids[ii], ids[jj]).tolist(),
+                    np.maximum(ids[ii], ids[jj]).tolist(), strict=True))
+    pair_flags = np.array([k in flagged for k in keys], dtype=bool)
+
+    def axes_of(P: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        lam1, lam2, yaw = eig_sym2(P)
+        a, b = semi_axes(lam1, lam2, glyph=settings.glyph, sigma_k=settings.sigma_k,
+                         scale=settings.scale)
+        return a, b, yaw
+
+    if mode != "minmeanmax" or clusters is None:
+        a, b, yaw = axes_of(Pd)
+        mid = 0.5 * (xy[ii] + xy[jj]) if len(ii) else np.zeros((0, 2))
+        return PairGlyphs(
+            lines_xy=np.stack([xy[ii], xy[jj]], axis=1).reshape(-1, 2, 2),
+            line_flagged=pair_flags, centres=np.column_stack([mid, np.zeros(len(mid))]),
+            axes=np.column_stack([a, b, b]).reshape(-1, 3), yaw=yaw.reshape(-1),
+            flagged=pair_flags, role=np.zeros(len(ii), np.int64),
+            sizes_m=pd_size_m(Pd).reshape(-1))
+    stats = min_mean_max(ii, jj, Pd, clusters)
+    c = len(stats.clusters)
+    centroids = {int(k): xy[clusters == k].mean(axis=0) for k in np.unique(clusters).tolist()}
+    start = np.array([centroids[int(k)] for k in stats.clusters[:, 0]]).reshape(-1, 2)
+    end = np.array([centroids[int(k)] for k in stats.clusters[:, 1]]).reshape(-1, 2)
+    group_flag = np.zeros(c, dtype=bool)
+    if pair_flags.any():
+        lo = np.minimum(clusters[ii], clusters[jj])[pair_flags]
+        hi = np.maximum(clusters[ii], clusters[jj])[pair_flags]
+        bad = set(zip(lo.tolist(), hi.tolist(), strict=True))
+        group_flag = np.array([(int(p), int(q)) in bad for p, q in stats.clusters], dtype=bool)
+    P3 = np.concatenate([Pd[stats.min_pair], stats.mean_Pd, Pd[stats.max_pair]])
+    a, b, yaw = axes_of(P3)
+    h_min, h_mean, h_max = b[:c], b[c:2 * c], b[2 * c:]
+    spread = settings.minmeanmax_spread
+    t = np.concatenate([np.full(c, 0.5 - spread), np.full(c, 0.5), np.full(c, 0.5 + spread)])
+    z = np.concatenate([-(h_mean + h_min), np.zeros(c), h_mean + h_max])
+    s0, s1 = np.tile(start, (3, 1)), np.tile(end, (3, 1))
+    centres = np.column_stack([s0 + t[:, None] * (s1 - s0), z])
+    flags = np.concatenate([pair_flags[stats.min_pair], group_flag, pair_flags[stats.max_pair]])
+    return PairGlyphs(
+        lines_xy=np.stack([start, end], axis=1).reshape(-1, 2, 2), line_flagged=group_flag,
+        centres=centres.reshape(-1, 3), axes=np.column_stack([a, b, b]).reshape(-1, 3),
+        yaw=yaw.reshape(-1), flagged=flags.astype(bool),
+        role=np.repeat(np.arange(1, 4), c).astype(np.int64), sizes_m=pd_size_m(P3).reshape(-1))
