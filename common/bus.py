@@ -92,6 +92,9 @@ class Sample:
     #: the publication time as NTP64 (hybrid logical clock of ``source``: strictly
     #: increasing over that session's publications, on every key)
     time: int | None = None
+    #: > 0: not a publication but Zenoh's report that this many samples of ``source`` are
+    #: missed for good (``channel(..., report_misses=True)``; key and payload empty)
+    missed: int = 0
 
 
 #: a payload, whole or as consecutive parts (``Message.wire_parts``: a large one is then
@@ -239,7 +242,11 @@ class Bus(Protocol):
     def channel(self, key: str, *, latest_wins: bool = False, recover: bool = False,
                 history_s: float = 0.0, max_bytes: int = DEFAULT_QUEUE_BYTES,
                 accept: Callable[[str], bool] | None = None,
-                also: tuple[str, ...] = (), newest_above: int | None = None) -> Channel: ...
+                also: tuple[str, ...] = (), newest_above: int | None = None,
+                report_misses: bool = False) -> Channel: ...
+
+    def cached(self, key: str, *, max_age_s: float | None = None,
+               timeout: float = 10.0) -> list[Sample]: ...
 
     def wait_for_subscriber(self, key: str, *, timeout: float = 10.0) -> bool: ...
 
@@ -695,11 +702,18 @@ class ZenohBus:
     def channel(self, key: str, *, latest_wins: bool = False, recover: bool = False,
                 history_s: float = 0.0, max_bytes: int = DEFAULT_QUEUE_BYTES,
                 accept: Callable[[str], bool] | None = None,
-                also: tuple[str, ...] = (), newest_above: int | None = None) -> Channel:
+                also: tuple[str, ...] = (), newest_above: int | None = None,
+                report_misses: bool = False) -> Channel:
         """One ordered queue for ``key`` and the key expressions ``also`` (module
         docstring); ``accept(key)`` filters samples before their payload is copied. A
         payload of at least ``newest_above`` bytes stays in Zenoh's buffer until taken, and
-        only the newest of its key waits (:meth:`QueueChannel.push_newest`)."""
+        only the newest of its key waits (:meth:`QueueChannel.push_newest`). With
+        ``report_misses`` (and ``recover``) Zenoh's reports of samples missed for good are
+        queued among the samples, as :attr:`Sample.missed`.
+
+        Only samples of one subscriber arrive in the order they were published: a
+        consumer that needs two keys in publication order asks for one key expression
+        covering both, not ``also`` (each of its subscribers has its own thread)."""
         ch = QueueChannel(name=key, capacity=1 if latest_wins else None, max_bytes=max_bytes)
 
         def on_sample(sample: Any) -> None:
@@ -723,7 +737,8 @@ class ZenohBus:
                     self.session, expr, on_sample, history=history,
                     recovery=zext.RecoveryConfig(periodic_queries=None, heartbeat=True),
                     subscriber_detection=True)
-                misses = sub.sample_miss_listener(lambda miss: ch.count_lost(int(miss.nb)))
+                misses = sub.sample_miss_listener(
+                    lambda miss: self._missed(ch, miss, report_misses))
                 ch._on_close.append(sub.undeclare)
                 ch._on_close.append(misses.undeclare)
             else:
@@ -731,6 +746,33 @@ class ZenohBus:
                 ch._on_close.append(sub.undeclare)
         self._keep(ch)
         return ch
+
+    @staticmethod
+    def _missed(ch: QueueChannel, miss: Any, report: bool) -> None:
+        """A sample-miss report of an advanced subscriber (on Zenoh's thread)."""
+        ch.count_lost(int(miss.nb))
+        if report:
+            ch.push(Sample("", b"", source=str(miss.source.zid), missed=int(miss.nb)))
+
+    def cached(self, key: str, *, max_age_s: float | None = None,
+               timeout: float = 10.0) -> list[Sample]:
+        """What the advanced publishers on ``key`` still hold in their caches (the
+        queryables ``zenoh.ext`` declares under ``KEY/@adv/**``), each sample with its
+        timestamp, publisher by publisher; only those published in the last ``max_age_s``
+        seconds if given. Returns when every cache answered (or after ``timeout``)."""
+        import zenoh
+
+        selector = f"{key}/@adv/**"
+        if max_age_s is not None:
+            selector += f"?_time=[now(-{float(max_age_s)}s)..]"
+        out = []
+        for reply in self.session.get(selector, target=zenoh.QueryTarget.ALL,
+                                      consolidation=zenoh.ConsolidationMode.NONE,
+                                      accept_replies=zenoh.ReplyKeyExpr.ANY,
+                                      timeout=timeout):
+            if reply.ok is not None:
+                out.append(_sample_of(reply.ok))
+        return out
 
     def wait_for_subscriber(self, key: str, *, timeout: float = 10.0) -> bool:
         """Wait until some subscriber matches ``key`` (Zenoh matching status): what a
@@ -886,26 +928,39 @@ class InProcessBus:
         self._answerers: list[tuple[str, Answer]] = []
         self._later: list[tuple[str, LaterAnswer]] = []
         self._alive: set[str] = set()
+        self._caches: list[deque[Sample]] = []
         self._clock = 0
         self._lock = threading.Lock()
 
     def publisher(self, key: str, *, latest_wins: bool = False, cache: int = 0,
                   cache_bytes: int | None = None) -> Publisher:
         bus = self
+        kept: deque[Sample] | None = deque(maxlen=cache) if cache > 0 else None
+        if kept is not None:
+            self._caches.append(kept)
 
         class _Pub:
             def put(self, payload: Payload) -> None:
-                bus.put(key, joined(payload))
+                sample = bus.put(key, joined(payload))
+                if kept is not None:
+                    kept.append(sample)
 
         return _Pub()
 
-    def put(self, key: str, payload: bytes) -> None:
+    def put(self, key: str, payload: bytes) -> Sample:
         with self._lock:
             self._clock += 1
             now = self._clock
+        sample = Sample(key, bytes(payload), source=self.SOURCE, time=now)
         for pattern, deliver in list(self._subs):
             if _intersects(pattern, key):
-                deliver(Sample(key, bytes(payload), source=self.SOURCE, time=now))
+                deliver(sample)
+        return sample
+
+    def cached(self, key: str, *, max_age_s: float | None = None,
+               timeout: float = 10.0) -> list[Sample]:
+        """What the publishers declared with a cache still hold (every age)."""
+        return [s for kept in self._caches for s in kept if _intersects(key, s.key)]
 
     def subscribe(self, key: str, callback: Callback) -> Any:
         entry = (key, lambda s: callback(s.key, s.payload))
@@ -920,7 +975,8 @@ class InProcessBus:
     def channel(self, key: str, *, latest_wins: bool = False, recover: bool = False,
                 history_s: float = 0.0, max_bytes: int = DEFAULT_QUEUE_BYTES,
                 accept: Callable[[str], bool] | None = None,
-                also: tuple[str, ...] = (), newest_above: int | None = None) -> Channel:
+                also: tuple[str, ...] = (), newest_above: int | None = None,
+                report_misses: bool = False) -> Channel:
         ch = QueueChannel(name=key, capacity=1 if latest_wins else None, max_bytes=max_bytes)
 
         def push(sample: Sample) -> None:

@@ -1,10 +1,12 @@
-"""The EKF-SLAM estimator as a bus service (SPEC §4, §7, §7a).
+"""The EKF-SLAM estimator as a bus service (docs/estimator.md, docs/protocol.md).
 
-Inputs: one recovering channel on the robot's odometry and observations keys (advanced subscribers:
-what congestion, a link cut or a router restart made it miss comes back from the drivers'
-caches). Its Zenoh callback only queues the sample; one worker thread decodes, puts the
-inputs in publication order exactly once (:mod:`slamlens.services.slam.input_order`) and applies
-them. After every event applied it publishes one ``SlamState`` through an advanced
+Inputs: one advanced subscriber on one key expression covering both input keys
+(:meth:`~slamlens.common.keys.Keys.inputs`), so one publishing session's inputs arrive in the
+order it published them; what congestion, a link cut or a router restart made it miss comes
+back from the drivers' caches, and what cannot come back is reported (sample-miss
+detection). Its Zenoh callback only queues the sample; one worker thread decodes, puts the
+inputs in publication order exactly once (:mod:`slamlens.services.slam.input_order`) and
+applies them. After every event applied it publishes one ``SlamState`` through an advanced
 publisher with a cache (congestion control drop: a slow subscriber never slows it) and
 keeps its bytes as the answer to a ``get``. A liveliness token announces the estimator.
 
@@ -18,7 +20,9 @@ is one input. Large states (a big map's, through shared memory) go out at once.
 Epochs: a map started from scratch gets a new ``epoch`` (the wall-clock nanoseconds at its
 start: unique in practice and increasing); with ``--checkpoint DIR`` the service saves its
 whole state there and, started again, resumes the same epoch and seq numbering, asking the
-drivers' caches for the inputs published since (:mod:`slamlens.services.slam.checkpoint`).
+drivers' caches for the inputs published since (:mod:`slamlens.services.slam.checkpoint`):
+the caches' samples, sorted into each source's order, go first, what the checkpoint covered
+counted as duplicates.
 """
 
 from __future__ import annotations
@@ -42,7 +46,13 @@ from slamlens.common.messages import Observations, Odometry, SlamState
 from slamlens.services.slam import checkpoint as ckpt
 from slamlens.services.slam.ekf import RefusedStepError
 from slamlens.services.slam.estimator import Estimator
-from slamlens.services.slam.input_order import Input, InputOrder
+from slamlens.services.slam.input_order import (
+    Input,
+    InputOrder,
+    Missed,
+    OrderStats,
+    sorted_for_replay,
+)
 from slamlens.services.slam.plausibility import ImplausibleInputError
 from slamlens.services.slam.settings import EstimatorSettings
 
@@ -54,6 +64,9 @@ BURST_STATES = 32
 #: states of this size and up are put at once (a batch holds 64 kB; a large map's states
 #: go through shared memory, and holding them back would only hold their memory)
 BURST_BELOW_BYTES = 32 << 10
+#: the input order's counts, as the stop line, ``state?header``, ``slamlens status`` and a
+#: state's ``diagnostics`` (``inputs.NAME``) name them
+INPUT_COUNTS = ("duplicates", "late", "lost", "waited", "reordered", "joined_late")
 
 
 @dataclass
@@ -103,7 +116,8 @@ class EstimatorService:
         self.stats = EstimatorStats()
         self.drops = DropCounter(log)
         self.order = InputOrder(gap_wait_s=settings.input_gap_wait_s,
-                                reorder_s=settings.input_reorder_s)
+                                reorder_s=settings.input_reorder_s,
+                                sources=settings.input_sources)
         self._seq = 0
         self._input_stamp = 0.0
         self._said: set[str] = set()  #: refusal reasons already logged (once each)
@@ -123,13 +137,16 @@ class EstimatorService:
         self._puts = BurstPuts(self._publisher, limit=BURST_STATES, sent=self._now_gettable,
                                below_bytes=BURST_BELOW_BYTES)
         # The input channel is declared before the liveliness token, so a driver that
-        # waits for the token never publishes into the void; after a resume it also asks
-        # the drivers' caches for what was published while the estimator was down.
-        # One queue for both input keys (each subscribed on its own, so the router sends
-        # nothing else: not the truth, not our own states).
-        self._inputs = bus.channel(
-            keys.odometry(self.robot), also=(keys.observations(self.robot),), recover=True,
-            history_s=settings.input_history_s if self.resumed else 0.0)
+        # waits for the token never publishes into the void. One subscriber on one key
+        # expression for both input keys (and nothing else: not the truth, not our own
+        # states): one session's inputs arrive in publication order. After a resume the
+        # drivers' caches are asked for what was published meanwhile — after the channel
+        # exists, so nothing falls between the two (what both bring is a duplicate).
+        self._inputs = bus.channel(keys.inputs(self.robot), recover=True, report_misses=True)
+        #: the caches' replay, applied before the channel's first sample (resume only)
+        self._replay: list[Sample] = (
+            bus.cached(keys.inputs(self.robot), max_age_s=settings.input_history_s)
+            if self.resumed else [])
         if init is None:
             init = self.estimator.to_state(seq=0, stamp=0.0, step="init", epoch=self.epoch,
                                            input_stamp=0.0)
@@ -155,6 +172,7 @@ class EstimatorService:
                         "new settings", cp.noise, noise)
         self.estimator.restore(state, next_anonymous_id=cp.next_anonymous_id)
         self.order.resume(cp.positions)
+        _restore_counts(self.order.stats, state.diagnostics or {})
         self.epoch, self._seq = state.epoch, state.seq
         self._input_stamp = float(state.input_stamp or state.stamp)
         self._origin_stamp = state.origin_stamp
@@ -200,8 +218,12 @@ class EstimatorService:
                               "epoch": state.epoch, "input_stamp": state.input_stamp,
                               "n": state.n,
                               "origin_stamp": state.origin_stamp,
-                              "dropped": self.drops.total, "lost": self.order.stats.lost},
+                              "dropped": self.drops.total, **self.input_counts()},
                              use_bin_type=True)
+
+    def input_counts(self) -> dict[str, int]:
+        """What the input order did, as every report names it (docs/protocol.md)."""
+        return {name: getattr(self.order.stats, name) for name in INPUT_COUNTS}
 
     def _on_query(self, key: str, payload: bytes | None, parameters: str) -> Any:
         """The latest state, or with ``?header`` only its header (SPEC §7: a ``get`` on
@@ -218,10 +240,13 @@ class EstimatorService:
     def handle(self, key: str, payload: bytes) -> SlamState | None:
         """Decode and apply one input now (no ordering); the state published, or None."""
         item = self.decode(Sample(key, payload))
-        return None if item is None else self.apply(item)
+        return self.apply(item) if isinstance(item, Input) else None
 
-    def decode(self, sample: Sample) -> Input | None:
-        """The input a sample carries, or None (counted) if it is not one of ours."""
+    def decode(self, sample: Sample) -> Input | Missed | None:
+        """The input a sample carries (or Zenoh's report of missed inputs), or None
+        (counted) if it is not one of ours."""
+        if sample.missed:
+            return Missed(sample.source, sample.missed)
         leaf = self.keys.leaf_of(sample.key)
         if leaf not in ("odometry", "observations"):
             return None  # truth, state, health… share the prefix; not ours to apply
@@ -277,10 +302,11 @@ class EstimatorService:
     def _publish(self, *, stamp: float, step: str, report: object) -> SlamState:
         self._seq += 1
         self._input_stamp = stamp
+        counts = {f"inputs.{k}": float(v) for k, v in self.input_counts().items()}
         state = self.estimator.to_state(seq=self._seq, stamp=stamp, step=step,
                                         report=report,  # type: ignore[arg-type]
                                         epoch=self.epoch, input_stamp=stamp,
-                                        origin_stamp=self._origin_stamp)
+                                        origin_stamp=self._origin_stamp, counts=counts)
         payload = state.wire_parts()  # the covariance copied once, by the publisher
         sent = self._puts.put(payload, (payload, self._header_of(state)))
         if sent is not None:
@@ -333,16 +359,38 @@ class EstimatorService:
         with self._puts.burst():
             for sample in samples:
                 item = self.decode(sample)
-                if item is not None:
+                if isinstance(item, Missed):
+                    apply_all(self.order.missed(item))
+                elif item is not None:
                     apply_all(self.order.offer(item))
                     self._maybe_checkpoint()
             apply_all(self.order.expire())
         self._maybe_checkpoint()
         return published
 
+    def replay_cached(self) -> int:
+        """Apply what the drivers' caches held at a resume, each source in its own order
+        (once; :meth:`step` does it first). Returns the number of states published."""
+        replay, self._replay = self._replay, []
+        if not replay:
+            return 0
+        items = [x for x in (self.decode(s) for s in replay) if isinstance(x, Input)]
+        ordered = sorted_for_replay(items)
+        log.info("replaying %d cached inputs of %d publisher sample(s) after the resume",
+                 len(ordered), len(replay))
+        published = 0
+        with self._puts.burst():
+            for item in ordered:
+                for ready in self.order.offer(item):
+                    published += self.apply(ready) is not None
+                self._maybe_checkpoint()
+        return published
+
     def step(self, timeout: float = 0.2) -> int:
         """Take what arrived (waiting up to ``timeout`` s for the first) and apply what is
         in order; returns the number of states published."""
+        if self._replay:
+            return self.replay_cached()
         deadline = self.order.next_deadline()
         if deadline is not None:
             timeout = max(0.0, min(timeout, deadline - time.monotonic()))
@@ -350,13 +398,22 @@ class EstimatorService:
         burst = [] if first is None else [first, *self._inputs.take_all()]
         return self._apply_burst(burst, lambda _state: None)
 
+    @property
+    def waiting_for_sources(self) -> str:
+        """What the estimator waits for before applying anything, or "" (several input
+        sessions expected and not all heard yet)."""
+        seen, expected = self.order.sources_seen, self.settings.input_sources
+        return (f"waiting for {expected} input sessions, {seen} heard"
+                if 1 < expected and seen < expected else "")
+
     def status_line(self) -> str:
         o = self.order.stats
         refused = ", ".join(f"{k} {v}" for k, v in sorted(self.estimator.refusals.items()))
         return (f"epoch {self.epoch} seq {self._seq}, {self.estimator.n} landmarks, "
                 f"{self.stats.odometry} odometry + {self.stats.observation_batches} "
                 f"observation batches applied, backlog {self._inputs.backlog}, "
-                f"{o.duplicates} duplicates, {o.lost} lost, {self.drops.total} dropped, "
+                f"inputs {o.duplicates} duplicates, {o.late} late, {o.lost} lost, "
+                f"{o.waited} waited, {o.reordered} reordered, {self.drops.total} dropped, "
                 f"{self.stats.refused} refused{f' ({refused})' if refused else ''}, "
                 f"{self.estimator.gated} gated")
 
@@ -379,8 +436,7 @@ class EstimatorService:
         return {"epoch": self.epoch, "seq": self._seq, "landmarks": est.n,
                 "resumed": self.resumed, **dataclasses.asdict(self.stats),
                 "refused_by": dict(sorted(est.refusals.items())), "gated": est.gated,
-                "duplicates": self.order.stats.duplicates, "lost": self.order.stats.lost,
-                "dropped": self.drops.total}
+                **self.input_counts(), "dropped": self.drops.total}
 
     def status(self) -> dict[str, object]:
         """What ``slamlens status`` (or anyone) can read about this estimator: the
@@ -394,3 +450,11 @@ class EstimatorService:
                 "refused_updates": est.refused_updates, "stamp_resyncs": est.gates.resyncs,
                 "last_refused": None if last is None else dataclasses.asdict(last),
                 "bounds": bounds}
+
+
+def _restore_counts(stats: OrderStats, diagnostics: dict[str, float]) -> None:
+    """The input counts a checkpointed state carried (``inputs.*``), so they keep running."""
+    for name in INPUT_COUNTS:
+        value = diagnostics.get(f"inputs.{name}")
+        if value is not None:
+            setattr(stats, name, int(value))

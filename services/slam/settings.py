@@ -257,12 +257,17 @@ class EstimatorSettings:
     checkpoint_interval_s: float = setting(1.0, doc="time between checkpoints", unit="s",
                                            min=0.01)
     input_gap_wait_s: float = setting(
-        2.0, doc="how long an input that arrived out of order waits for the missing ones "
-                 "before they are counted lost", unit="s", min=0.0)
+        15.0, doc="how long a numbered input waits behind a gap that Zenoh neither fills "
+                  "(recovery from the publisher's cache) nor reports missed, before the "
+                  "missing numbers are counted lost: the last resort for a publisher without "
+                  "a cache; longer than Zenoh's recovery query (10 s)", unit="s", min=0.0)
+    input_sources: int = setting(
+        1, doc="publishing sessions the inputs come from (e.g. 2: odometry from one process, "
+               "observations from another): nothing is applied before that many were "
+               "heard, then their inputs are merged by stamp (docs/protocol.md)", min=1)
     input_reorder_s: float = setting(
-        0.02, doc="how long an input without input_seq (a third-party driver) waits for an "
-                  "earlier-stamped one on the other input key (docs/delivery.md)", unit="s",
-        min=0.0)
+        0.5, doc="with several input sessions: how long the merge by stamp waits for a "
+                 "session that has gone quiet (docs/protocol.md)", unit="s", min=0.0)
     input_history_s: float = setting(
         60.0, doc="when resuming from a checkpoint, the drivers' cached inputs asked for",
         unit="s", min=0.0)

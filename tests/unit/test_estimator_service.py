@@ -74,11 +74,15 @@ def test_shuffled_and_repeated_inputs_give_the_in_order_result() -> None:
     inputs = _inputs(300)
     _, service, states = _service(settings)
     rng = np.random.default_rng(0)
-    # deliver in blocks whose order is scrambled, and every sample twice
+    # deliver in blocks whose order is scrambled (as recoveries from the drivers' caches
+    # would), and every sample twice; the driver's first input arrives first (a source
+    # starts where it is first heard)
     arrivals = []
     for start in range(0, len(inputs), 10):
         block = list(enumerate(inputs[start:start + 10], start))
         rng.shuffle(block)
+        if start == 0:
+            block.sort(key=lambda b: b[0] != 0)
         arrivals += block + block[:3]
     for t, (key, payload) in arrivals:
         service.ingest(_sample(key, payload, t))
