@@ -12,6 +12,7 @@ import threading
 import time
 from collections.abc import Callable
 
+import msgpack
 import numpy as np
 
 from slamlens.common.keys import Keys
@@ -302,8 +303,10 @@ def test_viewer_survives_garbage_on_every_key_it_subscribes(router_endpoint, mak
         queues[f"registration {CAMERA}"] += [
             dataclasses.replace(reg, **change).to_bytes() for change in (
                 {"K": np.zeros((3, 3))}, {"K": np.diag([500.0, 500.0, 2.0])},
-                {"dist": np.zeros(3)}, {"width": 10 ** 9, "height": 10 ** 9},
-                {"width": -640})]
+                {"dist": np.zeros(3)}, {"width": 10 ** 9, "height": 10 ** 9})]
+        negative = msgpack.unpackb(reg.to_bytes(), raw=False)  # malformed on the wire
+        negative["width"] = -640
+        queues[f"registration {CAMERA}"].append(msgpack.packb(negative, use_bin_type=True))
         for name, pub in pubs.items():  # a new publisher drops what it puts before matching
             deadline = time.monotonic() + 10
             while not pub.matching_status and time.monotonic() < deadline:

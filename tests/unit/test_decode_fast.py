@@ -16,6 +16,7 @@ read-only arrays) or the same MessageError text.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
@@ -39,7 +40,7 @@ def _outcome(decode: Any, payload: bytes, **options: Any) -> tuple[str, Any]:
 
 def _same_message(a: Message, b: Message) -> None:
     assert type(a) is type(b)
-    for f in a._fields():
+    for f in dataclasses.fields(a):  # type: ignore[arg-type]
         x, y = getattr(a, f.name), getattr(b, f.name)
         assert type(x) is type(y), f.name
         if isinstance(x, np.ndarray):
