@@ -6,16 +6,9 @@ order it published them; what congestion, a link cut or a router restart made it
 back from the drivers' caches, and what cannot come back is reported (sample-miss
 detection). Its Zenoh callback only queues the sample; one worker thread decodes, puts the
 inputs in publication order exactly once (:mod:`slamlens.services.slam.input_order`) and
-applies them. After every event applied it publishes one ``SlamState`` through an advanced
-publisher with a cache (congestion control drop: a slow subscriber never slows it) and
-keeps its bytes as the answer to a ``get``. A liveliness token announces the estimator.
-
-Bursts: the worker takes everything queued at once. The small states of one burst (at most
-:data:`BURST_STATES`) are put back to back when it is applied, so Zenoh sends them in a few
-batches instead of one write each; a put on an idle link costs the publisher ~6× the CPU
-of one in a batch (``benchmarks/bench_put.py``). A state waits at most for the rest of its
-burst (≤ ``BURST_STATES`` events), and only when inputs queue up — in real time every burst
-is one input. Large states (a big map's, through shared memory) go out at once.
+applies them. After every event applied it publishes one ``SlamState``
+(:mod:`slamlens.services.slam.state_outlet`: an advanced publisher with a cache, the answer to
+a ``get``, a burst's states put back to back). A liveliness token announces the estimator.
 
 Epochs: a map started from scratch gets a new ``epoch`` (the wall-clock nanoseconds at its
 start: unique in practice and increasing); with ``--checkpoint DIR`` the service saves its
@@ -31,14 +24,13 @@ import dataclasses
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import Any
 
 import msgpack
 import numpy as np
 
-from slamlens.common.bus import BurstPuts, Bus, Payload, Sample, joined
+from slamlens.common.bus import Bus, Sample
 from slamlens.common.drops import DropCounter
 from slamlens.common.errors import EstimationError, MessageError
 from slamlens.common.keys import Keys
@@ -55,15 +47,11 @@ from slamlens.services.slam.input_order import (
 )
 from slamlens.services.slam.plausibility import ImplausibleInputError
 from slamlens.services.slam.settings import EstimatorSettings
+from slamlens.services.slam.state_outlet import StateOutlet
 
 log = logging.getLogger("slamlens.estimator")
 
 _NOISE = ("sigma_v", "sigma_w", "sigma_range", "sigma_bearing")
-#: at most this many states of one burst of inputs wait to be put back to back
-BURST_STATES = 32
-#: states of this size and up are put at once (a batch holds 64 kB; a large map's states
-#: go through shared memory, and holding them back would only hold their memory)
-BURST_BELOW_BYTES = 32 << 10
 #: the input order's counts, as the stop line, ``state?header``, ``slamlens status`` and a
 #: state's ``diagnostics`` (``inputs.NAME``) name them
 INPUT_COUNTS = ("duplicates", "late", "lost", "waited", "reordered", "joined_late")
@@ -122,7 +110,6 @@ class EstimatorService:
         self._input_stamp = 0.0
         self._said: set[str] = set()  #: refusal reasons already logged (once each)
         self._origin_stamp: float | None = None  #: when the robot stood at the map origin
-        self._lock = threading.Lock()
         self._writer: ckpt.CheckpointWriter | None = None
         self._last_checkpoint = time.monotonic()
         self.resumed = False
@@ -131,11 +118,9 @@ class EstimatorService:
         if settings.checkpoint:
             init = self._resume(settings.checkpoint)
             self._writer = ckpt.CheckpointWriter(settings.checkpoint)
-        self._publisher = bus.publisher(keys.state(self.robot), cache=settings.state_cache,
-                                        cache_bytes=int(settings.state_cache_mb * 2 ** 20))
-        #: a burst's small states put back to back; a get answers with the last one put
-        self._puts = BurstPuts(self._publisher, limit=BURST_STATES, sent=self._now_gettable,
-                               below_bytes=BURST_BELOW_BYTES)
+        self._out = StateOutlet(bus, keys.state(self.robot), cache=settings.state_cache,
+                                cache_bytes=int(settings.state_cache_mb * 2 ** 20),
+                                header=self._header_of)
         # The input channel is declared before the liveliness token, so a driver that
         # waits for the token never publishes into the void. One subscriber on one key
         # expression for both input keys (and nothing else: not the truth, not our own
@@ -150,13 +135,7 @@ class EstimatorService:
         if init is None:
             init = self.estimator.to_state(seq=0, stamp=0.0, step="init", epoch=self.epoch,
                                            input_stamp=0.0)
-        #: the latest state's encoding in parts (a large map's covariance not copied: it
-        #: is joined only when asked for, by a get or a checkpoint)
-        #: (a large state's, once put: what the publisher sent, answered as it is)
-        self._latest: Any = init.wire_parts()
-        self._header = self._header_of(init)
-        bus.answer(keys.state(self.robot), self._on_query)
-        self._publisher.put(self._latest)
+        self._out.open(init)
         bus.declare_alive(keys.estimator_alive(self.robot))
 
     # -- checkpoints ------------------------------------------------------------------
@@ -184,7 +163,8 @@ class EstimatorService:
 
     def _checkpoint(self) -> ckpt.Checkpoint:
         return ckpt.Checkpoint(
-            robot=self.robot, state=self.latest_bytes(), positions=self.order.positions(),
+            robot=self.robot, state=self._out.latest_bytes(),
+            positions=self.order.positions(),
             next_anonymous_id=self.estimator.next_anonymous_id,
             noise={k: float(getattr(self.settings, k)) for k in _NOISE})
 
@@ -192,24 +172,11 @@ class EstimatorService:
         """A checkpoint if one is due — after the states it covers were put."""
         if self._writer is not None and \
                 time.monotonic() - self._last_checkpoint >= self.settings.checkpoint_interval_s:
-            self._puts.flush()
+            self._out.flush()
             self._last_checkpoint = time.monotonic()
             self._writer.submit(self._checkpoint())
 
     # -- the event logic ----------------------------------------------------------------
-    def latest_bytes(self) -> bytes:
-        with self._lock:
-            latest = self._latest
-        if isinstance(latest, list):  # joined once, then kept (it may be asked again)
-            whole = joined(latest)
-            with self._lock:
-                if self._latest is latest:
-                    self._latest = whole
-            return whole
-        if isinstance(latest, bytes):
-            return latest
-        return latest.to_bytes()  # what the publisher sent (a shared-memory buffer)
-
     def _header_of(self, state: SlamState) -> bytes:
         """``get state?header``'s answer: what a driver paces on, not the map (and the
         service's counters)."""
@@ -221,21 +188,13 @@ class EstimatorService:
                               "dropped": self.drops.total, **self.input_counts()},
                              use_bin_type=True)
 
+    def latest_bytes(self) -> bytes:
+        """The latest state published, as bytes."""
+        return self._out.latest_bytes()
+
     def input_counts(self) -> dict[str, int]:
         """What the input order did, as every report names it (docs/protocol.md)."""
         return {name: getattr(self.order.stats, name) for name in INPUT_COUNTS}
-
-    def _on_query(self, key: str, payload: bytes | None, parameters: str) -> Any:
-        """The latest state, or with ``?header`` only its header (SPEC §7: a ``get`` on
-        the state key answers the latest state; the header is ours, docs/protocol.md)."""
-        if "header" in parameters.split(";"):
-            with self._lock:
-                return self._header
-        with self._lock:
-            latest = self._latest
-        if isinstance(latest, list):  # parts: joined once, then kept
-            return self.latest_bytes()
-        return latest  # bytes, or a shared-memory buffer Zenoh answers with, no copy here
 
     def handle(self, key: str, payload: bytes) -> SlamState | None:
         """Decode and apply one input now (no ordering); the state published, or None."""
@@ -307,22 +266,9 @@ class EstimatorService:
                                         report=report,  # type: ignore[arg-type]
                                         epoch=self.epoch, input_stamp=stamp,
                                         origin_stamp=self._origin_stamp, counts=counts)
-        payload = state.wire_parts()  # the covariance copied once, by the publisher
-        sent = self._puts.put(payload, (payload, self._header_of(state)))
-        if sent is not None:
-            # put at once (a large state): a get answers with what went out — a shared-
-            # memory buffer, or bytes — so nothing refers to the covariance's buffer any
-            # more and the next predict can patch it in place (Estimator.to_state)
-            with self._lock:
-                if self._latest is payload:
-                    self._latest = sent
+        self._out.publish(state)
         self.stats.states += 1
         return state
-
-    def _now_gettable(self, latest: tuple[Payload, bytes]) -> None:
-        """What a ``get`` answers with from now on (a state put, or about to be)."""
-        with self._lock:
-            self._latest, self._header = latest
 
     # -- the worker -----------------------------------------------------------------
     def ingest(self, sample: Sample | None) -> list[SlamState]:
@@ -341,24 +287,29 @@ class EstimatorService:
 
     def _apply_burst(self, samples: list[Sample], each: Callable[[SlamState], None]) -> int:
         """Apply what ``samples`` make ready, handing each state published to ``each``;
-        returns how many. Nothing here holds a state once ``each`` returned: each holds its
-        covariance, which the estimator recycles — or, after a predict, patches in place —
-        only once nothing holds it (at n = 1000 a burst of 100 states held would be 3 GB,
-        each in a new buffer faulted in)."""
+        returns how many."""
+        return self._apply_items([self.decode(s) for s in samples], each)
+
+    def _apply_items(self, items: Iterable[Input | Missed | None],
+                     each: Callable[[SlamState], None]) -> int:
+        """Apply what ``items`` make ready, in order, handing each state published to
+        ``each``; returns how many. Nothing here holds a state once ``each`` returned: each
+        holds its covariance, which the estimator recycles — or, after a predict, patches
+        in place — only once nothing holds it (at n = 1000 a burst of 100 states held would
+        be 3 GB, each in a new buffer faulted in)."""
         published = 0
 
-        def apply_all(items: list[Input]) -> None:
+        def apply_all(ready: list[Input]) -> None:
             nonlocal published
-            for item in items:
+            for item in ready:
                 state = self.apply(item)
                 if state is not None:
                     published += 1
                     each(state)
                     del state  # before the next apply: nothing of ours holds it
 
-        with self._puts.burst():
-            for sample in samples:
-                item = self.decode(sample)
+        with self._out.burst():
+            for item in items:
                 if isinstance(item, Missed):
                     apply_all(self.order.missed(item))
                 elif item is not None:
@@ -372,19 +323,10 @@ class EstimatorService:
         """Apply what the drivers' caches held at a resume, each source in its own order
         (once; :meth:`step` does it first). Returns the number of states published."""
         replay, self._replay = self._replay, []
-        if not replay:
-            return 0
-        items = [x for x in (self.decode(s) for s in replay) if isinstance(x, Input)]
-        ordered = sorted_for_replay(items)
+        ordered = sorted_for_replay(x for x in map(self.decode, replay) if isinstance(x, Input))
         log.info("replaying %d cached inputs of %d publisher sample(s) after the resume",
                  len(ordered), len(replay))
-        published = 0
-        with self._puts.burst():
-            for item in ordered:
-                for ready in self.order.offer(item):
-                    published += self.apply(ready) is not None
-                self._maybe_checkpoint()
-        return published
+        return self._apply_items(ordered, lambda _state: None)
 
     def step(self, timeout: float = 0.2) -> int:
         """Take what arrived (waiting up to ``timeout`` s for the first) and apply what is
