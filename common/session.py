@@ -27,9 +27,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from slamlens.common.bus import ZenohBus
 from slamlens.common.errors import BusError, ConfigError
 from slamlens.common.keys import DEFAULT_PREFIX
+from slamlens.common.zenoh_bus import ZenohBus
 
 log = logging.getLogger(__name__)
 

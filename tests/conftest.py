@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from slamlens.common.bus import ZenohBus
 from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus, router_settings
+from slamlens.common.zenoh_bus import ZenohBus
 from tests.netns import two_hosts  # noqa: F401  (a fixture for every test)
 
 REPO = Path(__file__).resolve().parents[1]

@@ -13,7 +13,8 @@ from collections.abc import Callable
 import numpy as np
 import pytest
 
-from slamlens.common.bus import InProcessBus, Sample
+from slamlens.common.bus import Sample
+from slamlens.common.inprocess_bus import InProcessBus
 from slamlens.common.keys import Keys
 from slamlens.common.messages import Observations, Odometry, SlamState
 from slamlens.services.slam import checkpoint as ckpt

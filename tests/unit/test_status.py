@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from slamlens.common.bus import InProcessBus
 from slamlens.common.errors import ConfigError
+from slamlens.common.inprocess_bus import InProcessBus
 from slamlens.common.keys import Keys
 from slamlens.common.messages import ServiceStatus
 from slamlens.common.status import Report, StatusAnnouncer, role_name
