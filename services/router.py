@@ -20,7 +20,8 @@ import logging
 
 from slamlens.common.cli import bus_settings, setup_logging, stop_event
 from slamlens.common.config import settings_from_args
-from slamlens.common.session import build_config, effective_endpoints, open_bus, router_settings
+from slamlens.common.endpoints import effective_endpoints
+from slamlens.common.session import build_config, open_bus, router_settings
 from slamlens.common.status import Report, announce
 from slamlens.common.zenoh_bus import ZenohBus
 from slamlens.services.router_log import ZenohLog

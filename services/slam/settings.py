@@ -293,15 +293,6 @@ class EstimatorSettings:
                 raise ConfigError(f"setting {name!r}: expected 3 finite numbers, got {value!r}")
         if any(s < 0 for s in self.initial_pose_sigma):
             raise ConfigError("setting 'initial_pose_sigma': standard deviations must be ≥ 0")
-        # imported here: faults needs numpy, which --help must not load (module docstring)
-        from slamlens.services.slam import faults
-
-        try:
-            faults.make_fault(self.fault, self.faulty_features, magnitude=self.fault_magnitude,
-                              onset=self.fault_onset)
-        except ConfigError as exc:
-            raise ConfigError(f"settings 'fault'/'faulty_features'/'fault_magnitude': {exc}") \
-                from None
 
 
 # ------------------------------------------------------------------------------ monitor
