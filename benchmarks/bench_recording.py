@@ -40,9 +40,9 @@ from slamlens.common.inprocess_bus import InProcessBus  # noqa: E402
 from slamlens.common.keys import Keys  # noqa: E402
 from slamlens.common.messages import peek_fields  # noqa: E402
 from slamlens.common.session import free_tcp_endpoint  # noqa: E402
+from slamlens.services.harness.procs import Service, spawn, stop  # noqa: E402
 from slamlens.services.recorder.record import Recorder  # noqa: E402
 from slamlens.services.recorder.settings import RecordSettings  # noqa: E402
-from tests.procs import Service, spawn, stop  # noqa: E402
 
 KEYS = Keys()
 ROBOT = "robot1"

@@ -18,6 +18,23 @@ NONE, MAP_UPDATE, CROSS_COVARIANCE = "none", "map-update", "cross-covariance"
 FAULT_KINDS = (NONE, MAP_UPDATE, CROSS_COVARIANCE)
 
 
+def check_fault(kind: str, feature_ids: tuple[int, ...], magnitude: float | None) -> None:
+    """A planted fault's configuration, checked (ConfigError naming what is wrong);
+    ``magnitude`` None = the kind's default."""
+    if kind == NONE:
+        return
+    if kind not in FAULT_KINDS:
+        raise ConfigError(f"unknown fault kind {kind!r}; one of {FAULT_KINDS[1:]}")
+    if not feature_ids:
+        raise ConfigError(f"fault {kind!r} needs at least one faulty feature id")
+    if magnitude is None:
+        return
+    if kind == MAP_UPDATE and not magnitude >= 0.0:
+        raise ConfigError(f"map-update magnitude must be ≥ 0 m², got {magnitude}")
+    if kind == CROSS_COVARIANCE and not 0.0 <= magnitude <= 1.0:
+        raise ConfigError(f"cross-covariance magnitude is a fraction in [0, 1], got {magnitude}")
+
+
 def _robot() -> str:
     return setting("robot1", doc="robot name, a key segment")
 
@@ -293,6 +310,11 @@ class EstimatorSettings:
                 raise ConfigError(f"setting {name!r}: expected 3 finite numbers, got {value!r}")
         if any(s < 0 for s in self.initial_pose_sigma):
             raise ConfigError("setting 'initial_pose_sigma': standard deviations must be ≥ 0")
+        try:
+            check_fault(self.fault, self.faulty_features, self.fault_magnitude)
+        except ConfigError as exc:
+            raise ConfigError(f"settings 'fault'/'faulty_features'/'fault_magnitude': {exc}") \
+                from None
 
 
 # ------------------------------------------------------------------------------ monitor

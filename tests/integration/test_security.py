@@ -26,7 +26,7 @@ from slamlens.common.certs import extend_authority
 from slamlens.common.errors import BusError, SecurityError
 from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus
 from slamlens.common.zenoh_bus import ZenohBus
-from tests.procs import REPO, slamlens_cmd, spawn, stop
+from slamlens.services.harness.procs import REPO, slamlens_cmd, spawn, stop
 
 NAMES = ["router-ws", "robot-r1", "robot-r2", "camera-overhead", "monitor-r1", "viewer-lab"]
 STATE = "slamlens/robot/r1/state"

@@ -40,8 +40,8 @@ from pathlib import Path
 
 import pytest
 
-from tests.netns import Hosts, curl_json
-from tests.procs import REPO, Service
+from slamlens.services.harness.netns import Hosts, curl_json
+from slamlens.services.harness.procs import REPO, Service
 
 README = REPO / "deploy" / "README.md"
 EXAMPLE_WORKSTATION = "192.0.2.10"

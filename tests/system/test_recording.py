@@ -31,10 +31,10 @@ from mcap.stream_reader import StreamReader
 from slamlens.common.keys import Keys
 from slamlens.common.messages import SlamState, peek_fields
 from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus
+from slamlens.services.harness.collect import StateCollector
+from slamlens.services.harness.procs import Service, spawn, stop
 from slamlens.services.recorder.reading import Recording, valid_payload
-from tests.collect import StateCollector
 from tests.mcap_check import protobuf_class, validate
-from tests.procs import Service, spawn, stop
 
 KEYS = Keys()
 ROBOT = "robot1"

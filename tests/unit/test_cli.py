@@ -19,6 +19,7 @@ from slamlens.common.config import settings_from_args
 from slamlens.common.errors import ConfigError
 from slamlens.services.cli import COMMANDS, Command, command_parser, main
 from slamlens.services.cli_reference import DOC, reference
+from slamlens.services.harness.procs import REPO
 from slamlens.services.recorder.settings import PlaySettings, RecordSettings
 from slamlens.services.registration.settings import CalibrateSettings, RegistrationSettings
 from slamlens.services.settings import (
@@ -37,7 +38,6 @@ from slamlens.services.slam.settings import (
     TuneSettings,
 )
 from slamlens.services.visualiser.settings import ViewerConfig, ViewSettings
-from tests.procs import REPO
 
 #: every flag each command had before its settings were declared once (must keep working)
 LEGACY_FLAGS = {

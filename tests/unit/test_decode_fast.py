@@ -3,7 +3,7 @@ rejects exactly what the full validation does, with the same message or the same
 
 ``Message.decode_reference`` is the decoder without the fast path (every field through the
 constructor's checks, as before the fast path existed); ``from_bytes`` is what services
-call. Both are driven with the same payloads: every hostile payload of tests/fuzz.py
+call. Both are driven with the same payloads: every hostile payload of services/harness/fuzz.py
 (random bytes, truncated msgpack, wrong types, dtype as a list or an unknown string,
 70-dimensional or huge shapes, NaN/∞ …), valid messages of every type (with and without
 their optional fields, covariance flat and square), and random mutations of those: a
@@ -26,7 +26,7 @@ import pytest
 
 from slamlens.common.errors import MessageError
 from slamlens.common.messages import MESSAGE_TYPES, Message, SlamState, Truth
-from tests.fuzz import bad_payloads, valid
+from slamlens.services.harness.fuzz import bad_payloads, valid
 from tests.unit.test_messages import SAMPLES
 from tests.unit.test_monitor import run
 

@@ -16,7 +16,7 @@ import sys
 
 import pytest
 
-from tests.procs import REPO
+from slamlens.services.harness.procs import REPO
 
 WORKLOAD = """
 import json, resource, sys, threading
