@@ -4,7 +4,7 @@
 Each command: its settings (:mod:`slamlens.services.slam.settings`) from ``--config FILE`` with the
 flags over it, a bus from the common flags, the service's ``run`` until SIGINT/SIGTERM (or
 the end of the data), and a clean close of the Zenoh session. The flags themselves are
-built from the settings by ``services/cli.py``.
+built from the settings by ``services/commands/cli.py``.
 """
 
 from __future__ import annotations

@@ -9,7 +9,7 @@ from slamlens.common.inprocess_bus import InProcessBus
 from slamlens.common.keys import Keys
 from slamlens.common.messages import ServiceStatus
 from slamlens.common.status import Report, StatusAnnouncer, role_name
-from slamlens.services.status import cells, gather, table
+from slamlens.services.commands.status import cells, gather, table
 
 
 def test_status_keys_name_identity_service_and_instance() -> None:

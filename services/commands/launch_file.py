@@ -54,7 +54,8 @@ from slamlens.common.config import (
     spec_of,
 )
 from slamlens.common.errors import ConfigError, SlamlensError
-from slamlens.services.cli import COMMANDS, command_parser
+from slamlens.services.commands.cli import command_parser
+from slamlens.services.commands.registry import COMMANDS
 
 #: the line each command prints on stdout when it is ready to serve
 READY_LINES = {"router": "router ready", "estimator": "estimator ready",
