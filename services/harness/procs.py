@@ -8,7 +8,9 @@ when the test stops it.
 
 from __future__ import annotations
 
+import ctypes
 import os
+import platform
 import queue
 import signal
 import subprocess
@@ -91,6 +93,21 @@ class Service:
             t.join(timeout=5.0)
         return "".join(self.out), "".join(self.err)
 
+    def threads(self) -> dict[int, str]:
+        """Thread id → kernel name of each of the process's threads, the main one (tid ==
+        pid) first; {} once it is gone."""
+        found: dict[int, str] = {}
+        try:
+            tids = sorted(int(t) for t in os.listdir(f"/proc/{self.proc.pid}/task"))
+        except OSError:
+            return found
+        for tid in sorted(tids, key=lambda t: t != self.proc.pid):
+            try:
+                found[tid] = Path(f"/proc/{self.proc.pid}/task/{tid}/comm").read_text().strip()
+            except OSError:  # the thread ended meanwhile
+                continue
+        return found
+
     def cpu_seconds(self) -> float | None:
         """User + system CPU seconds the process has used so far (None once it is gone)."""
         try:
@@ -120,6 +137,20 @@ class Service:
                                      f"printing {text!r}; stderr:\n{''.join(self.err[-30:])}")
             if text in line:
                 return line
+
+
+#: the tgkill system call's number (not in Python's os module)
+SYS_TGKILL = {"x86_64": 234, "aarch64": 131}
+
+
+def tgkill(pid: int, tid: int, sig: int) -> None:
+    """Send ``sig`` to thread ``tid`` of process ``pid`` only (as the kernel may deliver a
+    process-directed signal to any thread that does not block it); OSError if the thread
+    is gone."""
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.syscall(SYS_TGKILL[platform.machine()], pid, tid, sig) != 0:
+        errno = ctypes.get_errno()
+        raise OSError(errno, f"tgkill({pid}, {tid}, {sig}): {os.strerror(errno)}")
 
 
 def spawn(*args: str, env: dict[str, str] | None = None, netns: str | None = None) -> Service:
