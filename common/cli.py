@@ -6,6 +6,9 @@ Common flags (docs/cli.md) are settings too (:mod:`slamlens.common.config`), dec
 identity, docs/security.md) for every command on the bus, ``--config FILE`` for
 every command with settings, and :class:`LogFlags` (``-v``/``-q``) for all. A new common
 flag is one more field here (then read it from :func:`bus_flags`).
+
+Stop signals: :func:`stop_event`, which acts on the first SIGINT or SIGTERM whichever
+thread receives it.
 """
 
 from __future__ import annotations
@@ -114,39 +117,100 @@ def setup_logging(args: argparse.Namespace, name: str) -> None:
 #: seconds a service may take to shut down after SIGINT/SIGTERM before it is cut short
 #: (docs/delivery.md: every service exits within 2 s of a signal, in every state, on any load)
 SHUTDOWN_GRACE_S = 1.8
+#: the signals that stop a service
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+
+def _recorded_only(signum: int, frame: object) -> None:
+    """The Python-level handler: nothing to do (:class:`_StopTaker` acts on the signal)."""
+
+
+class _StopTaker:
+    """The process's one taker of the stop signals (see :func:`stop_event`).
+
+    Python's C-level signal handler runs on whichever thread the kernel delivered the
+    signal to and writes the signal's number to the wakeup fd; this object's daemon thread
+    ``slamlens-stop`` reads it there at once and stops the service. The pipe's two ends are
+    raw descriptors that stay open for the life of the process (a closed wakeup fd could
+    be reused by another file).
+    """
+
+    def __init__(self) -> None:
+        self._read_fd, write_fd = os.pipe()
+        os.set_blocking(write_fd, False)  # the C handler must never block
+        self._lock = threading.Lock()
+        self._event: threading.Event | None = None
+        self._grace_s: float | None = None
+        signal.set_wakeup_fd(write_fd, warn_on_full_buffer=False)
+        threading.Thread(target=self._take, name="slamlens-stop", daemon=True).start()
+
+    def serve(self, event: threading.Event, grace_s: float | None) -> None:
+        """From now on the stop signals set ``event`` (and arm a watchdog of ``grace_s``)."""
+        with self._lock:
+            self._event, self._grace_s = event, grace_s
+
+    def _take(self) -> None:
+        while True:
+            taken = os.read(self._read_fd, 64)
+            if any(number in STOP_SIGNALS for number in taken):
+                self._stop()
+
+    def _stop(self) -> None:
+        with self._lock:
+            event, grace_s = self._event, self._grace_s
+        # a later signal: already shutting down, within the watchdog's time (a Ctrl-C
+        # reaches a launch's services both from the terminal and from the launch)
+        if event is None or event.is_set():
+            return
+        event.set()
+        if grace_s is not None:
+            timer = threading.Timer(grace_s, _overdue,
+                                    args=(f"the shutdown took longer than {grace_s:g} s",))
+            timer.daemon = True
+            timer.start()
+
+
+def _overdue(reason: str) -> None:
+    try:
+        print(f"slamlens: {reason}: exiting now", file=sys.stderr, flush=True)
+        sys.stdout.flush()
+    finally:
+        os._exit(0)
+
+
+_taker: _StopTaker | None = None
 
 
 def stop_event(grace_s: float | None = SHUTDOWN_GRACE_S) -> threading.Event:
-    """An event set by SIGINT or SIGTERM, so services shut down cleanly.
+    """An event set by the first SIGINT or SIGTERM, so services shut down cleanly.
+
+    The kernel delivers a signal sent to the process to any of its threads that does not
+    block it, and a Zenoh session runs many; Python runs its signal handlers only in the
+    main thread, and only once that thread runs Python code again, which a main thread
+    waiting without a timeout (``stop.wait()``, a join) never does. So the handler here
+    does not act: Python's C-level handler, on whichever thread received the signal,
+    writes its number to the wakeup fd (:func:`signal.set_wakeup_fd`), and a thread of our
+    own, ``slamlens-stop``, blocked reading it, sets the event at once. No signal mask is
+    changed (threads and child processes, such as a launch's services, inherit none), and
+    nothing else in a slamlens process may set the wakeup fd.
 
     The first signal sets the event and arms a watchdog: a service whose clean shutdown
     (joining its threads, closing its Zenoh session) has not ended ``grace_s`` later — on an
     oversubscribed machine it can take seconds — says so in one line and exits with status
     0 at once, so it never outlives its 2 s. ``grace_s=None`` (the recorder, which must
-    finish its file) waits for the clean end however long it takes.
+    finish its file) waits for the clean end however long it takes. Later signals change
+    nothing. Called again, the signals set the new event instead; called outside the main
+    thread (where signals cannot be set up), the event is only a plain event.
     """
+    global _taker
     event = threading.Event()
-
-    def overdue(reason: str) -> None:
-        try:
-            print(f"slamlens: {reason}: exiting now", file=sys.stderr, flush=True)
-            sys.stdout.flush()
-        finally:
-            os._exit(0)
-
-    def handler(signum: int, frame: object) -> None:
-        if event.is_set():  # already shutting down, within the watchdog's time (a Ctrl-C
-            return          # reaches a launch's services from the terminal and the launch)
-        event.set()
-        if grace_s is not None:
-            timer = threading.Timer(grace_s, overdue,
-                                    args=(f"the shutdown took longer than {grace_s:g} s",))
-            timer.daemon = True
-            timer.start()
-
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGINT, handler)
-        signal.signal(signal.SIGTERM, handler)
+    if threading.current_thread() is not threading.main_thread():
+        return event
+    if _taker is None:
+        _taker = _StopTaker()  # wakeup fd and taker before the handlers: no signal lost
+    _taker.serve(event, grace_s)
+    for number in STOP_SIGNALS:
+        signal.signal(number, _recorded_only)
     return event
 
 

@@ -1,5 +1,5 @@
-"""``slamlens.common.cli.stop_event``: a signal starts a clean shutdown, and the shutdown is
-bounded.
+"""``slamlens.common.cli.stop_event``: a signal starts a clean shutdown, whichever thread
+receives it, and the shutdown is bounded.
 
 A real child process each: it installs the handler, says it is ready, waits for the signal,
 then runs a "cleanup" of a given length (a hung Zenoh close, a render thread that does not
@@ -8,6 +8,7 @@ join on an oversubscribed machine).
 
 from __future__ import annotations
 
+import os
 import signal
 import subprocess
 import sys
@@ -15,10 +16,11 @@ import textwrap
 import time
 from collections.abc import Iterator
 from contextlib import contextmanager
+from pathlib import Path
 
 import pytest
 
-from slamlens.services.harness.procs import REPO
+from slamlens.services.harness.procs import REPO, tgkill
 
 CHILD = textwrap.dedent("""
     import sys, time
@@ -87,3 +89,67 @@ def test_without_a_grace_the_cleanup_runs_to_its_end() -> None:
     code, took, out, err = _run(2.5, "none", signal.SIGTERM)
     assert code == 0 and out.splitlines() == ["ready", "stopping", "clean end"]
     assert took >= 2.5 and err == ""
+
+
+# -- whichever thread the kernel delivers the signal to --------------------------------------
+
+THREADED = textwrap.dedent("""
+    import subprocess, sys, threading
+    from slamlens.common.cli import run_cli, stop_event
+
+    def main() -> int:
+        stop = stop_event()
+        idle = threading.Event()
+        worker = threading.Thread(target=idle.wait, daemon=True)  # as Zenoh's threads
+        worker.start()
+        child = subprocess.Popen(["sleep", "600"]) if sys.argv[1] == "child" else None
+        print(f"ready {worker.native_id} {child.pid if child else 0}", flush=True)
+        stop.wait()  # no timeout: only another thread can wake it
+        if child is not None:
+            child.wait()
+            print(f"child {child.returncode}")
+        print("stopping", flush=True)
+        return 0
+
+    sys.exit(run_cli(main))
+""")
+
+
+@contextmanager
+def _threaded(mode: str = "") -> Iterator[tuple[subprocess.Popen, int, int]]:
+    """The child waiting without a timeout, its worker thread's id and its own child's pid."""
+    proc = subprocess.Popen([sys.executable, "-c", THREADED, mode], cwd=REPO,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout is not None
+        word, tid, grandchild = proc.stdout.readline().split()
+        assert word == "ready"
+        yield proc, int(tid), int(grandchild)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.communicate()
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT], ids=["SIGTERM", "SIGINT"])
+def test_a_signal_to_another_thread_wakes_a_main_thread_waiting_without_timeout(
+        sig: signal.Signals) -> None:
+    with _threaded() as (proc, tid, _):
+        tgkill(proc.pid, tid, sig)
+        out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    assert out.splitlines() == ["stopping"] and err == ""
+
+
+def test_child_processes_inherit_no_blocked_signal() -> None:
+    """A service's children (a launch's services) can still be stopped by SIGTERM."""
+    with _threaded("child") as (proc, _, grandchild):
+        status = Path(f"/proc/{grandchild}/status").read_text()
+        blocked = int(next(ln for ln in status.splitlines()
+                           if ln.startswith("SigBlk:")).split()[1], 16)
+        assert not blocked & ((1 << (signal.SIGTERM - 1)) | (1 << (signal.SIGINT - 1)))
+        os.kill(grandchild, signal.SIGTERM)
+        os.kill(proc.pid, signal.SIGTERM)
+        out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, err
+    assert out.splitlines() == [f"child {-signal.SIGTERM}", "stopping"]
