@@ -15,7 +15,7 @@ import sys
 import textwrap
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
+from contextlib import contextmanager, suppress
 from pathlib import Path
 
 import pytest
@@ -94,7 +94,7 @@ def test_without_a_grace_the_cleanup_runs_to_its_end() -> None:
 # -- whichever thread the kernel delivers the signal to --------------------------------------
 
 THREADED = textwrap.dedent("""
-    import subprocess, sys, threading
+    import atexit, subprocess, sys, threading
     from slamlens.common.cli import run_cli, stop_event
 
     def main() -> int:
@@ -103,12 +103,13 @@ THREADED = textwrap.dedent("""
         worker = threading.Thread(target=idle.wait, daemon=True)  # as Zenoh's threads
         worker.start()
         child = subprocess.Popen(["sleep", "600"]) if sys.argv[1] == "child" else None
+        atexit.register(print, "atexit ran")
         print(f"ready {worker.native_id} {child.pid if child else 0}", flush=True)
         stop.wait()  # no timeout: only another thread can wake it
         if child is not None:
             child.wait()
             print(f"child {child.returncode}")
-        print("stopping", flush=True)
+        print("stopping")  # not flushed: the process must flush it before it ends
         return 0
 
     sys.exit(run_cli(main))
@@ -138,7 +139,22 @@ def test_a_signal_to_another_thread_wakes_a_main_thread_waiting_without_timeout(
         tgkill(proc.pid, tid, sig)
         out, err = proc.communicate(timeout=60)
     assert proc.returncode == 0, err
-    assert out.splitlines() == ["stopping"] and err == ""
+    assert out.splitlines() == ["stopping", "atexit ran"] and err == ""
+
+
+def test_signals_through_the_whole_shutdown_leave_status_0() -> None:
+    """Python puts back the default handlers while it finalizes: a SIGTERM then would end
+    the process by that signal; a stopped process ends before (``run_cli``)."""
+    with _threaded() as (proc, tid, _):
+        tgkill(proc.pid, tid, signal.SIGTERM)
+        sent = 1
+        while proc.poll() is None:  # until it is reaped: its pid cannot be reused before
+            with suppress(ProcessLookupError):
+                os.kill(proc.pid, signal.SIGTERM if sent % 2 else signal.SIGINT)
+                sent += 1
+        out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 0, (sent, err)
+    assert out.splitlines() == ["stopping", "atexit ran"] and err == ""
 
 
 def test_child_processes_inherit_no_blocked_signal() -> None:
@@ -152,4 +168,4 @@ def test_child_processes_inherit_no_blocked_signal() -> None:
         os.kill(proc.pid, signal.SIGTERM)
         out, err = proc.communicate(timeout=60)
     assert proc.returncode == 0, err
-    assert out.splitlines() == [f"child {-signal.SIGTERM}", "stopping"]
+    assert out.splitlines() == [f"child {-signal.SIGTERM}", "stopping", "atexit ran"]
