@@ -88,6 +88,7 @@ def _run_sim(args: argparse.Namespace) -> int:
         announce(bus, args, "sim", _driver_status(out, state), robot=",".join(s.robots()))
         print("sim ready", flush=True)
         if not _estimator_ready(out, stop, s):
+            _finish("sim", out, stop, 0.0)  # stopped while it waited
             return 0
         who = f"{len(sims)} robots ({s.robot})" if len(sims) > 1 else s.robot
         log.info("simulating %s with %s, seed %d, %.0f s of robot time at %s", world.name,
@@ -217,6 +218,7 @@ def _run_replay(args: argparse.Namespace) -> int:
         announce(bus, args, "replay", _driver_status(out, state), robot=",".join(names))
         print("replay ready", flush=True)
         if not _estimator_ready(out, stop, s):
+            _finish("replay", out, stop, 0.0)  # stopped while it waited
             return 0
         if len(runs) > 1:
             log.info("replaying %d robots of %s: %s", len(runs), s.path, ", ".join(names))
