@@ -340,7 +340,7 @@ class Intake:
         self._finish = finish
         #: prepared states waiting for ``viewer-layers`` (one at most: the next state is
         #: taken from Zenoh only when it can go on, so it is the newest there is)
-        self._handoff: queue.Queue[tuple[_Robot, float, SlamState | None]] = \
+        self._handoff: queue.Queue[tuple[_Robot, float, SlamState | None] | None] = \
             queue.Queue(maxsize=1)
         self._handed = threading.Event()  #: ``viewer-layers`` took a state from the handoff
         self._prepare_wake = threading.Event()
@@ -508,6 +508,10 @@ class Intake:
         self._decode_wake.set()
         self._prepare_wake.set()
         self._handed.set()
+        try:  # wakes ``viewer-layers`` waiting for a state (a full handoff wakes it anyway)
+            self._handoff.put_nowait(None)
+        except queue.Full:
+            pass
         with self._lock:
             pullers = list(self._puller_of.values())
         for puller in pullers:  # all told first; a query in flight ends with the bus
@@ -564,9 +568,12 @@ class Intake:
         assert self._finish is not None
         while not self._stop.is_set():
             try:
-                r, received, state = self._handoff.get(timeout=0.5)
+                handed = self._handoff.get(timeout=0.5)
             except queue.Empty:
                 continue
+            if handed is None:  # stopping
+                continue
+            r, received, state = handed
             self._handed.set()
             if state is not None:
                 try:

@@ -46,7 +46,7 @@ class RenderPipeline:
         self._deferred_s = 0.0  # > 0: views wait for the budget; render again this soon
         self._stop = threading.Event()
         self._wake = threading.Event()
-        self._encode_queue: queue.Queue[tuple[Any, ...]] = queue.Queue(maxsize=2)
+        self._encode_queue: queue.Queue[tuple[Any, ...] | None] = queue.Queue(maxsize=2)
         self._listeners: list[Callable[[], None]] = []
         self._threads: list[threading.Thread] = []
         self.render_ms: deque[float] = deque(maxlen=120)  #: render + encode time per picture
@@ -77,6 +77,10 @@ class RenderPipeline:
     def stop(self) -> None:
         self._stop.set()
         self._wake.set()
+        try:  # wakes ``viewer-encode`` waiting for a picture (a full queue wakes it anyway)
+            self._encode_queue.put_nowait(None)
+        except queue.Full:
+            pass
         for thread in self._threads:
             thread.join(timeout=5.0)
 
@@ -147,10 +151,11 @@ class RenderPipeline:
     def _encode_loop(self) -> None:
         while not self._stop.is_set():
             try:
-                view, image, frame, t0 = self._encode_queue.get(timeout=0.5)
+                job = self._encode_queue.get(timeout=0.5)
             except queue.Empty:
                 continue
-            self._encode(view, image, frame, t0)
+            if job is not None:  # None: stopping
+                self._encode(*job)
 
     def _encode(self, view: View, image: np.ndarray, frame: Frame, t0: float) -> None:
         ok, jpeg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, self.jpeg_quality])
