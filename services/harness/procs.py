@@ -9,6 +9,7 @@ when the test stops it.
 from __future__ import annotations
 
 import ctypes
+import functools
 import os
 import platform
 import queue
@@ -143,12 +144,16 @@ class Service:
 SYS_TGKILL = {"x86_64": 234, "aarch64": 131}
 
 
+@functools.cache
+def _libc() -> ctypes.CDLL:
+    return ctypes.CDLL(None, use_errno=True)
+
+
 def tgkill(pid: int, tid: int, sig: int) -> None:
     """Send ``sig`` to thread ``tid`` of process ``pid`` only (as the kernel may deliver a
     process-directed signal to any thread that does not block it); OSError if the thread
     is gone."""
-    libc = ctypes.CDLL(None, use_errno=True)
-    if libc.syscall(SYS_TGKILL[platform.machine()], pid, tid, sig) != 0:
+    if _libc().syscall(SYS_TGKILL[platform.machine()], pid, tid, sig) != 0:
         errno = ctypes.get_errno()
         raise OSError(errno, f"tgkill({pid}, {tid}, {sig}): {os.strerror(errno)}")
 
