@@ -40,7 +40,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from slamlens.common.session import free_tcp_endpoint  # noqa: E402
-from tests.procs import Service, spawn, stop, tgkill  # noqa: E402
+from slamlens.services.harness.procs import Service, spawn, stop, tgkill  # noqa: E402
 
 WAKE_LIMIT_S = 2.0
 
@@ -130,7 +130,8 @@ def mechanisms(repeats: int, threads: int) -> None:
 FINALIZING = textwrap.dedent("""
     import sys
     from slamlens.common.memory import keep_freed_memory
-    from slamlens.services.cli import COMMANDS, command_parser, import_service_module
+    from slamlens.services.commands.cli import command_parser
+    from slamlens.services.commands.registry import COMMANDS, import_service_module
     name = sys.argv[1]
     args = command_parser(name).parse_args(sys.argv[2:])
     keep_freed_memory()

@@ -224,7 +224,7 @@ def stop_event(grace_s: float | None = SHUTDOWN_GRACE_S) -> threading.Event:
 
 def _end_now(code: int) -> NoReturn:
     """End the process with ``code`` as Python's exit begins — threading's exit functions
-    (sessions left open closed, :mod:`slamlens.common.bus`) and the join of non-daemon
+    (sessions left open closed, :mod:`slamlens.common.zenoh_bus`) and the join of non-daemon
     threads, the atexit functions (logging's flush among them), the standard streams
     flushed — without the interpreter's finalization after it."""
     try:

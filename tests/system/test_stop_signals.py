@@ -29,7 +29,7 @@ from mcap.writer import Writer
 
 from slamlens.common.messages import Truth
 from slamlens.common.session import free_tcp_endpoint
-from tests.procs import REPO, Service, slamlens_cmd, spawn, tgkill
+from slamlens.services.harness.procs import REPO, Service, slamlens_cmd, spawn, tgkill
 
 #: every long-running command exits within this of the first signal (docs/delivery.md)
 BOUND_S = 2.0
@@ -225,7 +225,7 @@ NOT_HERE = {
 
 def test_every_long_running_command_has_a_case() -> None:
     """A new command fails this until it has a case above (or a reason in NOT_HERE)."""
-    from slamlens.services.cli import COMMANDS
+    from slamlens.services.commands.registry import COMMANDS
 
     assert set(COMMANDS) == set(CASES) | set(NOT_HERE)
     assert not set(CASES) & set(NOT_HERE)
