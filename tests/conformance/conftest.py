@@ -24,14 +24,31 @@ def cpu_burners() -> Iterator[None]:
         burners.stop()
 
 
+#: set on a case whose call failed
+FAILED = pytest.StashKey[bool]()
+
+
+@pytest.hookimpl(wrapper=True, tryfirst=True)
+def pytest_runtest_makereport(item: pytest.Item, call: pytest.CallInfo[None]
+                              ) -> Iterator[pytest.TestReport]:
+    report = yield
+    if report.when == "call" and report.failed:
+        item.stash[FAILED] = True
+    return report
+
+
 @pytest.fixture(autouse=True)
-def no_leftovers() -> Iterator[None]:
-    """Whatever a case started and did not stop (it failed half-way) is killed after it."""
+def no_leftovers(request: pytest.FixtureRequest) -> Iterator[None]:
+    """Whatever a case started and did not stop (it failed half-way) is killed after it;
+    if the case failed, what its processes said is printed (shown with the failure)."""
     first = len(LAUNCHED)
     yield
     for proc in LAUNCHED[first:]:
         if proc.alive():
             proc.stop(signal.SIGKILL)
+    if request.node.stash.get(FAILED, False):
+        for proc in LAUNCHED[first:]:
+            print(f"=== {' '.join(proc.argv[1:])}\n{proc.tail(40)}")
 
 
 @pytest.fixture(scope="module")

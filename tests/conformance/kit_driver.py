@@ -6,7 +6,6 @@ the ways docs/protocol.md allows, wait for the last input's state, compare with 
 from __future__ import annotations
 
 import json
-import signal
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
@@ -91,10 +90,11 @@ def check_final(watch: wire.StateWatch, inputs: list[Input],
     return head
 
 
-def stop_estimator(proc: Proc) -> dict[str, Any]:
-    """SIGTERM: exit status 0 and the stop line ``estimator stopped: {JSON}``, which must
-    carry the input counts (docs/protocol.md, "Counts"); its JSON."""
-    assert proc.stop(signal.SIGTERM) == 0, proc.tail()
+def stop_line(proc: Proc, code: int) -> dict[str, Any]:
+    """Of an estimator stopped with SIGTERM: exit status 0 and the stop line ``estimator
+    stopped: {JSON}``, which must carry the input counts (docs/protocol.md, "Counts");
+    its JSON."""
+    assert code == 0, f"the estimator exited {code}:\n{proc.tail()}"
     lines = [line for line in proc.out if line.startswith("estimator stopped: ")]
     assert lines, proc.tail()
     said = json.loads(lines[-1].split(": ", 1)[1])

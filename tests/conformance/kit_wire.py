@@ -22,6 +22,10 @@ PREFIX = "slamlens"
 SCHEMA = 1
 #: how long a failing wait may take before the test says so (a bound, never a pacing)
 PATIENCE_S = 90.0
+#: how long a ``get`` may wait for its answers: a bound only (a get with no queryable to ask
+#: ends at once; one whose queryable answers ends when it did), so generous: a loaded
+#: machine may take seconds to schedule the answering thread
+GET_TIMEOUT_S = 30.0
 
 
 # -- messages --------------------------------------------------------------------------
@@ -121,7 +125,7 @@ def advanced(s: zenoh.Session, key_expr: str, cache: int = 10_000) -> Any:
         publisher_detection=True)
 
 
-def header(s: zenoh.Session, robot: str, timeout: float = 5.0) -> dict[str, Any] | None:
+def header(s: zenoh.Session, robot: str, timeout: float = GET_TIMEOUT_S) -> dict[str, Any] | None:
     """The answer to ``get …/state?header`` (None if nobody answered)."""
     for reply in s.get(f"{key(robot, 'state')}?header", timeout=timeout):
         if reply.ok is not None:
@@ -129,7 +133,7 @@ def header(s: zenoh.Session, robot: str, timeout: float = 5.0) -> dict[str, Any]
     return None
 
 
-def get_one(s: zenoh.Session, key_expr: str, timeout: float = 5.0) -> bytes | None:
+def get_one(s: zenoh.Session, key_expr: str, timeout: float = GET_TIMEOUT_S) -> bytes | None:
     """The payload of the first good reply to a ``get`` (None if nobody answered)."""
     for reply in s.get(key_expr, timeout=timeout):
         if reply.ok is not None:

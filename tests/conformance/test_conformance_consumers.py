@@ -21,7 +21,7 @@ from typing import Any
 
 import kit_wire as wire
 import numpy as np
-from kit_driver import Driver, last_state, stop_estimator
+from kit_driver import INPUT_COUNTS, Driver, last_state, stop_line
 from kit_image import GREY, grey_jpeg, png_pixels
 from kit_procs import endpoint, free_port, launch, wait_ready
 from kit_run import simulate
@@ -104,16 +104,24 @@ class ThirdParty:
         """The next state (and a frame, and the registration again); its seq."""
         self.seq += 1
         self.latest["state"] = wire.pack(third_party_state(self.seq))
+        self.republish()
+        return self.seq
+
+    def republish(self) -> None:
+        """The same state, registration and a frame again (a subscriber that was not there
+        yet gets them; one that was sees the same seq twice)."""
         self.pubs["registration"].put(self.latest["registration"])
         self.pubs["frame"].put(wire.pack(frame(self.seq)))
         self.pubs["state"].put(self.latest["state"])
-        return self.seq
 
-    def health_for(self, seq: int, timeout: float) -> dict[str, Any] | None:
+    def health_for(self, seqs: range, timeout: float) -> dict[str, Any] | None:
+        """The first Health heard for one of ``seqs`` (waiting up to ``timeout``)."""
+        def found() -> dict[str, Any] | None:
+            return next((h for h in self.healths if h.get("seq") in seqs), None)
+
         with self.heard:
-            self.heard.wait_for(lambda: any(h.get("seq") == seq for h in self.healths),
-                                timeout)
-            return next((h for h in self.healths if h.get("seq") == seq), None)
+            self.heard.wait_for(lambda: found() is not None, timeout)
+            return found()
 
     def close(self) -> None:
         self.session.close()
@@ -127,7 +135,7 @@ def snapshot(url: str) -> tuple[int, np.ndarray]:
 
 def _status_of(s: Any, service: str, robot: str) -> dict[str, Any] | None:
     """A service's ServiceStatus (docs/protocol.md, "The status protocol")."""
-    for reply in s.get(f"{wire.PREFIX}/status/**", timeout=5.0):
+    for reply in s.get(f"{wire.PREFIX}/status/**", timeout=wire.GET_TIMEOUT_S):
         if reply.ok is not None:
             status = wire.unpack(reply.ok.payload.to_bytes())
             if status.get("service") == service and status.get("robot") == robot:
@@ -146,7 +154,7 @@ def _forged_state_is_refused(party: ThirdParty, url: str) -> None:
         assert time.monotonic() < deadline, "the viewer did not refuse the forged state"
         time.sleep(0.2)  # its status is rebuilt once a second: ask again
     seq = party.publish()
-    health = party.health_for(seq, timeout=wire.PATIENCE_S)
+    health = party.health_for(range(seq, seq + 1), timeout=wire.PATIENCE_S)
     assert health is not None, f"no Health for seq {seq} after the forged state"
     statistics = health.get("statistics", {})
     assert statistics.get("restarts") == 0, f"the forged state made a new map: {statistics}"
@@ -169,21 +177,21 @@ def test_third_party_estimator_drawn_and_checked(router: int) -> None:
     try:
         wire.wait_matched(party.session, party.keys["state"])
         health = None
-        for _ in range(30):  # until the monitor has subscribed: each turn waits on it
-            seq = party.publish()
-            health = party.health_for(seq, timeout=2.0)
+        for _ in range(30):  # until the monitor has subscribed: each turn waits for it
+            party.publish()
+            health = party.health_for(range(1, party.seq + 1), timeout=2.0)
             if health is not None:
                 break
         assert health is not None, f"no Health for any of seq 1..{party.seq}"
         assert health["robot"] == "third" and health["ok"] in (True, False)
         assert health.get("verdict") in ("ok", "fault", "tuning"), health
-        shown = -1
-        for _ in range(30):  # the snapshot waits for a picture of the newest inputs
+        deadline = time.monotonic() + wire.PATIENCE_S
+        while True:  # the snapshot waits for a picture of the newest inputs
             shown, pixels = snapshot(url)
             if shown == party.seq:
                 break
-            party.publish()
-        assert shown == party.seq, f"the viewer shows seq {shown}, the newest is {party.seq}"
+            assert time.monotonic() < deadline, f"the viewer shows seq {shown}, not {party.seq}"
+            party.republish()
         assert pixels.shape[:2] == (HEIGHT, WIDTH), pixels.shape
         rgb = pixels[..., :3].astype(int)
         background = np.all(np.abs(rgb - GREY) <= 2, axis=2)
@@ -226,6 +234,27 @@ def _check_state_fields(raw: dict[str, Any], robot: str, seq: int, stamp: float)
     assert not missing, f"diagnostics lack {missing}: {diagnostics}"
 
 
+def _health_for(s: Any, robot: str, seq: int) -> dict[str, Any]:
+    """The monitor's Health for state ``seq``, by a ``get`` on the health key, asked again
+    whenever a Health of that seq is heard (the monitor checks every state, in order)."""
+    heard = threading.Event()
+    sub = s.declare_subscriber(
+        wire.key(robot, "health"),
+        lambda sample: heard.set() if wire.unpack(sample.payload.to_bytes()).get("seq") == seq
+        else None)
+    try:
+        deadline = time.monotonic() + wire.PATIENCE_S
+        while True:
+            answer = wire.get_one(s, wire.key(robot, "health"))
+            health = None if answer is None else wire.unpack(answer)
+            if health is not None and health.get("seq") == seq:
+                return dict(health)
+            assert time.monotonic() < deadline, f"no Health for seq {seq}; the last: {health}"
+            heard.wait(3.0)
+    finally:
+        sub.undeclare()
+
+
 def test_third_party_consumer(router: int) -> None:
     robot = "consumer"
     inputs = simulate(seed=41)
@@ -249,26 +278,12 @@ def test_third_party_consumer(router: int) -> None:
                      "origin_stamp"):
             assert head[name] == raw[name], (name, head, raw[name])
         assert head["n"] == len(final["landmark_ids"])
-        missing = [c for c in ("duplicates", "late", "lost", "waited", "reordered",
-                               "dropped") if c not in head]
+        missing = [c for c in INPUT_COUNTS if c not in head]
         assert not missing, f"state?header lacks {missing}: {head}"
-        # the monitor checks every state: its Health for the last one comes
-        health_seen = threading.Event()
-        sub = driver.session.declare_subscriber(
-            wire.key(robot, "health"),
-            lambda s: health_seen.set() if wire.unpack(s.payload.to_bytes()).get("seq") == seq
-            else None)
-        health = None
-        for _ in range(30):  # each turn waits for the Health (or asks for it again)
-            answer = wire.get_one(driver.session, wire.key(robot, "health"))
-            health = None if answer is None else wire.unpack(answer)
-            if health is not None and health.get("seq") == seq:
-                break
-            health_seen.wait(3.0)
-        sub.undeclare()
-        assert health is not None and health["seq"] == seq, health
+        health = _health_for(driver.session, robot, seq)
         assert health["robot"] == robot and health["stamp"] == stamp
-        assert isinstance(health["ok"], bool) and isinstance(health["violations"], list)
+        assert isinstance(health["ok"], bool)
+        assert isinstance(health.get("violations", []), list)
         assert wire.unarray(health["suspects"]).dtype == np.dtype("<i8")
         assert health.get("verdict") in ("ok", "fault", "tuning")
         # a consumer that joins now gets the current state at once, and the token
@@ -276,12 +291,13 @@ def test_third_party_consumer(router: int) -> None:
         try:
             assert wire.get_one(late, wire.key(robot, "state")) == payload
             tokens = list(late.liveliness().get(wire.key(robot, "alive/estimator"),
-                                                timeout=5.0))
+                                                timeout=wire.GET_TIMEOUT_S))
             assert any(t.ok is not None for t in tokens), "no estimator liveliness token"
         finally:
             late.close()
     finally:
         watch.close()
         driver.close()
-        stop_estimator(est)
+        code = est.stop()
         monitor.stop(signal.SIGTERM)
+    stop_line(est, code)

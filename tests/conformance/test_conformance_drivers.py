@@ -13,7 +13,7 @@ import threading
 
 import kit_wire as wire
 import pytest
-from kit_driver import Driver, check_final, estimator, stop_estimator
+from kit_driver import Driver, check_final, estimator, stop_line
 from kit_run import simulate
 
 VARIANTS = {
@@ -39,7 +39,8 @@ def test_one_session_unpaced(router: int, variant: str) -> None:
     finally:
         watch.close()
         driver.close()
-        stop_estimator(est)
+        code = est.stop()
+    stop_line(est, code)
 
 
 def test_two_sessions_merged_by_stamp(router: int) -> None:
@@ -66,4 +67,5 @@ def test_two_sessions_merged_by_stamp(router: int) -> None:
         watch.close()
         odometry.close()
         observations.close()
-        stop_estimator(est)
+        code = est.stop()
+    stop_line(est, code)

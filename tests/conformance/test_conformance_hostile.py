@@ -14,7 +14,7 @@ from typing import Any
 import kit_wire as wire
 import msgpack
 import numpy as np
-from kit_driver import Driver, check_final, estimator, stop_estimator
+from kit_driver import Driver, check_final, estimator, stop_line
 from kit_run import Input, simulate
 
 ROBOT = "hostile"
@@ -93,7 +93,7 @@ def _publish_interleaved(driver: Driver, inputs: list[Input]) -> None:
 
 def _estimator_status(s: Any, robot: str) -> dict[str, Any] | None:
     """The estimator's ServiceStatus (docs/protocol.md, "The status protocol")."""
-    for reply in s.get(f"{wire.PREFIX}/status/**", timeout=5.0):
+    for reply in s.get(f"{wire.PREFIX}/status/**", timeout=wire.GET_TIMEOUT_S):
         if reply.ok is None:
             continue
         status = wire.unpack(reply.ok.payload.to_bytes())
@@ -134,5 +134,6 @@ def test_bad_inputs_are_refused_and_counted(router: int) -> None:
     finally:
         watch.close()
         driver.close()
-        said = stop_estimator(est)
+        code = est.stop()
+    said = stop_line(est, code)
     assert said["dropped"] == len(MALFORMED), said

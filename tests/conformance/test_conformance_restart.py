@@ -15,7 +15,7 @@ from pathlib import Path
 
 import kit_wire as wire
 import pytest
-from kit_driver import Driver, check_final, checkpoint_written, estimator, stop_estimator
+from kit_driver import Driver, check_final, checkpoint_written, estimator, stop_line
 from kit_run import simulate
 
 
@@ -60,4 +60,5 @@ def test_sigkill_and_resume(router: int, tmp_path: Path, numbered: bool) -> None
     finally:
         watch.close()
         driver.close()
-        stop_estimator(est)
+        code = est.stop()
+    stop_line(est, code)
