@@ -140,11 +140,15 @@ def start(*args: str, ready: str, timeout: float = 60.0) -> Proc:
     return proc
 
 
+#: a CPU burner that ends by itself when the test process (its argument) goes, even killed
+_BURN = "import os, sys\nparent = int(sys.argv[1])\nwhile os.getppid() == parent:\n    pass\n"
+
+
 class Burners:
     """Two processes that burn a CPU each, beside every case (a loaded machine)."""
 
     def __init__(self, count: int = 2) -> None:
-        self.procs = [subprocess.Popen([sys.executable, "-c", "while True: pass"])
+        self.procs = [subprocess.Popen([sys.executable, "-c", _BURN, str(os.getpid())])
                       for _ in range(count)]
 
     def stop(self) -> None:
