@@ -1,0 +1,134 @@
+"""A ROS 2 node on Zenoh as rmw_zenoh makes one: its token, publishers and subscriptions.
+
+Runs on the bridge's own Zenoh session (the bus's). The node announces itself with its
+``NN`` liveliness token; each publisher holds an ``MP`` token and puts CDR payloads with the
+33-byte attachment (sequence number from 1, source time, its random GID); each
+subscription holds an ``MS`` token for the type it expects and subscribes to the topic's
+every type and hash (``<domain>/<topic>/*/*``), so a message of another type or hash is
+seen, and counted, instead of silently never arriving. Nothing waits in a Zenoh callback:
+a subscription checks the attachment, copies the payload and queues it for the bridge's
+worker (:mod:`slamlens.common.bus`'s ``QueueChannel``: never blocks, bounded in bytes).
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import threading
+import time
+from collections.abc import Callable
+from typing import Any
+
+from slamlens.common.bus import QueueChannel, Sample
+from slamlens.common.errors import MessageError
+from slamlens.services.ros2.rostypes import RosType
+from slamlens.services.ros2.wire import (
+    PUBLISHER,
+    SUBSCRIPTION,
+    Node,
+    attachment,
+    parse_attachment,
+    topic_key,
+    topic_key_any,
+)
+
+log = logging.getLogger("slamlens.ros2")
+
+
+class RosPublisher:
+    """One topic's publisher (``put`` may be called from one thread at a time)."""
+
+    def __init__(self, session: Any, node: Node, entity_id: int, topic: str,
+                 ros_type: RosType) -> None:
+        import zenoh
+
+        self.topic = topic
+        self.key = topic_key(node.domain, topic, ros_type.name, ros_type.hash)
+        self.gid = os.urandom(16)
+        self.seq = 0
+        self.sent = 0
+        self._pub = session.declare_publisher(
+            self.key, congestion_control=zenoh.CongestionControl.DROP,
+            reliability=zenoh.Reliability.RELIABLE)
+        self._token = session.liveliness().declare_token(node.endpoint_token(
+            entity_id, PUBLISHER, topic, ros_type.name, ros_type.hash))
+
+    def put(self, payload: bytes) -> None:
+        self.seq += 1
+        self._pub.put(payload, attachment=attachment(self.seq, time.time_ns(), self.gid))
+        self.sent += 1
+
+    def undeclare(self) -> None:
+        for entity in (self._token, self._pub):
+            try:
+                entity.undeclare()
+            except Exception:  # the session may already be closing
+                pass
+
+
+class RosSubscription:
+    """One topic's subscription: checked samples into ``queue`` (module docstring)."""
+
+    def __init__(self, session: Any, node: Node, entity_id: int, topic: str,
+                 ros_type: RosType, queue: QueueChannel,
+                 drop: Callable[[str, str], None]) -> None:
+        self.topic = topic
+        self.key = topic_key_any(node.domain, topic)
+
+        def on_sample(sample: Any) -> None:
+            key = str(sample.key_expr)
+            raw = sample.attachment
+            try:
+                parse_attachment(None if raw is None else raw.to_bytes())
+            except MessageError as exc:
+                drop(topic, f"{key}: {exc}")
+                return
+            queue.push(Sample(key, sample.payload.to_bytes()))
+
+        self._sub = session.declare_subscriber(self.key, on_sample)
+        self._token = session.liveliness().declare_token(node.endpoint_token(
+            entity_id, SUBSCRIPTION, topic, ros_type.name, ros_type.hash))
+
+    def undeclare(self) -> None:
+        for entity in (self._token, self._sub):
+            try:
+                entity.undeclare()
+            except Exception:
+                pass
+
+
+class RosNode:
+    """The bridge's ROS 2 node (module docstring)."""
+
+    def __init__(self, session: Any, *, domain: int, name: str, namespace: str = "/") -> None:
+        self.session = session
+        self.node = Node(domain=domain, zid=str(session.info.zid()), node_id=0, name=name,
+                         namespace=namespace)
+        self._token = session.liveliness().declare_token(self.node.token())
+        self._entities: list[RosPublisher | RosSubscription] = []
+        self._lock = threading.Lock()
+
+    def _next_id(self) -> int:
+        with self._lock:
+            return len(self._entities) + 1
+
+    def publisher(self, topic: str, ros_type: RosType) -> RosPublisher:
+        pub = RosPublisher(self.session, self.node, self._next_id(), topic, ros_type)
+        self._entities.append(pub)
+        return pub
+
+    def subscription(self, topic: str, ros_type: RosType, queue: QueueChannel,
+                     drop: Callable[[str, str], None]) -> RosSubscription:
+        sub = RosSubscription(self.session, self.node, self._next_id(), topic, ros_type, queue,
+                              drop)
+        self._entities.append(sub)
+        return sub
+
+    def close(self) -> None:
+        for entity in reversed(self._entities):
+            entity.undeclare()
+        self._entities = []
+        try:
+            self._token.undeclare()
+        except Exception:
+            pass
