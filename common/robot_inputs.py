@@ -88,7 +88,8 @@ class RobotPublisher:
 class InputPublisher(Protocol):
     """What :func:`play` publishes through: one robot's publisher or a fleet of them."""
 
-    counts: Any
+    @property
+    def counts(self) -> Any: ...
 
     def publish(self, message: Message, stop: threading.Event | None = None) -> None: ...
 

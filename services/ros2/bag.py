@@ -94,10 +94,10 @@ class Bag:
             self._reader.open()
         except Exception as exc:  # rosbags' own errors: a bad or unsupported bag
             raise SourceError(f"cannot read the rosbag2 folder {path}: {exc}") from None
-        wanted = {"inputs": {self.topics.odom: ODOMETRY,
-                             self.topics.observations: RANGE_BEARING_ARRAY},
-                  "estimate": {self.topics.estimate: SLAM_ESTIMATE,
-                               self.topics.pose: None}}[what]
+        choices: dict[str, dict[str, str | None]] = {
+            "inputs": {self.topics.odom: ODOMETRY, self.topics.observations: RANGE_BEARING_ARRAY},
+            "estimate": {self.topics.estimate: SLAM_ESTIMATE, self.topics.pose: None}}
+        wanted = choices[what]
         self.connections = [c for c in self._reader.connections if c.topic in wanted
                             and wanted[c.topic] in (None, c.msgtype)]
         if not self.connections:

@@ -22,7 +22,7 @@ import logging
 import threading
 from typing import Any
 
-from slamlens.common.bus import Bus, QueueChannel, Sample
+from slamlens.common.bus import Bus, Channel, QueueChannel, Sample
 from slamlens.common.drops import DropCounter
 from slamlens.common.errors import MessageError
 from slamlens.common.keys import Keys
@@ -70,7 +70,7 @@ class Ros2Bridge:
                                        "imported": 0, "pose_only_ignored": 0}
         self.node = RosNode(bus.session, domain=settings.domain, name=settings.node_name())
         self._pubs: dict[str, RosPublisher] = {}
-        self._exports: QueueChannel | None = None
+        self._exports: Channel | None = None
         if settings.export:
             self._declare_exports()
         self._imports = QueueChannel(name="ros2 imports",

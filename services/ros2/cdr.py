@@ -14,6 +14,7 @@ result is the bytes a field-by-field writer gives (tests read them back with ``r
 
 from __future__ import annotations
 
+import math
 import struct
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
@@ -127,8 +128,10 @@ class Writer:
 
 
 def stamp_ns(seconds: float) -> int:
-    """Seconds (a slamlens stamp) as integer nanoseconds, rounded."""
-    return int(round(float(seconds) * 1e9))
+    """Seconds (a slamlens stamp) as integer nanoseconds, rounded (whole seconds and the
+    fraction apart: 1.2 × 10⁹ s × 10⁹ is beyond float64's integers)."""
+    whole = math.floor(float(seconds))
+    return whole * 1_000_000_000 + int(round((float(seconds) - whole) * 1e9))
 
 
 @dataclass

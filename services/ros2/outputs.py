@@ -118,8 +118,10 @@ class PathTrack:
         w = Writer()
         w.header(stamp_ns(stamp), MAP_FRAME)
         w.u32(len(rows))
-        ns = np.round(rows[:, 0] * 1e9).astype(np.int64)
-        stamps = np.column_stack([ns // 1_000_000_000, ns % 1_000_000_000]).astype("<i4")
+        whole = np.floor(rows[:, 0])
+        nsec = np.round((rows[:, 0] - whole) * 1e9).astype(np.int64)
+        sec = whole.astype(np.int64) + nsec // 1_000_000_000
+        stamps = np.column_stack([sec, nsec % 1_000_000_000]).astype("<i4")
         poses = np.zeros((len(rows), 7))
         poses[:, :2] = rows[:, 1:3]
         poses[:, 5], poses[:, 6] = np.sin(0.5 * rows[:, 3]), np.cos(0.5 * rows[:, 3])
