@@ -124,8 +124,12 @@ def publish(args: argparse.Namespace) -> None:
                                                 router_port=port,
                                                 type_hash=args.type_hash or None,
                                                 node_name=args.node)
+    deadline = time.monotonic() + 30.0
+    while time.monotonic() < deadline and not all(
+            p.pub.matching_status.matching for p in pubs.values()):
+        time.sleep(0.01)  # until the bridge's subscriptions are known to this session
     print("ready", flush=True)
-    sys.stdin.readline()  # the test says when (its subscriber side is matched)
+    sys.stdin.readline()  # the test says when
     for item in lines:
         pubs[item["topic"]].publish(**_build(item["type"], item["fields"], get_message_class))
         print(f"sent {item['topic']}", flush=True)
@@ -155,9 +159,9 @@ def _value(cls: Any, name: str, value: Any, store: Any, np: Any) -> Any:
     if kind[0] == Nodetype.NAME:
         sub = store.types[kind[1]]
         return sub(**{k: _value(sub, k, v, store, np) for k, v in value.items()})
-    if kind[0] in (Nodetype.SEQUENCE, Nodetype.ARRAY) and kind[1][0] == Nodetype.BASE:
+    if kind[0] in (Nodetype.SEQUENCE, Nodetype.ARRAY) and kind[1][0][0] == Nodetype.BASE:
         dtype = {"float64": np.float64, "float32": np.float32, "int64": np.int64,
-                 "uint8": np.uint8, "int32": np.int32}[kind[1][1][0]]
+                 "uint8": np.uint8, "int32": np.int32}[kind[1][0][1][0]]
         return np.array(value, dtype=dtype)
     return value
 

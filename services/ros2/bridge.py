@@ -98,21 +98,23 @@ class Ros2Bridge:
                                          also=(self.keys.health(s.robot),),
                                          newest_above=LARGE)
 
-    def _subscribe(self, topic: str, *names: str) -> None:
-        types = [self._type(n) for n in names]
-        self._expect[topic] = types
-        self.node.subscription(topic, types[0], self._imports, self._drop)
+    def _subscribe(self, topics: dict[str, tuple[str, ...]]) -> None:
+        """One subscription for ``topics`` (topic → the types accepted, the first announced)."""
+        for topic, names in topics.items():
+            self._expect[topic] = [self._type(n) for n in names]
+        self.node.subscription({t: types[0] for t, types in self._expect.items()},
+                               self._imports, self._drop)
 
     def _declare_imports(self) -> None:
         s = self.s
         if s.from_ros == "estimate":
             self.sink = StatePublisher(self.bus, keys=self.keys, robot=s.robot)
-            self._subscribe(s.topic("slam/estimate"), SLAM_ESTIMATE)
-            self._subscribe(s.topic("slam/pose"), POSE_COV, ODOMETRY)
+            self._subscribe({s.topic("slam/estimate"): (SLAM_ESTIMATE,),
+                             s.topic("slam/pose"): (POSE_COV, ODOMETRY)})
         else:
             self.sink = RobotPublisher(self.bus, keys=self.keys, robot=s.robot)
-            self._subscribe(s.topic("odom"), ODOMETRY)
-            self._subscribe(s.topic("landmarks/observations"), RANGE_BEARING_ARRAY)
+            self._subscribe({s.topic("odom"): (ODOMETRY,),
+                             s.topic("landmarks/observations"): (RANGE_BEARING_ARRAY,)})
         self._odometry = OdometryInput(s.robot)
         self._pose_seq = 0
         self._estimates_seen = False

@@ -3,9 +3,10 @@
 Runs on the bridge's own Zenoh session (the bus's). The node announces itself with its
 ``NN`` liveliness token; each publisher holds an ``MP`` token and puts CDR payloads with the
 33-byte attachment (sequence number from 1, source time, its random GID); each
-subscription holds an ``MS`` token for the type it expects and subscribes to the topic's
-every type and hash (``<domain>/<topic>/*/*``), so a message of another type or hash is
-seen, and counted, instead of silently never arriving. Nothing waits in a Zenoh callback:
+subscription holds an ``MS`` token for the type it expects; the topics taken in are
+subscribed to as one (their common namespace, every type and hash), so a message of
+another type or hash is seen, and counted, instead of silently never arriving, and
+messages one node publishes on several topics keep its order. Nothing waits in a Zenoh callback:
 a subscription checks the attachment, copies the payload and queues it for the bridge's
 worker (:mod:`slamlens.common.bus`'s ``QueueChannel``: never blocks, bounded in bytes).
 """
@@ -28,8 +29,8 @@ from slamlens.services.ros2.wire import (
     Node,
     attachment,
     parse_attachment,
+    subscription_key,
     topic_key,
-    topic_key_any,
 )
 
 log = logging.getLogger("slamlens.ros2")
@@ -67,30 +68,36 @@ class RosPublisher:
 
 
 class RosSubscription:
-    """One topic's subscription: checked samples into ``queue`` (module docstring)."""
+    """The subscriptions of several topics as one Zenoh subscriber (module docstring): one
+    subscriber keeps the order in which one publishing session put them, across topics
+    (two subscribers' callbacks may run on two threads, out of that order)."""
 
-    def __init__(self, session: Any, node: Node, entity_id: int, topic: str,
-                 ros_type: RosType, queue: QueueChannel,
-                 drop: Callable[[str, str], None]) -> None:
-        self.topic = topic
-        self.key = topic_key_any(node.domain, topic)
+    def __init__(self, session: Any, node: Node, first_id: int, topics: dict[str, RosType],
+                 queue: QueueChannel, drop: Callable[[str, str], None]) -> None:
+        self.topics = dict(topics)
+        self.key = subscription_key(node.domain, list(topics))
+        wanted = {topic[1:] for topic in topics}
 
         def on_sample(sample: Any) -> None:
             key = str(sample.key_expr)
+            topic = key.split("/", 1)[1].rsplit("/", 2)[0] if key.count("/") >= 3 else ""
+            if topic not in wanted:
+                return  # another topic of the namespace: not ours, not copied
             raw = sample.attachment
             try:
                 parse_attachment(None if raw is None else raw.to_bytes())
             except MessageError as exc:
-                drop(topic, f"{key}: {exc}")
+                drop("/" + topic, f"{key}: {exc}")
                 return
             queue.push(Sample(key, sample.payload.to_bytes()))
 
         self._sub = session.declare_subscriber(self.key, on_sample)
-        self._token = session.liveliness().declare_token(node.endpoint_token(
-            entity_id, SUBSCRIPTION, topic, ros_type.name, ros_type.hash))
+        self._tokens = [session.liveliness().declare_token(node.endpoint_token(
+            first_id + k, SUBSCRIPTION, topic, t.name, t.hash))
+            for k, (topic, t) in enumerate(topics.items())]
 
     def undeclare(self) -> None:
-        for entity in (self._token, self._sub):
+        for entity in (*self._tokens, self._sub):
             try:
                 entity.undeclare()
             except Exception:
@@ -106,21 +113,24 @@ class RosNode:
                          namespace=namespace)
         self._token = session.liveliness().declare_token(self.node.token())
         self._entities: list[RosPublisher | RosSubscription] = []
+        self._ids = 0
         self._lock = threading.Lock()
 
-    def _next_id(self) -> int:
+    def _next_ids(self, count: int = 1) -> int:
         with self._lock:
-            return len(self._entities) + 1
+            first = self._ids + 1
+            self._ids += count
+            return first
 
     def publisher(self, topic: str, ros_type: RosType) -> RosPublisher:
-        pub = RosPublisher(self.session, self.node, self._next_id(), topic, ros_type)
+        pub = RosPublisher(self.session, self.node, self._next_ids(), topic, ros_type)
         self._entities.append(pub)
         return pub
 
-    def subscription(self, topic: str, ros_type: RosType, queue: QueueChannel,
+    def subscription(self, topics: dict[str, RosType], queue: QueueChannel,
                      drop: Callable[[str, str], None]) -> RosSubscription:
-        sub = RosSubscription(self.session, self.node, self._next_id(), topic, ros_type, queue,
-                              drop)
+        sub = RosSubscription(self.session, self.node, self._next_ids(len(topics)), topics,
+                              queue, drop)
         self._entities.append(sub)
         return sub
 

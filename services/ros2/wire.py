@@ -83,10 +83,16 @@ def topic_key(domain: int, topic: str, ros_type: str, type_hash: str) -> str:
     return f"{domain}/{check_topic(topic)[1:]}/{dds_type_name(ros_type)}/{type_hash}"
 
 
-def topic_key_any(domain: int, topic: str) -> str:
-    """Every data key of ``topic``, whatever its type and hash (what a subscriber that
-    counts foreign types listens on)."""
-    return f"{domain}/{check_topic(topic)[1:]}/*/*"
+def subscription_key(domain: int, topics: list[str]) -> str:
+    """One key expression for every data key of ``topics``, whatever their types and
+    hashes: their common namespace and everything under it."""
+    parts = [check_topic(t)[1:].split("/")[:-1] for t in topics]
+    common: list[str] = []
+    for chunks in zip(*parts, strict=False):
+        if len(set(chunks)) != 1:
+            break
+        common.append(chunks[0])
+    return "/".join([str(domain), *common, "**"])
 
 
 @dataclass(frozen=True)
