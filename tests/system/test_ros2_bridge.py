@@ -381,3 +381,50 @@ def test_humble_announces_no_type_hash(router: str, messages: Path) -> None:
     finally:
         for proc in (ros, estimator, bridge):
             stop(proc)
+
+
+@pytest.mark.parametrize("storage", ["mcap", "sqlite3"])
+def test_replay_a_rosbag2_as_inputs_and_as_estimates(router: str, tmp_path: Path,
+                                                     storage: str) -> None:
+    """``slamlens replay BAG --format rosbag2``: a bag written by rosbags' writer, played as
+    the robot's inputs (every one applied by the estimator) and as its states (bit for
+    bit)."""
+    from tests.unit.test_ros2_imports import estimate, odom, rba, write_bag
+
+    t0 = 1_700_000_000
+    items = []
+    for k in range(30):
+        items.append(("/robot1/odom", "nav_msgs/msg/Odometry",
+                      odom(t0 + k // 10, (k % 10) * 100_000_000, 0.2, 0.1),
+                      (t0 * 10 + k) * 100_000_000))
+        if k % 10 == 9:
+            items.append(("/robot1/landmarks/observations", "slamlens_msgs/msg/RangeBearingArray",
+                          rba(t0 + k // 10, [6, 7], [1.0, 2.0], [0.5, -0.5], 900_000_000),
+                          (t0 * 10 + k) * 100_000_000 + 1))
+    write_bag(tmp_path / "inputs", storage, items)
+    estimator = spawn("estimator", "--robot", ROBOT, "--connect", router)
+    estimator.wait_for_line("estimator ready")
+    replay = spawn("replay", str(tmp_path / "inputs"), "--format", "rosbag2", "--robot", ROBOT,
+                   "--rate", "0", "--connect", router)
+    line = replay.wait_for_line("replay done", timeout=120)
+    assert '"Odometry": 30' in line and '"Observations": 3' in line
+    assert "all applied by the estimator" in line
+    stop(replay)
+    stop(estimator)
+    msgs = [estimate(4, seq=k, seed=k, sec=t0 + k) for k in range(5)]
+    write_bag(tmp_path / "est", storage, [
+        ("/robot1/slam/estimate", "slamlens_msgs/msg/SlamEstimate", m, (t0 + k) * 10 ** 9)
+        for k, m in enumerate(msgs)])
+    states = States(router)
+    replay = spawn("replay", str(tmp_path / "est"), "--format", "rosbag2", "--robot", ROBOT,
+                   "--from-ros", "estimate", "--rate", "20", "--connect", router)
+    try:
+        replay.wait_for_line("replay done", timeout=120)
+        assert states.wait(lambda c: len(c.states) == len(msgs))
+    finally:
+        states.close()
+        stop(replay)
+    for m in msgs:
+        state = states.states[int(m.seq)]  # type: ignore[attr-defined]
+        assert state.covariance.tobytes() == m.covariance.tobytes()  # type: ignore[attr-defined]
+        assert state.landmarks.tobytes() == m.landmarks.tobytes()  # type: ignore[attr-defined]

@@ -93,9 +93,10 @@ def odom(sec: int, nsec: int, v: float, w: float) -> object:
                                       pose=pose, twist=twist)
 
 
-def rba(sec: int, ids: list[int], ranges: list[float], bearings: list[float]) -> object:
+def rba(sec: int, ids: list[int], ranges: list[float], bearings: list[float],
+        nsec: int = 0) -> object:
     return T["slamlens_msgs/msg/RangeBearingArray"](
-        header=header(sec), ids=np.array(ids, np.int64), ranges=np.array(ranges),
+        header=header(sec, nsec), ids=np.array(ids, np.int64), ranges=np.array(ranges),
         bearings=np.array(bearings))
 
 
