@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 from slamlens.common.config import setting
 from slamlens.common.errors import ConfigError
-from slamlens.common.keys import check_name
+from slamlens.common.keys import check_name, ros_node
 from slamlens.common.scene3d import SceneSettings
 from slamlens.services.ros2.wire import DISTROS, check_topic, ros_name
 
@@ -45,7 +45,8 @@ class Ros2Settings(SceneSettings):
                             choices=FROM_ROS)
     export: bool = setting(True, doc="publish the robot's markers, pose, path, tf and "
                                      "health to ROS 2 (--no-export: only take in)")
-    node: str = setting("", doc="ROS 2 node name (empty: slamlens_R)", metavar="NAME")
+    node: str = setting("", doc="ROS 2 node name (empty: slamlens_R; with --secure it must "
+                                "be that one)", metavar="NAME")
     queue_mb: float = setting(512.0, doc="ROS 2 messages waiting to be converted, at most "
                                          "(then the oldest are dropped, counted)", unit="MB",
                               min=1.0)
@@ -61,7 +62,7 @@ class Ros2Settings(SceneSettings):
         check_topic(self.topic("odom"))
 
     def node_name(self) -> str:
-        return self.node or f"slamlens_{ros_name(self.robot)}"
+        return self.node or ros_node(self.robot)
 
     def topic(self, leaf: str) -> str:
         """The robot's ROS 2 topic ``/R/leaf`` (inputs, estimates)."""

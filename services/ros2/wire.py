@@ -26,6 +26,9 @@ import struct
 from dataclasses import dataclass
 
 from slamlens.common.errors import ConfigError, MessageError
+from slamlens.common.keys import ros_name
+
+__all__ = ["ros_name"]
 
 ADMIN_SPACE = "@ros2_lv"
 HUMBLE_HASH = "TypeHashNotSupported"
@@ -64,13 +67,6 @@ def check_topic(topic: str) -> str:
         raise ConfigError(f"topic {topic!r} is not a fully qualified ROS 2 name "
                           "(/segment/segment, letters, digits and _)")
     return topic
-
-
-def ros_name(text: str) -> str:
-    """``text`` as a ROS 2 name segment: every character but letters, digits and ``_``
-    becomes ``_``, and a leading digit gets a ``_`` before it."""
-    out = re.sub(r"[^A-Za-z0-9_]", "_", text)
-    return f"_{out}" if out[:1].isdigit() or not out else out
 
 
 def mangle(name: str) -> str:
