@@ -16,7 +16,7 @@ kept as they are (their files are not rewritten), so adding a name never invalid
 certificate already copied to another machine. Only a router identity asked for a host it
 does not cover yet is re-issued, with the same key and the union of its hosts.
 
-The role of an identity is its name's form (``robot-R``, ``camera-C``, ``monitor-R``,
+The role of an identity is its name's form (``robot-R``, ``camera-C``, ``monitor-R``, ``ros2-R``,
 ``viewer-…``, ``router-…``), see :mod:`slamlens.common.security`.
 """
 

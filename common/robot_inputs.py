@@ -1,4 +1,4 @@
-"""A robot's inputs on the bus, as every driver publishes them (SPEC §7a).
+"""A robot's inputs on the bus, as every driver publishes them (docs/delivery.md).
 
 :class:`RobotPublisher` puts odometry and observations through advanced publishers with a
 cache of at least the last 60 s and 10 000 samples (an estimator that missed some, or
@@ -26,10 +26,10 @@ from slamlens.common.pacer import PACE_WINDOW, Pacer
 
 log = logging.getLogger("slamlens.driver")
 
-#: samples each input publisher caches (SPEC §7a: at least 10 000 and 60 s of inputs)
+#: samples each input publisher caches (at least 10 000 and 60 s of inputs, docs/delivery.md)
 INPUT_CACHE = 10_000
 class RobotPublisher:
-    """Publishes a robot's messages on their SPEC §7 keys, numbering the inputs."""
+    """Publishes a robot's messages on their keys (``common/keys.py``), numbering the inputs."""
 
     def __init__(self, bus: Bus, *, keys: Keys, robot: str) -> None:
         self.bus = bus
