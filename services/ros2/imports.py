@@ -8,8 +8,9 @@ it):
   from the Pose2D, landmark ids, ``landmarks`` (x0, y0, x1, y1 …) as [n, 2], ``covariance``
   row-major (3+2n)² as its matrix — the numbers bit for bit; step ``init`` for seq 0 and
   ``update`` otherwise; epoch 0 (unknown: consumers tell a restart by seq going back). The
-  arrays must have 2n and (3+2n)² entries, the covariance be symmetric (to 1e-6 of its
-  largest entry) and everything finite;
+  arrays must have 2n and (3+2n)² entries and everything be finite. The covariance is
+  passed on as it is, as a third-party estimator's SlamState would be: a viewer refuses an
+  asymmetric one, the monitor reports it (docs/protocol.md);
 * ``nav_msgs/msg/Odometry`` or ``geometry_msgs/msg/PoseWithCovarianceStamped`` from a
   pose-only estimator → a ``SlamState`` without landmarks: the pose (yaw from the
   quaternion) and its 3×3 covariance (x, y, yaw of the 6×6); numbered by the caller;
@@ -27,7 +28,6 @@ from typing import Any
 
 import numpy as np
 
-from slamlens.common.arrays import check_symmetric
 from slamlens.common.errors import MessageError
 from slamlens.common.messages import Observations, Odometry, SlamState
 from slamlens.services.ros2.rostypes import (
@@ -45,8 +45,8 @@ _POSE6 = np.array([0, 1, 5])
 def decode(payload: bytes, ros_type: str, distro: str) -> Any:
     """The ``rosbags`` message in ``payload``, or MessageError."""
     check_cdr(payload)
-    try:
-        return typestore(distro).deserialize_cdr(payload, ros_type)
+    try:  # a memoryview: rosbags slices off the header without copying 32 MB
+        return typestore(distro).deserialize_cdr(memoryview(payload), ros_type)
     except Exception as exc:  # rosbags raises its own errors, and struct's, on bad bytes
         raise MessageError(ros_type, "payload", "a CDR message of this type",
                            f"{type(exc).__name__}: {str(exc)[:120]}") from None
@@ -79,7 +79,6 @@ def slam_state(msg: Any, robot: str) -> SlamState:
         raise MessageError(SLAM_ESTIMATE, "covariance", f"(3+2n)² = {size * size} values",
                            str(len(msg.covariance)))
     covariance = np.asarray(msg.covariance).reshape(size, size)
-    check_symmetric(SLAM_ESTIMATE, "covariance", covariance)
     seq = int(msg.seq)
     stamp = stamp_of(msg.header)
     pose = msg.pose
@@ -99,7 +98,6 @@ def pose_state(msg: Any, ros_type: str, robot: str, seq: int) -> SlamState:
     if cov6.shape != (36,):
         raise MessageError(ros_type, "pose.covariance", "36 values", str(cov6.shape))
     cov = cov6.reshape(6, 6)[np.ix_(_POSE6, _POSE6)]
-    check_symmetric(ros_type, "pose.covariance", cov)
     stamp = stamp_of(msg.header)
     x = _finite(ros_type, "pose.position.x", float(pose.position.x))
     y = _finite(ros_type, "pose.position.y", float(pose.position.y))
