@@ -233,7 +233,8 @@ class Ros2Bridge:
         return {**self.counts, "published": {k: p.sent for k, p in self._pubs.items()},
                 "to_bus": sink, "dropped": self.drops.total,
                 "dropped_by_topic": dict(self.drops.counts),
-                "queue_dropped": self._imports.dropped}
+                "queue_dropped": self._imports.dropped,
+                "superseded": self._imports.superseded}
 
     def close(self) -> None:
         self.node.close()

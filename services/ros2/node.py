@@ -8,7 +8,11 @@ subscribed to as one (their common namespace, every type and hash), so a message
 another type or hash is seen, and counted, instead of silently never arriving, and
 messages one node publishes on several topics keep its order. Nothing waits in a Zenoh callback:
 a subscription checks the attachment, copies the payload and queues it for the bridge's
-worker (:mod:`slamlens.common.bus`'s ``QueueChannel``: never blocks, bounded in bytes).
+worker (:mod:`slamlens.common.bus`'s ``QueueChannel``: never blocks, bounded in bytes). A
+large payload (≥ 1 MB: an estimate of a big map) is not copied there — copying 32 MB on
+Zenoh's thread held up the router's link and it dropped the next ones — but when the
+worker takes it; if a newer one of its topic arrives first, the older is skipped (counted
+as superseded), as the viewer skips to the newest state.
 """
 
 from __future__ import annotations
@@ -34,6 +38,9 @@ from slamlens.services.ros2.wire import (
 )
 
 log = logging.getLogger("slamlens.ros2")
+#: a message at least this big (an estimate of some 180 landmarks and more) waits in Zenoh's
+#: buffer until the bridge takes it, and only the newest of its topic waits
+LARGE = 1 << 20
 
 
 class RosPublisher:
@@ -89,7 +96,11 @@ class RosSubscription:
             except MessageError as exc:
                 drop("/" + topic, f"{key}: {exc}")
                 return
-            queue.push(Sample(key, sample.payload.to_bytes()))
+            size = len(sample.payload)
+            if size >= LARGE:  # copied when taken, not on Zenoh's thread; newest only
+                queue.push_newest(Sample(key, b""), sample.payload.to_bytes, size)
+            else:
+                queue.push(Sample(key, sample.payload.to_bytes()))
 
         self._sub = session.declare_subscriber(self.key, on_sample)
         self._tokens = [session.liveliness().declare_token(node.endpoint_token(
