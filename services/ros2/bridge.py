@@ -22,7 +22,8 @@ import logging
 import threading
 from typing import Any
 
-from slamlens.common.bus import Bus, Channel, QueueChannel, Sample
+from slamlens.common.bus import Bus, Channel, Sample
+from slamlens.common.channel import QueueChannel
 from slamlens.common.drops import DropCounter
 from slamlens.common.errors import MessageError
 from slamlens.common.keys import Keys

@@ -8,7 +8,7 @@ subscribed to as one (their common namespace, every type and hash), so a message
 another type or hash is seen, and counted, instead of silently never arriving, and
 messages one node publishes on several topics keep its order. Nothing waits in a Zenoh callback:
 a subscription checks the attachment, copies the payload and queues it for the bridge's
-worker (:mod:`slamlens.common.bus`'s ``QueueChannel``: never blocks, bounded in bytes). A
+worker (:mod:`slamlens.common.channel`'s ``QueueChannel``: never blocks, bounded in bytes). A
 large payload (≥ 1 MB: an estimate of a big map) is not copied there — copying 32 MB on
 Zenoh's thread held up the router's link and it dropped the next ones — but when the
 worker takes it; if a newer one of its topic arrives first, the older is skipped (counted
@@ -24,7 +24,8 @@ import time
 from collections.abc import Callable
 from typing import Any
 
-from slamlens.common.bus import QueueChannel, Sample
+from slamlens.common.bus import Sample
+from slamlens.common.channel import QueueChannel
 from slamlens.common.errors import MessageError
 from slamlens.services.ros2.rostypes import RosType
 from slamlens.services.ros2.wire import (
