@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import json
 import sys
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +25,26 @@ from tests.ros2_side import messages_dir
 
 KEYS = Keys()
 ROBOT = "robot1"
+_STARTED: list[Service] = []
+
+
+def start(*args: str) -> Service:
+    """A slamlens process, stopped at the end of the test whatever happens."""
+    proc = spawn(*args)
+    _STARTED.append(proc)
+    return proc
+
+
+@pytest.fixture(autouse=True)
+def _reap() -> Iterator[None]:
+    yield
+    while _STARTED:
+        proc = _STARTED.pop()
+        if proc.poll() is None:
+            try:
+                stop(proc)
+            except AssertionError:  # it had to be killed: the test has failed already
+                pass
 
 
 class States(StateCollector):
@@ -54,8 +74,10 @@ def messages(tmp_path_factory: pytest.TempPathFactory) -> Path:
 
 
 def ros_side(mode: str, router: str, messages: Path, *args: str) -> Service:
-    return Service([sys.executable, "-m", "tests.ros2_side", mode, "--router", router,
+    proc = Service([sys.executable, "-m", "tests.ros2_side", mode, "--router", router,
                     "--messages", str(messages), *args], stdin=mode == "publish")
+    _STARTED.append(proc)
+    return proc
 
 
 def listener(router: str, messages: Path, topics: dict[str, str], *args: str) -> Service:
@@ -94,9 +116,9 @@ def test_export_reaches_an_rmw_zenoh_client_and_its_graph(router: str, messages:
     """sim → estimator → monitor → bridge → the SDK: markers equal to scene3d's picture of
     the very state, pose and covariance bit for bit, path, tf, health; `topic list` of the
     SDK's own graph cache and the node's token name everything."""
-    bridge = spawn("ros2", "--robot", ROBOT, "--connect", router)
-    estimator = spawn("estimator", "--robot", ROBOT, "--connect", router)
-    monitor = spawn("monitor", "--robot", ROBOT, "--connect", router)
+    bridge = start("ros2", "--robot", ROBOT, "--connect", router)
+    estimator = start("estimator", "--robot", ROBOT, "--connect", router)
+    monitor = start("monitor", "--robot", ROBOT, "--connect", router)
     for proc, line in ((bridge, "ros2 ready"), (estimator, "estimator ready"),
                        (monitor, "monitor ready")):
         proc.wait_for_line(line)
@@ -107,10 +129,11 @@ def test_export_reaches_an_rmw_zenoh_client_and_its_graph(router: str, messages:
               "/tf": "tf2_msgs/msg/TFMessage",
               "/slamlens/robot1/health": "diagnostic_msgs/msg/DiagnosticArray"}
     ros = listener(router, messages, topics)
-    sim = spawn("sim", "--robot", ROBOT, "--connect", router, "--rate", "0")
+    sim = start("sim", "--robot", ROBOT, "--connect", router, "--rate", "0")
     try:
         sim.wait_for_line("sim done", timeout=240)
         got = received(ros, lambda m: len(kinds(m)) == 5 and min(kinds(m).values()) >= 3)
+        assert states.wait(lambda c: len(c.states) > 50)
         graph = Service([str(Path(sys.executable).parent / "zenoh-ros2"), "--router",
                          router.split("/", 1)[1], "--no-daemon", "topic", "list", "-t"])
         listing, _ = graph.communicate(timeout=60)
@@ -122,10 +145,13 @@ def test_export_reaches_an_rmw_zenoh_client_and_its_graph(router: str, messages:
     finally:
         for proc in (sim, ros):
             stop(proc)
+        states.close()
+        monitor_out, estimator_out = stop(monitor), stop(estimator)
+        bridge_out, _ = stop(bridge)
+    assert monitor_out and estimator_out
     for topic, ros_type in topics.items():
         assert f"{topic} [{ros_type}]" in listing
     assert "slamlens_robot1" in node_names
-    assert states.wait(lambda c: len(c.states) > 50)
     by_stamp: dict[tuple[int, int], list[SlamState]] = {}  # a predict and an update share one
     for s in states.states.values():
         whole = int(np.floor(s.stamp))
@@ -159,10 +185,7 @@ def test_export_reaches_an_rmw_zenoh_client_and_its_graph(router: str, messages:
         cov = np.array(pose["pose"]["covariance"]).reshape(6, 6)[np.ix_([0, 1, 5], [0, 1, 5])]
         state_of(pose["header"], lambda s, c=cov, p=pose: np.array_equal(
             c, s.covariance[:3, :3]) and p["pose"]["pose"]["position"]["x"] == s.pose[0])
-    states.close()
-    for proc in (monitor, estimator):
-        stop(proc)
-    counts = final(stop(bridge)[0], "ros2")
+    counts = final(bridge_out, "ros2")
     assert counts["states"] >= len(arrays) and counts["dropped"] == 0
     assert counts["published"]["health"] >= 1
 
@@ -215,10 +238,10 @@ def test_a_ros2_estimator_becomes_the_robots_states(router: str, messages: Path,
                                                     tmp_path: Path) -> None:
     """SlamEstimate from the SDK → SlamState on the bus, every number bit for bit; the
     monitor checks them as it checks slamlens's own estimator."""
-    bridge = spawn("ros2", "--robot", ROBOT, "--connect", router, "--from-ros", "estimate",
+    bridge = start("ros2", "--robot", ROBOT, "--connect", router, "--from-ros", "estimate",
                    "--no-export")
     bridge.wait_for_line("ros2 ready")
-    monitor = spawn("monitor", "--robot", ROBOT, "--connect", router)
+    monitor = start("monitor", "--robot", ROBOT, "--connect", router)
     monitor.wait_for_line("monitor ready")
     states = States(router)
     healths: list[Health] = []
@@ -264,9 +287,9 @@ def test_a_ros2_robots_inputs_drive_the_estimator(router: str, messages: Path,
     from slamlens.services.slam.estimator import Estimator
     from slamlens.services.slam.settings import EstimatorSettings
 
-    bridge = spawn("ros2", "--robot", ROBOT, "--connect", router, "--from-ros", "inputs",
+    bridge = start("ros2", "--robot", ROBOT, "--connect", router, "--from-ros", "inputs",
                    "--no-export")
-    estimator = spawn("estimator", "--robot", ROBOT, "--connect", router)
+    estimator = start("estimator", "--robot", ROBOT, "--connect", router)
     for proc, line in ((bridge, "ros2 ready"), (estimator, "estimator ready")):
         proc.wait_for_line(line)
     states = States(router)
@@ -325,7 +348,7 @@ def test_bad_input_is_dropped_counted_and_named(router: str, tmp_path: Path) -> 
     dropped with a line naming it, counted; a good message after them still goes through."""
     from slamlens.services.ros2.rostypes import ros_type, typestore
 
-    bridge = spawn("ros2", "--robot", ROBOT, "--connect", router, "--from-ros", "estimate",
+    bridge = start("ros2", "--robot", ROBOT, "--connect", router, "--from-ros", "estimate",
                    "--no-export")
     bridge.wait_for_line("ros2 ready")
     states = States(router)
@@ -368,12 +391,12 @@ def test_bad_input_is_dropped_counted_and_named(router: str, tmp_path: Path) -> 
 
 
 def test_humble_announces_no_type_hash(router: str, messages: Path) -> None:
-    bridge = spawn("ros2", "--robot", ROBOT, "--connect", router, "--distro", "humble")
+    bridge = start("ros2", "--robot", ROBOT, "--connect", router, "--distro", "humble")
     bridge.wait_for_line("ros2 ready")
     ros = listener(router, messages, {"/slamlens/robot1/pose":
                                       "geometry_msgs/msg/PoseWithCovarianceStamped"},
                    "--type-hash", "TypeHashNotSupported")
-    estimator = spawn("estimator", "--robot", ROBOT, "--connect", router)
+    estimator = start("estimator", "--robot", ROBOT, "--connect", router)
     try:
         estimator.wait_for_line("estimator ready")
         (pose,) = received(ros, lambda m: len(m) >= 1)
@@ -402,9 +425,9 @@ def test_replay_a_rosbag2_as_inputs_and_as_estimates(router: str, tmp_path: Path
                           rba(t0 + k // 10, [6, 7], [1.0, 2.0], [0.5, -0.5], 900_000_000),
                           (t0 * 10 + k) * 100_000_000 + 1))
     write_bag(tmp_path / "inputs", storage, items)
-    estimator = spawn("estimator", "--robot", ROBOT, "--connect", router)
+    estimator = start("estimator", "--robot", ROBOT, "--connect", router)
     estimator.wait_for_line("estimator ready")
-    replay = spawn("replay", str(tmp_path / "inputs"), "--format", "rosbag2", "--robot", ROBOT,
+    replay = start("replay", str(tmp_path / "inputs"), "--format", "rosbag2", "--robot", ROBOT,
                    "--rate", "0", "--connect", router)
     line = replay.wait_for_line("replay done", timeout=120)
     assert '"Odometry": 30' in line and '"Observations": 3' in line
@@ -416,7 +439,7 @@ def test_replay_a_rosbag2_as_inputs_and_as_estimates(router: str, tmp_path: Path
         ("/robot1/slam/estimate", "slamlens_msgs/msg/SlamEstimate", m, (t0 + k) * 10 ** 9)
         for k, m in enumerate(msgs)])
     states = States(router)
-    replay = spawn("replay", str(tmp_path / "est"), "--format", "rosbag2", "--robot", ROBOT,
+    replay = start("replay", str(tmp_path / "est"), "--format", "rosbag2", "--robot", ROBOT,
                    "--from-ros", "estimate", "--rate", "20", "--connect", router)
     try:
         replay.wait_for_line("replay done", timeout=120)
