@@ -451,3 +451,44 @@ def test_replay_a_rosbag2_as_inputs_and_as_estimates(router: str, tmp_path: Path
         state = states.states[int(m.seq)]  # type: ignore[attr-defined]
         assert state.covariance.tobytes() == m.covariance.tobytes()  # type: ignore[attr-defined]
         assert state.landmarks.tobytes() == m.landmarks.tobytes()  # type: ignore[attr-defined]
+
+
+def test_a_pose_only_estimator_gives_states_without_landmarks(router: str) -> None:
+    """PoseWithCovarianceStamped on /R/slam/pose → a SlamState with the pose and its x, y,
+    yaw covariance and no landmarks (the viewer's pose ellipse and path, no pairs)."""
+    from slamlens.services.ros2.rostypes import ros_type, typestore
+
+    bridge = start("ros2", "--robot", ROBOT, "--connect", router, "--from-ros", "estimate",
+                   "--no-export")
+    bridge.wait_for_line("ros2 ready")
+    states = States(router)
+    store = typestore("jazzy")
+    T = store.types
+    name = "geometry_msgs/msg/PoseWithCovarianceStamped"
+    cov = np.zeros((6, 6))
+    cov[np.ix_([0, 1, 5], [0, 1, 5])] = [[0.04, 0.01, 0.0], [0.01, 0.09, 0.002],
+                                         [0.0, 0.002, 0.01]]
+    payload = bytes(store.serialize_cdr(T[name](
+        header=T["std_msgs/msg/Header"](stamp=T["builtin_interfaces/msg/Time"](
+            sec=12, nanosec=500_000_000), frame_id="map"),
+        pose=T["geometry_msgs/msg/PoseWithCovariance"](
+            pose=T["geometry_msgs/msg/Pose"](
+                position=T["geometry_msgs/msg/Point"](x=1.5, y=-0.5, z=0.0),
+                orientation=T["geometry_msgs/msg/Quaternion"](x=0.0, y=0.0, z=np.sin(0.25),
+                                                              w=np.cos(0.25))),
+            covariance=cov.reshape(-1))), name))
+    key = f"0/robot1/slam/pose/geometry_msgs::msg::dds_::PoseWithCovarianceStamped_/" \
+          f"{ros_type(name, 'jazzy').hash}"
+    attach = np.int64(1).tobytes() + np.int64(5).tobytes() + bytes([16]) + bytes(16)
+    bus = open_bus(BusSettings(connect=(router,)))
+    try:
+        assert bus.wait_for_subscriber(key, timeout=30)
+        bus.session.put(key, payload, attachment=attach)
+        assert states.wait(lambda c: 1 in c.states)
+    finally:
+        bus.close()
+        states.close()
+    state = states.states[1]
+    assert state.n == 0 and state.stamp == 12.5
+    assert state.pose[:2].tolist() == [1.5, -0.5] and np.isclose(state.pose[2], 0.5)
+    assert np.array_equal(state.covariance, cov[np.ix_([0, 1, 5], [0, 1, 5])])
