@@ -19,9 +19,9 @@ from slamlens.common.certs import extend_authority
 from slamlens.common.keys import Keys
 from slamlens.common.messages import SlamState
 from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus
+from slamlens.services.harness.procs import spawn, stop
 from slamlens.services.ros2.rostypes import ros_type, typestore
 from tests.integration.test_security import RouterProcess
-from tests.procs import spawn, stop
 
 NAMES = ["router-ws", "robot-robot1", "ros2-robot1", "viewer-rviz"]
 ESTIMATE = "slamlens_msgs/msg/SlamEstimate"

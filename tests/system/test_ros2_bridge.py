@@ -19,8 +19,8 @@ from slamlens.common.keys import Keys
 from slamlens.common.messages import Health, SlamState
 from slamlens.common.scene3d import SceneSettings, pair_glyphs
 from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus
-from tests.collect import StateCollector
-from tests.procs import Service, spawn, stop
+from slamlens.services.harness.collect import StateCollector
+from slamlens.services.harness.procs import Service, spawn, stop
 from tests.ros2_side import messages_dir
 
 KEYS = Keys()

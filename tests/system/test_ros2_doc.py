@@ -14,8 +14,8 @@ import shlex
 import sys
 from pathlib import Path
 
-from tests.netns import Hosts
-from tests.procs import REPO, Service, stop
+from slamlens.services.harness.netns import Hosts
+from slamlens.services.harness.procs import REPO, Service, stop
 
 DOC = REPO / "docs" / "ros2.md"
 #: services and the line each prints when ready
