@@ -16,7 +16,7 @@ kept as they are (their files are not rewritten), so adding a name never invalid
 certificate already copied to another machine. Only a router identity asked for a host it
 does not cover yet is re-issued, with the same key and the union of its hosts.
 
-The role of an identity is its name's form (``robot-R``, ``camera-C``, ``monitor-R``,
+The role of an identity is its name's form (``robot-R``, ``camera-C``, ``monitor-R``, ``ros2-R``,
 ``viewer-…``, ``router-…``), see :mod:`slamlens.common.security`.
 """
 
@@ -38,7 +38,7 @@ CA_KEY = "ca.key"
 CA_COMMON_NAME = "slamlens CA"
 CA_DAYS = 3650  #: ten years: a lab's authority should outlive its robots
 IDENTITY_DAYS = 1825  #: five years: within the CA's life, long enough never to surprise a lab
-ROLES = ("robot", "camera", "monitor", "viewer", "router")
+ROLES = ("robot", "camera", "monitor", "viewer", "router", "ros2")
 ROUTER_DEFAULT_HOSTS = ("localhost", "127.0.0.1", "::1")
 _LABEL = re.compile(r"^[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?$")
 
@@ -58,7 +58,7 @@ def parse_name(name: str) -> Identity:
     if not sep or role not in ROLES or not subject:
         raise ConfigError(f"identity name {name!r} must be ROLE-NAME with ROLE one of "
                           f"{', '.join(ROLES)} (e.g. robot-r1, viewer-lab)")
-    if role in ("robot", "monitor"):
+    if role in ("robot", "monitor", "ros2"):
         check_name("robot", subject)
     elif role == "camera":
         check_name("camera", subject)

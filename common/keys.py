@@ -28,6 +28,19 @@ def check_name(kind: str, name: str) -> str:
     return name
 
 
+def ros_name(text: str) -> str:
+    """``text`` as a ROS 2 name segment (a robot's namespace, a node name): every character
+    but letters, digits and ``_`` becomes ``_``, and a leading digit gets a ``_`` before it.
+    The ROS 2 bridge names a robot's topics with it; the access control of its keys too."""
+    out = re.sub(r"[^A-Za-z0-9_]", "_", text)
+    return f"_{out}" if out[:1].isdigit() or not out else out
+
+
+def ros_node(robot: str) -> str:
+    """The ROS 2 node name of robot ``robot``'s bridge."""
+    return f"slamlens_{ros_name(robot)}"
+
+
 def check_prefix(prefix: str) -> str:
     """Validate a key prefix: one or more segments joined by '/'."""
     if not isinstance(prefix, str) or not prefix or not all(

@@ -94,6 +94,9 @@ class PairGlyphs:
     flagged: np.ndarray  #: (G,) bool
     role: np.ndarray  #: (G,) 0 pair, 1 min, 2 mean, 3 max
     sizes_m: np.ndarray  #: (G,) √λmax of each glyph's P_d
+    #: (G, 2) landmark indices (state order, i < j) of each glyph's pair; in minmeanmax the
+    #: min / max glyph's pair and (-1, -1) for a mean (exporters key stable ids on it)
+    pairs: np.ndarray
 
 
 def flagged_pairs(health: Health | None) -> frozenset[tuple[int, int]]:
@@ -139,7 +142,8 @@ def pair_glyphs(state: SlamState, settings: SceneSettings,
             line_flagged=pair_flags, centres=np.column_stack([mid, np.zeros(len(mid))]),
             axes=np.column_stack([a, b, b]).reshape(-1, 3), yaw=yaw.reshape(-1),
             flagged=pair_flags, role=np.zeros(len(ii), np.int64),
-            sizes_m=pd_size_m(Pd).reshape(-1))
+            sizes_m=pd_size_m(Pd).reshape(-1),
+            pairs=np.column_stack([ii, jj]).astype(np.int64).reshape(-1, 2))
     stats = min_mean_max(ii, jj, Pd, clusters)
     c = len(stats.clusters)
     centroids = {int(k): xy[clusters == k].mean(axis=0) for k in np.unique(clusters).tolist()}
@@ -164,4 +168,7 @@ def pair_glyphs(state: SlamState, settings: SceneSettings,
         lines_xy=np.stack([start, end], axis=1).reshape(-1, 2, 2), line_flagged=group_flag,
         centres=centres.reshape(-1, 3), axes=np.column_stack([a, b, b]).reshape(-1, 3),
         yaw=yaw.reshape(-1), flagged=flags.astype(bool),
-        role=np.repeat(np.arange(1, 4), c).astype(np.int64), sizes_m=pd_size_m(P3).reshape(-1))
+        role=np.repeat(np.arange(1, 4), c).astype(np.int64), sizes_m=pd_size_m(P3).reshape(-1),
+        pairs=np.concatenate([np.column_stack([ii, jj])[stats.min_pair],
+                              np.full((c, 2), -1), np.column_stack([ii, jj])[stats.max_pair]]
+                             ).astype(np.int64).reshape(-1, 2))

@@ -16,6 +16,17 @@ common name, default deny:
   ``PREFIX/robot/R/**`` only; ``camera-C`` under ``PREFIX/camera/C/**`` only; ``monitor-R``
   on ``PREFIX/robot/R/health`` only; ``viewer-…`` nothing; ``router-…`` links routers and may
   send anything under the prefix (a router enforces the roles of its own clients);
+* ``ros2-R``, the ROS 2 bridge of robot R (``slamlens ros2``), may say the robot's
+  ``state``, ``odometry``, ``observations`` and its estimator's liveliness token (what it
+  takes in from ROS 2), and on the ROS 2 side (rmw_zenoh's keys, any domain) its exports
+  ``*/slamlens/Rn/**`` and ``*/tf/**`` and the liveliness tokens of its node
+  ``slamlens_Rn`` (Rn = R as a ROS 2 name); it may subscribe to the robot's ROS 2
+  namespace ``*/Rn/**``;
+* ``robot-R`` may also put in its ROS 2 namespace ``*/Rn/**`` (a ROS 2 robot's own topics);
+  both are sent everything there (data and the subscriptions that make it flow);
+* everyone may also read the bridges' exports (``*/slamlens/**``, ``*/tf/**``) and ROS 2's
+  graph (``@ros2_lv/**``: liveliness queries and subscriptions), so RViz and ``ros2 topic
+  list`` work with any identity;
 * every identity ``NAME`` may also announce and answer its own status
   (:mod:`slamlens.common.status`):
   hold a liveliness token, declare a queryable and reply under ``PREFIX/status/NAME/**``.
@@ -51,6 +62,7 @@ from slamlens.common.certs import (
 )
 from slamlens.common.endpoints import effective_endpoints
 from slamlens.common.errors import ConfigError, SecurityError
+from slamlens.common.keys import ros_name, ros_node
 
 #: every message kind Zenoh's access control filters
 ALL_MESSAGES = ("put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",
@@ -81,10 +93,21 @@ def _scope(*keys: str) -> list[str]:
     return out
 
 
+#: what everyone may read of ROS 2 (rmw_zenoh keys): the bridges' exports and the graph
+ROS_READ = ("*/slamlens/**", "*/tf/**", "@ros2_lv/**")
+
+
 def write_scope(identity: Identity, prefix: str) -> list[str]:
     """Key expressions ``identity`` may put, reply and hold tokens on (docs/security.md roles)."""
     if identity.role == "robot":
-        return _scope(f"{prefix}/robot/{identity.subject}/**")
+        return _scope(f"{prefix}/robot/{identity.subject}/**") + \
+            [f"*/{ros_name(identity.subject)}/**"]
+    if identity.role == "ros2":
+        robot = f"{prefix}/robot/{identity.subject}"
+        node = f"@ros2_lv/*/*/*/*/*/*/*/{ros_node(identity.subject)}"
+        return _scope(f"{robot}/state", f"{robot}/odometry", f"{robot}/observations",
+                      f"{robot}/alive/estimator") + [
+            f"*/slamlens/{ros_name(identity.subject)}/**", "*/tf/**", node, f"{node}/**"]
     if identity.role == "camera":
         return _scope(f"{prefix}/camera/{identity.subject}/**")
     if identity.role == "monitor":
@@ -102,7 +125,7 @@ def status_scope(identity: Identity, prefix: str) -> list[str]:
 def access_control(prefix: str, identities: Iterable[Identity]) -> dict[str, Any]:
     """Zenoh's ``access_control`` config enforcing the roles of ``identities``."""
     people = sorted({i.name: i for i in identities}.values(), key=lambda i: i.name)
-    everything = _scope(f"{prefix}/**")
+    everything = _scope(f"{prefix}/**") + list(ROS_READ)
     rules: list[dict[str, Any]] = [
         {"id": "read", "permission": "allow", "flows": ["ingress"],
          "messages": list(READ_MESSAGES), "key_exprs": everything},
@@ -124,6 +147,17 @@ def access_control(prefix: str, identities: Iterable[Identity]) -> dict[str, Any
             rules.append({"id": rule, "permission": "allow", "flows": ["ingress"],
                           "messages": list(messages), "key_exprs": scope})
             own.append(rule)
+        if identity.role in ("robot", "ros2"):  # the robot's ROS 2 namespace reaches them
+            namespace = [f"*/{ros_name(identity.subject)}/**"]
+            rules.append({"id": f"given {identity.name}", "permission": "allow",
+                          "flows": ["egress"], "messages": list(ALL_MESSAGES),
+                          "key_exprs": namespace})
+            own.append(f"given {identity.name}")
+        if identity.role == "ros2":  # and the bridge subscribes to it
+            rules.append({"id": f"take {identity.name}", "permission": "allow",
+                          "flows": ["ingress"], "messages": ["declare_subscriber"],
+                          "key_exprs": [f"*/{ros_name(identity.subject)}/**"]})
+            own.append(f"take {identity.name}")
         if identity.role != "router":  # a router may say anything under the prefix anyway
             rule = f"status {identity.name}"
             rules.append({"id": rule, "permission": "allow", "flows": ["ingress"],

@@ -90,6 +90,8 @@ def role_name(service: str, *, robot: str | None = None, camera: str | None = No
         return f"robot-{first_robot}"
     if service == "monitor" and first_robot:
         return f"monitor-{first_robot}"
+    if service == "ros2" and first_robot:
+        return f"ros2-{first_robot}"
     if service == "registration" and first_camera:
         return f"camera-{first_camera}"
     if service == "router":

@@ -47,8 +47,8 @@ COMMANDS: dict[str, Command] = {
                    "slam.settings:SimSettings"),
     "estimator": Command("slam.cli", "the EKF-SLAM estimator service",
                          "slam.settings:EstimatorSettings"),
-    "replay": Command("slam.cli", "a recorded dataset (MRCLAM) as a robot driver",
-                      "slam.settings:ReplaySettings"),
+    "replay": Command("commands.replay", "a recorded dataset (MRCLAM, rosbag2) as a robot "
+                      "driver", "slam.settings:ReplaySettings"),
     "serial": Command("slam.cli", "a real robot on a serial line",
                       "slam.settings:SerialSettings"),
     "monitor": Command("slam.cli", "the covariance behaviour monitor",
@@ -76,6 +76,9 @@ COMMANDS: dict[str, Command] = {
                     "recorder.settings:PlaySettings"),
     "foxglove": Command("recorder.cli", "the live scene over Foxglove's WebSocket "
                         "protocol", "recorder.settings:FoxgloveSettings"),
+    "ros2": Command("ros2.cli", "a robot to and from ROS 2 over rmw_zenoh: RViz markers, "
+                    "pose, path, tf, health; a ROS 2 estimator or robot in",
+                    "ros2.settings:Ros2Settings"),
     "certs": Command("commands.certs", "create or extend the certificate authority for "
                      "mutual TLS", "commands.settings:CertsSettings", bus=False, config=False),
     "launch": Command("commands.launch", "a described group of services, supervised: order, "

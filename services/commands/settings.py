@@ -94,7 +94,7 @@ class CertsSettings:
     directory: str = setting("", doc="folder of the authority (created 0700); existing files "
                                      "are kept", positional=True, required=True, metavar="DIR")
     names: tuple[str, ...] = setting(
-        (), doc="identity to issue (repeatable): robot-R, camera-C, monitor-R, viewer-…, "
+        (), doc="identity to issue (repeatable): robot-R, camera-C, monitor-R, ros2-R, viewer-…, "
                 "router-…", flag="--name", action="append", required=True, metavar="NAME")
     hosts: tuple[str, ...] = setting(
         (), doc="DNS name or IP address clients dial a router at (repeatable); added to the "

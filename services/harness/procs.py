@@ -33,10 +33,11 @@ class Service:
     """A running slamlens process; most of :class:`subprocess.Popen` is passed through."""
 
     def __init__(self, argv: list[str], *, env: dict[str, str] | None = None,
-                 cwd: Path = REPO) -> None:
+                 cwd: Path = REPO, stdin: bool = False) -> None:
         full_env = dict(os.environ, PYTHONUNBUFFERED="1", **(env or {}))
         self.proc = subprocess.Popen(argv, cwd=cwd, env=full_env, stdout=subprocess.PIPE,
-                                     stderr=subprocess.PIPE, text=True)
+                                     stderr=subprocess.PIPE, text=True,
+                                     stdin=subprocess.PIPE if stdin else None)
         self.args = argv
         self.out: list[str] = []
         self.err: list[str] = []
@@ -58,6 +59,12 @@ class Service:
                     self._lines.put(line)
         if lines:
             self._lines.put(None)
+
+    def send(self, line: str) -> None:
+        """Write one line to the process's standard input (``stdin=True``)."""
+        assert self.proc.stdin is not None
+        self.proc.stdin.write(line + "\n")
+        self.proc.stdin.flush()
 
     # -- Popen-like ------------------------------------------------------------------
     @property
@@ -90,6 +97,11 @@ class Service:
         return self.output()
 
     def output(self) -> tuple[str, str]:
+        if self.proc.stdin is not None and not self.proc.stdin.closed:
+            try:
+                self.proc.stdin.close()
+            except OSError:  # the process is gone: nothing to flush into
+                pass
         for t in self._readers:
             t.join(timeout=5.0)
         return "".join(self.out), "".join(self.err)

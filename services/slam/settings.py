@@ -97,10 +97,16 @@ class SimSettings:
 class ReplaySettings:
     """``slamlens replay``: a recorded dataset as a robot driver (docs/drivers.md)."""
 
-    path: str = setting("", doc="dataset folder (e.g. ../shared/data/mrclam6)",
-                        positional=True, required=True, metavar="PATH")
+    path: str = setting("", doc="dataset folder (e.g. ../shared/data/mrclam6, or a rosbag2 "
+                                "folder)", positional=True, required=True, metavar="PATH")
     robot: str = _robot()
-    format: str = setting("mrclam", doc="dataset format", choices=("mrclam",))
+    format: str = setting("mrclam", doc="dataset format: mrclam | rosbag2 (a bag of a ROS 2 "
+                                        "robot's topics, docs/ros2.md)",
+                          choices=("mrclam", "rosbag2"))
+    from_ros: str = setting("inputs", doc="rosbag2: play the bag's /R/odom and "
+                                          "/R/landmarks/observations as the robot's inputs, or "
+                                          "its /R/slam/estimate (or /R/slam/pose) as its states",
+                            choices=("inputs", "estimate"))
     robot_index: int = setting(1, doc="which robot of the dataset: MRCLAM Robot{k}_*.dat",
                                min=1)
     robots: str = setting(

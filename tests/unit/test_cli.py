@@ -94,6 +94,10 @@ LEGACY_FLAGS = {
     "summary": ["--robot", "--hold-s", "--cache", "--max-pending", "--max-group-pairs",
                 "--max-pairs",
                 "--connect", "--config", "--secure", "--name", "--quiet", "--verbose"],
+    # the ROS 2 bridge (docs/ros2.md)
+    "ros2": ["--robot", "--domain", "--distro", "--from-ros", "--no-export", "--node",
+             "--mode", "--cluster-threshold", "--glyph", "--connect", "--config", "--secure",
+             "--name", "--quiet", "--verbose"],
 }
 
 

@@ -45,7 +45,8 @@ def test_generated_roles(pki) -> None:
     writes = ["put", "delete", "reply", "declare_queryable", "liveliness_token"]
     assert _rule(acl, "say robot-r1") == {
         "id": "say robot-r1", "permission": "allow", "flows": ["ingress"], "messages": writes,
-        "key_exprs": ["lab/slamlens/robot/r1/**", "lab/slamlens/robot/r1/**/@adv/**"]}
+        "key_exprs": ["lab/slamlens/robot/r1/**", "lab/slamlens/robot/r1/**/@adv/**",
+                      "*/r1/**"]}  # and its ROS 2 namespace (a ROS 2 robot's topics)
     assert _rule(acl, "say camera-overhead")["key_exprs"] == [
         "lab/slamlens/camera/overhead/**", "lab/slamlens/camera/overhead/**/@adv/**"]
     assert _rule(acl, "say monitor-r1")["key_exprs"] == [
@@ -66,14 +67,17 @@ def test_generated_roles(pki) -> None:
     assert not [r for r in acl["rules"] if r["id"] == "status router-ws"]  # says anything
     read = _rule(acl, "read")
     assert read["flows"] == ["ingress"] and "put" not in read["messages"]
-    assert read["key_exprs"] == ["lab/slamlens/**", "lab/slamlens/**/@adv/**"]
+    assert read["key_exprs"] == ["lab/slamlens/**", "lab/slamlens/**/@adv/**",
+                                 "*/slamlens/**", "*/tf/**", "@ros2_lv/**"]
     assert _rule(acl, "announce-subscribers")["key_exprs"] == ["lab/slamlens/**/@adv/sub/**"]
     assert _rule(acl, "deliver")["flows"] == ["egress"]
     policies = {p["id"]: p for p in acl["policies"]}
     assert policies["everyone"]["subjects"] == sorted(NAMES)
     assert policies["robot-r1"] == {"id": "robot-r1",
-                                    "rules": ["say robot-r1", "status robot-r1"],
+                                    "rules": ["say robot-r1", "given robot-r1",
+                                              "status robot-r1"],
                                     "subjects": ["robot-r1"]}
+    assert _rule(acl, "given robot-r1")["key_exprs"] == ["*/r1/**"]
     assert policies["viewer-lab"] == {"id": "viewer-lab", "rules": ["status viewer-lab"],
                                       "subjects": ["viewer-lab"]}
     assert policies["router-ws"]["rules"] == ["say router-ws"]
@@ -198,3 +202,26 @@ def test_a_router_links_to_the_routers_it_is_told_to() -> None:
     conf = build_config(router_settings([], connect=["tcp/10.0.0.2:7447"]))
     assert effective_endpoints(conf, "connect", "router") == ["tcp/10.0.0.2:7447"]
     assert effective_endpoints(conf, "listen", "router") == ["tcp/127.0.0.1:7447"]
+
+
+def test_the_ros2_bridge_role_says_exactly_what_it_publishes(tmp_path) -> None:
+    extend_authority(tmp_path / "pki", ["router-ws", "ros2-robot-1", "viewer-rviz"])
+    acl = access_control("slamlens", identities_in(tmp_path / "pki"))
+    say = _rule(acl, "say ros2-robot-1")
+    assert say["messages"] == ["put", "delete", "reply", "declare_queryable", "liveliness_token"]
+    assert say["key_exprs"] == [
+        "slamlens/robot/robot-1/state", "slamlens/robot/robot-1/state/@adv/**",
+        "slamlens/robot/robot-1/odometry", "slamlens/robot/robot-1/odometry/@adv/**",
+        "slamlens/robot/robot-1/observations", "slamlens/robot/robot-1/observations/@adv/**",
+        "slamlens/robot/robot-1/alive/estimator",
+        "slamlens/robot/robot-1/alive/estimator/@adv/**",
+        "*/slamlens/robot_1/**", "*/tf/**",
+        "@ros2_lv/*/*/*/*/*/*/*/slamlens_robot_1", "@ros2_lv/*/*/*/*/*/*/*/slamlens_robot_1/**"]
+    assert _rule(acl, "take ros2-robot-1") == {
+        "id": "take ros2-robot-1", "permission": "allow", "flows": ["ingress"],
+        "messages": ["declare_subscriber"], "key_exprs": ["*/robot_1/**"]}
+    given = _rule(acl, "given ros2-robot-1")
+    assert given["flows"] == ["egress"] and given["key_exprs"] == ["*/robot_1/**"]
+    policies = {p["id"]: p for p in acl["policies"]}
+    assert policies["ros2-robot-1"]["rules"] == ["say ros2-robot-1", "given ros2-robot-1",
+                                                 "take ros2-robot-1", "status ros2-robot-1"]
