@@ -15,7 +15,8 @@ from mcap.writer import CompressionType, Writer
 
 from slamlens.common.errors import SourceError
 from slamlens.common.messages import Health, SlamState, Violation
-from slamlens.common.scene3d import VIOLATION, SceneSettings, pair_glyphs
+from slamlens.common.scene3d import VIOLATION, SceneSettings, pair_glyphs, summary_glyphs
+from slamlens.common.summary import Summariser, SummaryQuery
 from slamlens.services.harness.procs import REPO
 from slamlens.services.recorder.channels import FoxgloveTranslator, covariance_summary
 from slamlens.services.recorder.layout import message_of_key, ntp64_to_ns, record_expressions
@@ -24,6 +25,7 @@ from slamlens.services.recorder.scene import scene_update
 from slamlens.services.recorder.timeline import PlayClock
 from slamlens.services.visualiser.scene import build_scene
 from slamlens.services.visualiser.settings import ViewSettings
+from slamlens.services.visualiser.summary_view import summarised_state, summary_scene
 from tests.mcap_check import protobuf_class
 
 SCENE = None
@@ -93,6 +95,24 @@ def test_the_foxglove_glyphs_are_the_viewers_glyphs(mode: str, glyph: str) -> No
     np.testing.assert_allclose(mine.yaw, theirs.glyphs.yaw)
     np.testing.assert_array_equal(mine.role, theirs.glyph_role)
     np.testing.assert_allclose(mine.sizes_m, theirs.glyph_size)
+
+
+def test_the_summary_glyphs_are_the_viewers_summary_glyphs() -> None:
+    state = _state(n=40, seed=3)
+    summary = Summariser().make(state, SummaryQuery(what="clusters", threshold_m=0.9))
+    flagged = frozenset({(10, 30)})
+    mine = summary_glyphs(summary, SceneSettings(glyph="linear"), flagged)
+    theirs = summary_scene(summarised_state(summary), ViewSettings(glyph="linear",
+                                                                   mode="minmeanmax"),
+                           flagged)
+    assert len(mine.centres) > 3
+    np.testing.assert_allclose(mine.centres, theirs.glyphs.centres, atol=1e-9)
+    np.testing.assert_allclose(mine.axes[:, 0], theirs.glyphs.a)
+    np.testing.assert_allclose(mine.axes[:, 1], theirs.glyphs.b)
+    np.testing.assert_allclose(mine.yaw, theirs.glyphs.yaw)
+    np.testing.assert_array_equal(mine.role, theirs.glyph_role)
+    np.testing.assert_array_equal(mine.flagged, theirs.glyph_violation)
+    np.testing.assert_allclose(mine.lines_xy, theirs.lines_xy)
 
 
 def _decode_scene(data: bytes):
