@@ -76,6 +76,8 @@ COMMANDS: dict[str, Command] = {
                     "recorder.settings:PlaySettings"),
     "foxglove": Command("recorder.cli", "the live scene over Foxglove's WebSocket "
                         "protocol", "recorder.settings:FoxgloveSettings"),
+    "rerun": Command("rerun.cli", "the live scene into Rerun (an .rrd file, a viewer, "
+                     "a gRPC server); needs the rerun extra", "rerun.settings:RerunSettings"),
     "certs": Command("commands.certs", "create or extend the certificate authority for "
                      "mutual TLS", "commands.settings:CertsSettings", bus=False, config=False),
     "launch": Command("commands.launch", "a described group of services, supervised: order, "
