@@ -176,6 +176,7 @@ class RerunSink:
         t = self.translator
         return {"where": self.where, "drawn": t.drawn, "glyphs": t.glyphs,
                 "maps": t.maps, "logged": self.logged, "bad": self.bad.total,
+                "bad_by_kind": dict(self.bad.counts),
                 "rate_skipped": t.skipped, "early_frames": t.early,
                 "received": {k: s.count for k, s in self._slots.items()},
                 "superseded": {k: s.dropped for k, s in self._slots.items()}}

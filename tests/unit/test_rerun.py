@@ -203,6 +203,7 @@ def test_scene_hz_thins_the_states_and_a_new_map_starts_the_path_again() -> None
     ("frame", _frame(1.0, b"GIF89a"), "data"),
     ("registration", _registration(1.0, np.diag([2.0, 1.0, 1.0, 1.0])), "T_camera_from_map"),
     ("truth", b"", ""),
+    ("summary", _state().to_bytes(), ""),
 ])
 def test_what_cannot_be_converted_is_a_message_error(kind: str, payload: bytes,
                                                      field: str) -> None:
