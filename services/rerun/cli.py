@@ -32,7 +32,8 @@ def _status(sink: RerunSink) -> Provider:
         t = sink.translator
         return Report(state="drawing" if t.drawn else "waiting for states",
                       counts={"states": t.drawn, "seq": t.seq, "images": t.images,
-                              "cameras": t.cameras, "logged": sink.logged},
+                              "cameras": t.cameras, "logged": sink.logged,
+                              "superseded": sink.superseded},
                       dropped=sink.bad.total, rated=("states",))
     return report
 

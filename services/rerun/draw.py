@@ -98,7 +98,8 @@ def glyph_logs(robot: str, glyphs: PairGlyphs) -> list[Log]:
         fill_mode=rr.components.FillMode.Solid)
     segments = np.concatenate([glyphs.lines_xy, np.zeros((len(glyphs.lines_xy), 2, 1))],
                               axis=2) if len(glyphs.lines_xy) else np.zeros((0, 2, 3))
-    lines = rr.LineStrips3D(list(segments), radii=LINE_RADIUS_M,
+    lines = rr.LineStrips3D(segments,  # type: ignore[arg-type]  # (k, 2, 3): the SDK's fast path
+                            radii=LINE_RADIUS_M,
                             colors=colours(glyphs.line_flagged, LINE, VIOLATION))
     return [Log(robot_path(robot, "ellipsoids"), (ellipsoids,)),
             Log(robot_path(robot, "pairs"), (lines,))]

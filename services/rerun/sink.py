@@ -172,6 +172,11 @@ class RerunSink:
             self._wake.clear()
             self.step()
 
+    @property
+    def superseded(self) -> int:
+        """Inputs replaced by a newer one before the worker took them."""
+        return sum(slot.dropped for slot in self._slots.values())
+
     def summary(self) -> dict[str, Any]:
         t = self.translator
         return {"where": self.where, "drawn": t.drawn, "glyphs": t.glyphs,
