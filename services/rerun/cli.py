@@ -57,9 +57,10 @@ def run(command: str, args: argparse.Namespace) -> int:
         sink.late_join()
         print(f"rerun ready: {sink.where}", flush=True)
         sink.run(stop)
+        sink.finish()
+        print(f"rerun stopped: {json.dumps(sink.summary())}", flush=True)
     finally:
         if sink is not None:
-            sink.close()
+            sink.close()  # (a viewer that never answered: Rerun waits up to 5 s for it)
         bus.close()
-    print(f"rerun stopped: {json.dumps(sink.summary())}", flush=True)
     return 0

@@ -74,6 +74,7 @@ class RerunSink:
         self.rec = rr.RecordingStream(APPLICATION_ID)
         self.where = self._sinks()
         self._puller: SummaryPuller | None = None
+        self._finished = False
         for kind, key in self.inputs():
             slot = self._slots[kind] = Latest(on_put=self._wake.set)
             if kind == "summary":
@@ -186,15 +187,22 @@ class RerunSink:
                 "received": {k: s.count for k, s in self._slots.items()},
                 "superseded": {k: s.dropped for k, s in self._slots.items()}}
 
-    def close(self) -> None:
-        """Stop taking input, log the final paths, let the sinks finish (the file gets its
-        footer)."""
+    def finish(self) -> None:
+        """Stop taking input and log the final paths (idempotent)."""
+        if self._finished:
+            return
+        self._finished = True
         if self._puller is not None:
             self._puller.stop()
         for slot in self._slots.values():
             slot.close()
+        self._log(self.translator.finish())
+
+    def close(self) -> None:
+        """:meth:`finish`, then let the sinks take what was logged (the file gets its
+        footer; a viewer that never answered is given up after Rerun's own wait)."""
         try:
-            self._log(self.translator.finish())
+            self.finish()
             self.rec.flush(timeout_sec=FLUSH_S)
         finally:
             self.rec.disconnect()
