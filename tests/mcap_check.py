@@ -88,3 +88,17 @@ def validate(path: Path) -> dict[str, list[tuple[Any, Any]]]:
         records = list(StreamReader(f, validate_crcs=True).records)
     assert records, "no records"
     return out
+
+
+def layout_topics(layout: dict[str, Any]) -> set[str]:
+    """Every topic a Foxglove layout (the app's export format) names: 3D and Image panels'
+    topics, an Image panel's image and calibration, Plot series, a Table's topic."""
+    topics: set[str] = set()
+    for config in layout["configById"].values():
+        topics.update(config.get("topics", {}))
+        mode = config.get("imageMode", {})
+        topics.update(mode[k] for k in ("imageTopic", "calibrationTopic") if k in mode)
+        topics.update(series["value"].split(".", 1)[0] for series in config.get("paths", []))
+        if "topicPath" in config:
+            topics.add(config["topicPath"].split(".", 1)[0])
+    return topics

@@ -79,6 +79,8 @@ COMMANDS: dict[str, Command] = {
     "ros2": Command("ros2.cli", "a robot to and from ROS 2 over rmw_zenoh: RViz markers, "
                     "pose, path, tf, health; a ROS 2 estimator or robot in",
                     "ros2.settings:Ros2Settings"),
+    "rerun": Command("rerun.cli", "the live scene into Rerun (an .rrd file, a viewer, "
+                     "a gRPC server); needs the rerun extra", "rerun.settings:RerunSettings"),
     "certs": Command("commands.certs", "create or extend the certificate authority for "
                      "mutual TLS", "commands.settings:CertsSettings", bus=False, config=False),
     "launch": Command("commands.launch", "a described group of services, supervised: order, "

@@ -10,6 +10,11 @@ log_time_ns)``) and returns the Foxglove messages they make (docs/recording.md):
 * its ``health`` → ``health`` (JSON: ok, verdict, violations, suspects, and every statistic
   of the monitor: NEES, NIS, their bounds …) at the same rate, and every health that is not
   ok; the scene marks what the newest blames in magenta;
+* with each scene, ``transform`` (``foxglove.FrameTransform`` ``map`` → ``R/base_link``, the
+  estimated pose: a 3D panel can follow the robot) and, when the scene carries the path,
+  ``path`` (``foxglove.PosesInFrame``: every estimated pose so far, thinned beyond a length);
+* its ``truth`` → ``truth`` (a ``SceneUpdate`` of its own: the true robot, landmarks and
+  path) at most ``scene_hz`` per robot second; a truth not drawn only adds to the path;
 * a camera's ``frame`` → ``image`` (``foxglove.CompressedImage``), its ``registration`` →
   ``calibration`` (``foxglove.CameraCalibration``) and ``transform``
   (``foxglove.FrameTransform`` from ``map`` to ``camera_C``), so Foxglove's Image panel can
@@ -31,6 +36,8 @@ from foxglove.messages import (
     CompressedImage,
     FrameTransform,
     Point3,
+    Pose,
+    PosesInFrame,
     Quaternion,
     SceneUpdate,
     Vector3,
@@ -39,9 +46,16 @@ from foxglove.messages import (
 from slamlens.common.arrays import decode_array
 from slamlens.common.errors import MessageError
 from slamlens.common.geometry import all_relative_covariances, invert_T, pd_size_m
-from slamlens.common.messages import CameraFrame, Health, Registration, SlamState, peek_fields
+from slamlens.common.messages import (
+    CameraFrame,
+    Health,
+    Registration,
+    SlamState,
+    Truth,
+    peek_fields,
+)
 from slamlens.services.recorder.layout import message_of_key
-from slamlens.services.recorder.scene import MAP_FRAME, scene_update, timestamp
+from slamlens.services.recorder.scene import MAP_FRAME, scene_update, timestamp, truth_update
 from slamlens.services.recorder.settings import SceneSettings
 
 PATH_PERIOD_S = 1.0  #: the path entity is sent at most once per this much robot time
@@ -111,6 +125,7 @@ SCENE_SCHEMA = _proto(SceneUpdate)
 IMAGE_SCHEMA = _proto(CompressedImage)
 CALIBRATION_SCHEMA = _proto(CameraCalibration)
 TRANSFORM_SCHEMA = _proto(FrameTransform)
+POSES_SCHEMA = _proto(PosesInFrame)
 
 
 def robot_topic(robot: str, leaf: str) -> str:
@@ -123,6 +138,35 @@ def camera_topic(camera: str, leaf: str) -> str:
 
 def camera_frame_id(camera: str) -> str:
     return f"camera_{camera}"
+
+
+def robot_frame_id(robot: str) -> str:
+    """The robot's frame, child of ``map`` by its estimated pose."""
+    return f"{robot}/base_link"
+
+
+def planar_pose(x: float, y: float, theta: float) -> Pose:
+    """A pose on the floor of the map, heading ``theta`` about z."""
+    return Pose(position=Vector3(x=x, y=y, z=0.0), orientation=_heading(theta))
+
+
+def _heading(theta: float) -> Quaternion:
+    return Quaternion(x=0.0, y=0.0, z=math.sin(0.5 * theta), w=math.cos(0.5 * theta))
+
+
+def robot_transform(robot: str, pose: np.ndarray, log_time_ns: int) -> bytes:
+    """``FrameTransform`` ``map`` → ``R/base_link`` at the estimated pose (x, y, θ)."""
+    x, y, theta = (float(v) for v in np.asarray(pose).reshape(3))
+    return FrameTransform(timestamp=timestamp(log_time_ns), parent_frame_id=MAP_FRAME,
+                          child_frame_id=robot_frame_id(robot),
+                          translation=Vector3(x=x, y=y, z=0.0),
+                          rotation=_heading(theta)).encode()
+
+
+def path_poses(poses: list[Pose], log_time_ns: int) -> bytes:
+    """``PosesInFrame`` of the estimated path in ``map``."""
+    return PosesInFrame(timestamp=timestamp(log_time_ns), frame_id=MAP_FRAME,
+                        poses=poses).encode()
 
 
 def covariance_summary(state: SlamState) -> dict[str, Any]:
@@ -197,6 +241,7 @@ def _quaternion(R: np.ndarray) -> tuple[float, float, float, float]:
 class _Robot:
     path: list[tuple[float, float]] = field(default_factory=list)
     path_fx: list[Point3] = field(default_factory=list)  #: the same as Foxglove points
+    poses: list[Pose] = field(default_factory=list)  #: the same with headings
     epoch: int | None = None
     last_seq: int = -1
     last_scene_stamp: float | None = None
@@ -207,6 +252,10 @@ class _Robot:
     last_health_stamp: float | None = None
     new_map: bool = True
     last_path_stamp: float | None = None
+    truth_path: list[Point3] = field(default_factory=list)
+    truth_last: tuple[float, float] | None = None  #: the last point of the true path
+    last_truth_stamp: float | None = None
+    pending_truth: tuple[bytes, int] | None = None  #: newest truth not drawn yet
 
 
 class FoxgloveTranslator:
@@ -229,6 +278,8 @@ class FoxgloveTranslator:
             return self._state(payload, log_time_ns)
         if kind == "Health":
             return self._health(payload, log_time_ns)
+        if kind == "Truth" and key.endswith("/truth"):  # a robot's truth (not a camera's
+            return self._truth(payload, log_time_ns)    # tracked pose)
         if kind == "CameraFrame":
             frame = CameraFrame.from_bytes(payload)
             image = CompressedImage(timestamp=timestamp(log_time_ns),
@@ -301,7 +352,8 @@ class FoxgloveTranslator:
         epoch = head.get("epoch", 0)
         robot = self._robot(name)
         if robot.epoch != epoch or seq < robot.last_seq:
-            robot.path, robot.path_fx, robot.epoch, robot.new_map = [], [], epoch, True
+            robot.path, robot.path_fx, robot.poses = [], [], []
+            robot.epoch, robot.new_map = epoch, True
             robot.last_scene_stamp = robot.last_path_stamp = None
             robot.health = robot.health_raw = None
         robot.last_seq = seq
@@ -309,9 +361,11 @@ class FoxgloveTranslator:
         if not robot.path or robot.path[-1] != point:
             robot.path.append(point)
             robot.path_fx.append(Point3(x=point[0], y=point[1], z=0.0))
+            robot.poses.append(planar_pose(point[0], point[1], float(pose[2])))
             if len(robot.path) > 2 * self.settings.path_points:
                 robot.path = robot.path[::2]  # thin the old path, keep its shape
                 robot.path_fx = robot.path_fx[::2]
+                robot.poses = robot.poses[::2]
         if not (robot.new_map or self._due(robot.last_scene_stamp, stamp)):
             robot.pending = (payload, log_time_ns)
             return []
@@ -332,11 +386,53 @@ class FoxgloveTranslator:
         robot.new_map = False
         self.scenes += 1
         self.glyphs = len(glyphs.centres)
-        return [FoxgloveMessage(robot_topic(state.robot, "scene"), SCENE_SCHEMA, "protobuf",
-                                data, log_time_ns),
-                FoxgloveMessage(robot_topic(state.robot, "covariance"), COVARIANCE_SCHEMA,
-                                "json", json.dumps(covariance_summary(state)).encode(),
-                                log_time_ns)]
+        out = [FoxgloveMessage(robot_topic(state.robot, "scene"), SCENE_SCHEMA, "protobuf",
+                               data, log_time_ns),
+               FoxgloveMessage(robot_topic(state.robot, "covariance"), COVARIANCE_SCHEMA,
+                               "json", json.dumps(covariance_summary(state)).encode(),
+                               log_time_ns),
+               FoxgloveMessage(robot_topic(state.robot, "transform"), TRANSFORM_SCHEMA,
+                               "protobuf", robot_transform(state.robot, state.pose,
+                                                           log_time_ns), log_time_ns)]
+        if with_path:
+            out.append(FoxgloveMessage(robot_topic(state.robot, "path"), POSES_SCHEMA,
+                                       "protobuf", path_poses(robot.poses, log_time_ns),
+                                       log_time_ns))
+        return out
+
+    def _truth(self, payload: bytes, log_time_ns: int) -> list[FoxgloveMessage]:
+        """A truth is decoded when it is drawn (at most ``scene_hz`` per robot second);
+        the others only add their position to the true path."""
+        head = peek_fields(payload, ("robot", "stamp", "pose"))
+        try:
+            name, stamp = str(head["robot"]), float(head["stamp"])
+            pose = decode_array(head["pose"], message="Truth", field="pose", dtype="<f8",
+                                shape=(3,))
+        except (KeyError, TypeError, ValueError, MessageError):
+            Truth.from_bytes(payload)  # raises the decoder's own clear error
+            raise MessageError("Truth", "<header>", "robot, stamp and pose",
+                               "malformed") from None
+        robot = self._robot(name)
+        if robot.last_truth_stamp is not None and stamp < robot.last_truth_stamp:
+            robot.truth_path = []  # the run started again
+        point = (float(pose[0]), float(pose[1]))
+        if not robot.truth_path or robot.truth_last != point:
+            robot.truth_last = point
+            robot.truth_path.append(Point3(x=point[0], y=point[1], z=0.0))
+            if len(robot.truth_path) > 2 * self.settings.path_points:
+                robot.truth_path = robot.truth_path[::2]
+        if not self._due(robot.last_truth_stamp, stamp):
+            robot.pending_truth = (payload, log_time_ns)
+            return []
+        return self._truth_message(robot, Truth.from_bytes(payload), log_time_ns)
+
+    def _truth_message(self, robot: _Robot, truth: Truth,
+                       log_time_ns: int) -> list[FoxgloveMessage]:
+        robot.pending_truth = None
+        robot.last_truth_stamp = truth.stamp
+        return [FoxgloveMessage(robot_topic(truth.robot, "truth"), SCENE_SCHEMA, "protobuf",
+                                truth_update(truth, log_time_ns=log_time_ns,
+                                             path=robot.truth_path), log_time_ns)]
 
     def finish(self) -> list[FoxgloveMessage]:
         """The scenes of the newest states not drawn yet (at the end of a recording)."""
@@ -348,6 +444,9 @@ class FoxgloveTranslator:
                                   log_time_ns, final=True)
             if robot.pending_health is not None:
                 out += self._health_message(robot, *robot.pending_health)
+            if robot.pending_truth is not None:
+                payload, log_time_ns = robot.pending_truth
+                out += self._truth_message(robot, Truth.from_bytes(payload), log_time_ns)
         return out
 
     def redraw(self, robot_name: str, state: SlamState,

@@ -12,6 +12,7 @@ import argparse
 import json
 import logging
 import os
+from pathlib import Path
 
 from slamlens.common.cli import bus_settings, keys_from, setup_logging, stop_event
 from slamlens.common.config import settings_from_args
@@ -32,6 +33,8 @@ def _run_record(args: argparse.Namespace) -> int:
     from slamlens.services.recorder.record import Recorder
 
     settings = settings_from_args(RecordSettings, args)
+    if settings.layout:
+        _write_layout(settings.layout, settings.robot[0], settings.camera)
     if settings.nice and hasattr(os, "nice"):
         os.nice(settings.nice)  # a background consumer: the live services go first
     stop = stop_event(grace_s=None)  # the file is finished however long that takes
@@ -45,6 +48,18 @@ def _run_record(args: argparse.Namespace) -> int:
     finally:
         bus.close()
     return 0
+
+
+def _write_layout(path: str, robot: str, cameras: tuple[str, ...]) -> None:
+    """The Foxglove layout of these channels, as a file."""
+    from slamlens.services.recorder.foxglove_layout import layout
+
+    try:
+        Path(path).write_text(json.dumps(layout(robot, cameras), indent=2,
+                                         ensure_ascii=False) + "\n", encoding="utf-8")
+    except OSError as exc:
+        raise ConfigError(f"cannot write the layout {path}: {exc}") from None
+    print(f"Foxglove layout written: {path}", flush=True)
 
 
 def _parse_address(address: str) -> tuple[str, int]:
@@ -100,6 +115,8 @@ def _run_foxglove(args: argparse.Namespace) -> int:
     from slamlens.services.recorder.live import FoxgloveLive
 
     settings = settings_from_args(FoxgloveSettings, args)
+    if settings.layout:
+        _write_layout(settings.layout, settings.robot, settings.camera)
     stop = stop_event()
     bus = open_bus(bus_settings(args))
     live = None

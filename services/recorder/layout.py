@@ -31,6 +31,11 @@ FOXGLOVE_TOPICS = {
                                           "per-pair sizes",
     "/foxglove/robot/{robot}/health": "JSON (plottable): ok, verdict, violations, NEES, NIS "
                                       "and the monitor's other statistics",
+    "/foxglove/robot/{robot}/transform": "foxglove.FrameTransform map → R/base_link (the "
+                                         "estimated pose)",
+    "/foxglove/robot/{robot}/path": "foxglove.PosesInFrame: the estimated path",
+    "/foxglove/robot/{robot}/truth": "foxglove.SceneUpdate: the ground truth (robot, "
+                                     "landmarks, path)",
     "/foxglove/camera/{camera}/image": "foxglove.CompressedImage (JPEG frames)",
     "/foxglove/camera/{camera}/calibration": "foxglove.CameraCalibration",
     "/foxglove/camera/{camera}/transform": "foxglove.FrameTransform map → camera_C "

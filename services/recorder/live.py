@@ -2,7 +2,7 @@
 
 The same channels a recording holds (:mod:`.channels`), served by the SDK's WebSocket
 server (loopback by default) to the Foxglove app: open a connection to
-``ws://127.0.0.1:8765``. Inputs are the robot's ``state`` and ``health`` and, per
+``ws://127.0.0.1:8765``. Inputs are the robot's ``state``, ``health`` and ``truth`` and, per
 ``--camera``, its ``frame`` and ``registration``, all taken latest-wins (a live picture
 skips, never lags). A client that subscribes gets the newest message of the channel at
 once (the scene of the current state), not only from the next state on. The scene
@@ -82,7 +82,8 @@ class FoxgloveLive:
         host = f"[{settings.host}]" if ":" in settings.host else settings.host
         port = self.server.port
         self.url = f"ws://{host}:{port() if callable(port) else port}"
-        inputs = [keys.state(settings.robot), keys.health(settings.robot)]
+        inputs = [keys.state(settings.robot), keys.health(settings.robot),
+                  keys.truth(settings.robot)]
         for camera in settings.camera:
             inputs += [keys.frame(camera), keys.registration(camera, settings.robot)]
         self._inputs: list[tuple[str, Channel]] = [
@@ -129,7 +130,7 @@ class FoxgloveLive:
         except MessageError as exc:
             self.bad.drop(self.keys.leaf_of(key), str(exc))
             return
-        if key == self.keys.state(self.settings.robot):
+        if key == self.keys.state(self.settings.robot):  # (kept for a redraw)
             try:
                 self._state = (SlamState.from_bytes(payload, check_symmetry=False), now)
             except MessageError:

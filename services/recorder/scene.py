@@ -12,6 +12,9 @@ The geometry (pairs of the mode, glyph centres, axes, flags, colours) is
 * ``pairs``: a yellow line per pair drawn, magenta for a pair the monitor flagged;
 * ``ellipsoids``: the correlation glyphs as scaled spheres (semi-axes and yaw from
   ``scene3d``), red, magenta when flagged.
+
+:func:`truth_update` is the ground truth beside it, as entities of their own
+(``truth/robot``, ``truth/features``, ``truth/path``, light grey), on its own topic.
 """
 
 from __future__ import annotations
@@ -39,7 +42,7 @@ from foxglove.messages import (
     Vector3,
 )
 
-from slamlens.common.messages import Health, SlamState
+from slamlens.common.messages import Health, SlamState, Truth
 from slamlens.common.scene3d import (
     CONE_HEIGHT_M,
     CONE_RADIUS_M,
@@ -162,3 +165,34 @@ def scene_update(state: SlamState, settings: SceneSettings, *, log_time_ns: int,
     entities = [robot, features, pairs, ellipsoids] + ([path] if path is not None else [])
     update = SceneUpdate(deletions=deletions, entities=entities)
     return update.encode(), glyphs
+
+
+TRUTH: RGB = (0.85, 0.85, 0.85)  #: the ground truth, light grey beside the estimate
+
+
+def truth_update(truth: Truth, *, log_time_ns: int, path: list[Point3]) -> bytes:
+    """The encoded ``foxglove.SceneUpdate`` of the ground truth: the true robot (a grey cone
+    and heading arrow), the true landmarks (small grey cones) and the true path so far."""
+    stamp = timestamp(log_time_ns)
+    meta = [KeyValuePair(key="robot", value=truth.robot),
+            KeyValuePair(key="stamp", value=repr(float(truth.stamp)))]
+    grey = _colour(TRUTH, 0.9)
+
+    def entity(name: str, **primitives: object) -> SceneEntity:
+        return SceneEntity(timestamp=stamp, frame_id=MAP_FRAME, id=f"{truth.robot}/truth/{name}",
+                           frame_locked=False, metadata=meta, **primitives)  # type: ignore
+
+    x, y, theta = (float(v) for v in truth.pose)
+    robot = entity("robot", cylinders=[_cone(x, y, 1.4 * CONE_HEIGHT_M, 1.4 * CONE_RADIUS_M,
+                                             TRUTH)],
+                   arrows=[ArrowPrimitive(
+                       pose=Pose(position=Vector3(x=x, y=y, z=0.01), orientation=_yaw(theta)),
+                       shaft_length=0.22, shaft_diameter=0.015, head_length=0.07,
+                       head_diameter=0.05, color=grey)])
+    features = entity("features", cylinders=[
+        _cone(p[0], p[1], 0.6 * CONE_HEIGHT_M, 0.6 * CONE_RADIUS_M, TRUTH)
+        for p in truth.landmarks.tolist()])
+    line = entity("path", lines=[LinePrimitive(
+        type=LinePrimitiveLineType.LineStrip, thickness=0.01, scale_invariant=False,
+        points=path, color=grey)] if len(path) >= 2 else [])
+    return SceneUpdate(entities=[robot, features, line]).encode()

@@ -52,11 +52,18 @@ class RecordSettings(SceneSettings):
                                 "machine the estimator goes first and the recorder catches "
                                 "up afterwards (it drops nothing)", min=0, max=19)
     progress: bool = setting(True, doc="show a progress line on a terminal")
+    layout: str = setting("", doc="also write a Foxglove layout for the --robot (exactly one) "
+                                  "and --camera channels to this file (Layouts → Import from "
+                                  "file)", metavar="FILE.json")
+
     def __post_init__(self) -> None:
         _names("robot", self.robot)
         _names("camera", self.camera)
         if self.path and not self.path.endswith(".mcap"):
             raise ConfigError(f"setting 'path': {self.path!r} should end in .mcap")
+        if self.layout and len(self.robot) != 1:
+            raise ConfigError("setting 'layout': a layout names one robot's channels: give "
+                              f"exactly one --robot (given: {len(self.robot)})")
 
 
 @dataclass(frozen=True)
@@ -108,6 +115,10 @@ class FoxgloveSettings(SceneSettings):
                         min=0, max=65535)
     late_join_timeout_s: float = setting(2.0, doc="at start, ask this long for the latest "
                                                   "state (0 = do not ask)", unit="s", min=0.0)
+    layout: str = setting("", doc="also write a Foxglove layout for the robot's and the "
+                                  "cameras' channels to this file (Layouts → Import from "
+                                  "file)", metavar="FILE.json")
+
     def __post_init__(self) -> None:
         check_name("robot", self.robot)
         _names("camera", self.camera)

@@ -84,6 +84,9 @@ LEGACY_FLAGS = {
              "--quiet", "--verbose"],
     "foxglove": ["--robot", "--camera", "--mode", "--cluster-threshold", "--connect",
                  "--config", "--quiet", "--verbose"],
+    # the live scene into Rerun
+    "rerun": ["--robot", "--camera", "--save", "--viewer", "--serve", "--host", "--port",
+              "--source", "--mode", "--connect", "--config", "--quiet", "--verbose"],
     # issue 10 (SPEC §9): launch files, status, re-registration
     "launch": ["--check", "--log-dir", "--quiet", "--set", "--verbose"],
     "status": ["--connect", "--interval", "--json", "--listen", "--once", "--prefix",

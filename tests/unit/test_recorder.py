@@ -4,6 +4,7 @@ viewer's own scene as an oracle), and reading bad recordings."""
 from __future__ import annotations
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -14,17 +15,27 @@ import pytest
 from mcap.writer import CompressionType, Writer
 
 from slamlens.common.errors import SourceError
-from slamlens.common.messages import Health, SlamState, Violation
-from slamlens.common.scene3d import VIOLATION, SceneSettings, pair_glyphs
+from slamlens.common.messages import (
+    CameraFrame,
+    Health,
+    Registration,
+    SlamState,
+    Truth,
+    Violation,
+)
+from slamlens.common.scene3d import VIOLATION, SceneSettings, pair_glyphs, summary_glyphs
+from slamlens.common.summary import Summariser, SummaryQuery
 from slamlens.services.harness.procs import REPO
 from slamlens.services.recorder.channels import FoxgloveTranslator, covariance_summary
+from slamlens.services.recorder.foxglove_layout import SHIPPED, layout
 from slamlens.services.recorder.layout import message_of_key, ntp64_to_ns, record_expressions
 from slamlens.services.recorder.reading import Recording
 from slamlens.services.recorder.scene import scene_update
 from slamlens.services.recorder.timeline import PlayClock
 from slamlens.services.visualiser.scene import build_scene
 from slamlens.services.visualiser.settings import ViewSettings
-from tests.mcap_check import protobuf_class
+from slamlens.services.visualiser.summary_view import summarised_state, summary_scene
+from tests.mcap_check import layout_topics, protobuf_class
 
 SCENE = None
 
@@ -95,6 +106,24 @@ def test_the_foxglove_glyphs_are_the_viewers_glyphs(mode: str, glyph: str) -> No
     np.testing.assert_allclose(mine.sizes_m, theirs.glyph_size)
 
 
+def test_the_summary_glyphs_are_the_viewers_summary_glyphs() -> None:
+    state = _state(n=40, seed=3)
+    summary = Summariser().make(state, SummaryQuery(what="clusters", threshold_m=0.9))
+    flagged = frozenset({(10, 30)})
+    mine = summary_glyphs(summary, SceneSettings(glyph="linear"), flagged)
+    theirs = summary_scene(summarised_state(summary), ViewSettings(glyph="linear",
+                                                                   mode="minmeanmax"),
+                           flagged)
+    assert len(mine.centres) > 3
+    np.testing.assert_allclose(mine.centres, theirs.glyphs.centres, atol=1e-9)
+    np.testing.assert_allclose(mine.axes[:, 0], theirs.glyphs.a)
+    np.testing.assert_allclose(mine.axes[:, 1], theirs.glyphs.b)
+    np.testing.assert_allclose(mine.yaw, theirs.glyphs.yaw)
+    np.testing.assert_array_equal(mine.role, theirs.glyph_role)
+    np.testing.assert_array_equal(mine.flagged, theirs.glyph_violation)
+    np.testing.assert_allclose(mine.lines_xy, theirs.lines_xy)
+
+
 def _decode_scene(data: bytes):
     from foxglove.messages import SceneUpdate
 
@@ -137,6 +166,79 @@ def test_the_translator_draws_at_most_scene_hz_and_always_the_newest() -> None:
     summary = covariance_summary(_state(n=3))
     assert summary["pairs_n"] == 3 and len(summary["pairs"]) == 3
     assert summary["pd_min_m"] <= summary["pd_mean_m"] <= summary["pd_max_m"]
+
+
+def _truth(stamp: float, x: float) -> bytes:
+    return Truth(robot="r1", stamp=stamp, pose=np.array([x, 0.5, 0.3]),
+                 landmark_ids=np.array([10, 11]),
+                 landmarks=np.array([[0.0, 1.0], [2.0, 3.0]])).to_bytes()
+
+
+def _decoded(message):
+    cls = protobuf_class(message.schema.name, message.schema.data)
+    return cls.FromString(message.data)
+
+
+def test_the_translator_sends_the_robots_frame_its_path_and_the_truth() -> None:
+    tr = FoxgloveTranslator(SceneSettings(), prefix="slamlens", scene_hz=0.0)
+    out = []
+    poses = [(0.1 * k, -0.2, 0.1 * k) for k in range(5)]
+    for seq, pose in enumerate(poses):
+        state = _state(n=3, seq=seq)
+        state = SlamState(**{**{f: getattr(state, f) for f in (
+            "robot", "step", "landmark_ids", "landmarks", "covariance", "epoch")},
+            "seq": seq, "stamp": 0.5 * seq, "pose": np.array(pose)})
+        out += tr.feed("slamlens/robot/r1/state", state.to_bytes(), 10**9 + seq)
+        out += tr.feed("slamlens/robot/r1/truth", _truth(0.5 * seq, 0.1 * seq), 10**9 + seq)
+    by_topic: dict[str, list] = {}
+    for m in out:
+        by_topic.setdefault(m.topic, []).append(m)
+    transform = _decoded(by_topic["/foxglove/robot/r1/transform"][-1])
+    assert (transform.parent_frame_id, transform.child_frame_id) == ("map", "r1/base_link")
+    assert (transform.translation.x, transform.translation.y) == pytest.approx(poses[-1][:2])
+    assert 2 * math.atan2(transform.rotation.z, transform.rotation.w) == pytest.approx(0.4)
+    paths = by_topic["/foxglove/robot/r1/path"]  # the path: once per robot second
+    assert len(paths) == 3
+    path = _decoded(paths[-1])
+    assert path.frame_id == "map" and len(path.poses) == 5
+    np.testing.assert_allclose([(p.position.x, p.position.y) for p in path.poses],
+                               [p[:2] for p in poses])
+    truths = by_topic["/foxglove/robot/r1/truth"]
+    assert truths[0].schema.name == "foxglove.SceneUpdate" and len(truths) == 5
+    entities = {e.id: e for e in _decoded(truths[-1]).entities}
+    assert set(entities) == {"r1/truth/robot", "r1/truth/features", "r1/truth/path"}
+    assert entities["r1/truth/robot"].cylinders[0].pose.position.x == pytest.approx(0.4)
+    assert len(entities["r1/truth/features"].cylinders) == 2
+    assert len(entities["r1/truth/path"].lines[0].points) == 5
+
+
+def test_the_shipped_layout_is_the_demo_layout_and_names_only_channels_made() -> None:
+    shipped = json.loads(SHIPPED.read_text(encoding="utf-8"))
+    assert shipped == layout("robot1", ("overhead",))
+    tr = FoxgloveTranslator(SceneSettings(), prefix="slamlens")
+    state = _state(n=4)
+    made = set()
+    for key, payload in [
+            ("slamlens/robot/robot1/state", SlamState(**{**{f: getattr(state, f) for f in (
+                "seq", "stamp", "step", "pose", "landmark_ids", "landmarks", "covariance",
+                "epoch")}, "robot": "robot1"}).to_bytes()),
+            ("slamlens/robot/robot1/health", Health(
+                robot="robot1", seq=5, stamp=6.0, ok=True, suspects=np.zeros(0, np.int64),
+                statistics={"nees_pose": 1.0}).to_bytes()),
+            ("slamlens/robot/robot1/truth", Truth(
+                robot="robot1", stamp=6.0, pose=np.zeros(3), landmark_ids=np.zeros(0, np.int64),
+                landmarks=np.zeros((0, 2))).to_bytes()),
+            ("slamlens/camera/overhead/frame", CameraFrame(
+                camera="overhead", seq=1, stamp=6.0, encoding="jpeg", width=4, height=4,
+                data=b"\xff\xd8\xff").to_bytes()),
+            ("slamlens/camera/overhead/registration/robot1", Registration(
+                camera="overhead", robot="robot1", stamp=6.0, K=np.eye(3), dist=np.zeros(5),
+                width=4, height=4, T_camera_from_map=np.eye(4),
+                reprojection_error_px=0.1).to_bytes())]:
+        made |= {m.topic for m in tr.feed(key, payload, 10**9)}
+    assert layout_topics(shipped) <= made, layout_topics(shipped) - made
+    assert {"/foxglove/robot/robot1/scene", "/foxglove/camera/overhead/image",
+            "/foxglove/robot/robot1/health"} <= layout_topics(shipped)
 
 
 # ------------------------------------------------------------------ bad recordings
