@@ -258,6 +258,8 @@ class Bus(Protocol):
 
     def alive(self, key: str, *, timeout: float = 2.0) -> list[str]: ...
 
+    def release(self, entity: Any) -> None: ...
+
     def close(self) -> None: ...
 
 
@@ -808,6 +810,23 @@ class ZenohBus:
         return sorted({str(r.ok.key_expr) for r in self.session.liveliness().get(
             key, timeout=timeout) if r.ok is not None})
 
+    def release(self, entity: Any) -> None:
+        """Undeclare one thing this bus declared (a publisher, subscriber, channel,
+        queryable or liveliness token) before the bus closes: what a service that adds
+        and drops parts while it runs (a browser camera that comes and goes) gives back."""
+        with self._lock:
+            try:
+                self._entities.remove(entity)
+            except ValueError:
+                return  # released already, or the bus closed
+        try:
+            if isinstance(entity, QueueChannel):
+                entity.close()
+            else:
+                entity.undeclare()
+        except Exception:  # the session may be closing
+            log.debug("releasing %r failed", entity, exc_info=True)
+
     def close(self) -> None:
         with self._lock:
             if self._closed:
@@ -988,6 +1007,13 @@ class InProcessBus:
 
     def alive(self, key: str, *, timeout: float = 2.0) -> list[str]:
         return sorted(k for k in self._alive if _intersects(key, k))
+
+    def release(self, entity: Any) -> None:
+        for entries in (self._subs, self._queryables, self._answerers, self._later):
+            if entity in entries:
+                entries.remove(entity)  # type: ignore[arg-type]
+        if isinstance(entity, str):
+            self._alive.discard(entity)
 
     def close(self) -> None:
         self._subs.clear()

@@ -21,13 +21,8 @@ from slamlens.services.registration.calibration import (
     synthetic_calibration,
 )
 from slamlens.services.registration.markers import MarkerDetector, WindowedDetector
-from slamlens.services.registration.service import (
-    CameraParts,
-    CameraPipeline,
-    CameraSettings,
-    RegistrationService,
-    TrackerPoses,
-)
+from slamlens.services.registration.pipeline import CameraParts, CameraPipeline, CameraSettings
+from slamlens.services.registration.service import RegistrationService, TrackerPoses
 from slamlens.services.registration.settings import RegistrationSettings
 from slamlens.services.registration.sources import (
     FrameSource,
