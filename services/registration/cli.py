@@ -74,6 +74,12 @@ def check_inputs(settings: RegistrationSettings) -> None:
     from slamlens.services.registration.calibration import load_calibration
     from slamlens.services.registration.sources import open_capture
 
+    if settings.browser:
+        if settings.calibration and not Path(settings.calibration).exists():
+            raise ConfigError(f"--calibration {settings.calibration}: no such file or folder")
+        if settings.calibration and Path(settings.calibration).is_file():
+            load_calibration(settings.calibration)
+        return
     if not settings.synthetic:
         open_capture(settings.source)  # a missing path fails here; a device is not opened
         if not settings.calibration:

@@ -202,6 +202,22 @@ class CameraPipeline:
             self._bus.release(entity)
         self._entities.clear()
 
+    def inherit(self, T_anchor_from_map: np.ndarray, *, epoch: int | None, camera: str,
+                reprojection_error_px: float) -> None:
+        """Start registered as ``camera`` registered the same map (call before
+        :meth:`start`): cameras anchored in the same world — head-mounted ones on one
+        marker board — share the map's place in it."""
+        registrar = self.registrar
+        registrar.T_anchor_from_map = np.array(T_anchor_from_map, dtype=np.float64)
+        registrar.collecting = False
+        registrar.reprojection_error_px = reprojection_error_px
+        if epoch is not None:
+            self._map = MapHead(epoch=epoch, origin_stamp=None, pose=None)
+        self._reason, self._change = f"from camera {camera}", None
+        self.stats.registrations += 1
+        log.info("camera %s: starts from camera %s's registration of robot %s", self.camera,
+                 camera, self.robot)
+
     def request_reregister(self, requester: str = "") -> None:
         """Re-register from the next frames (called from a Zenoh thread: only stores)."""
         self._requests.put(requester or "an anonymous request")
@@ -436,8 +452,12 @@ class CameraPipeline:
                 moved_m=None if moved is None else moved[0],
                 moved_deg=None if moved is None else moved[1])
         elif self._latest_registration is not None:
+            # a moving camera's: stamped with this frame (whose pose it does not know: its
+            # status says so), so that a consumer matching frames by stamp hears of it
+            stamp = (float(result.stamp) if self.settings.moving
+                     else self._latest_registration.stamp)
             reg = dataclasses.replace(self._latest_registration, status=result.status,
-                                      epoch=self.epoch, reason=self._reason)
+                                      epoch=self.epoch, reason=self._reason, stamp=stamp)
         else:
             return
         due = (result.registered_now or status_changed or self.settings.moving

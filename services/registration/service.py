@@ -26,6 +26,7 @@ from slamlens.common.drops import DropCounter
 from slamlens.common.errors import MessageError
 from slamlens.common.keys import Keys
 from slamlens.common.messages import CameraControl, CameraPose, Truth
+from slamlens.services.registration.browser import BrowserCameras
 from slamlens.services.registration.markers import MarkerDetector, WindowedDetector
 from slamlens.services.registration.pipeline import CameraPipeline
 from slamlens.services.registration.sources import SyntheticSource
@@ -78,23 +79,46 @@ class RegistrationService:
     def __init__(self, bus: Bus, keys: Keys, *, robot: str, base_camera: str,
                  pipelines: Sequence[CameraPipeline],
                  synthetic_sources: Sequence[SyntheticSource] = (),
-                 tracker: TrackerPoses | None = None) -> None:
+                 tracker: TrackerPoses | None = None,
+                 browser: Callable[[RegistrationService], BrowserCameras] | None = None
+                 ) -> None:
         self.bus, self.keys = bus, keys
         self.robot = robot
-        self.pipelines = list(pipelines)
+        self._lock = threading.Lock()
+        self._pipelines = list(pipelines)
         self.synthetic_sources = list(synthetic_sources)
         self.tracker = tracker
         self.drops = DropCounter(log)  #: malformed Truth and CameraControl messages
+        #: the browser cameras (``--source browser``): pipelines added as they come
+        self.browser = None if browser is None else browser(self)
         if self.synthetic_sources:
             bus.subscribe(keys.truth(robot), self._on_truth)
         bus.subscribe_lazy(keys.state(robot), self._on_state)
-        names = {p.camera for p in self.pipelines} | {base_camera}
-        for name in sorted(names):
+        if self.browser is not None:  # their names are known when they come
+            bus.subscribe(keys.any_camera_control(), self._on_control)
+            bus.answer(keys.any_camera_control(), self._on_control_query)
+        names = {p.camera for p in self._pipelines} | {base_camera}
+        for name in sorted(names) if self.browser is None else ():
             bus.subscribe(keys.camera_control(name), self._on_control)
             bus.answer(keys.camera_control(name), self._on_control_query)
         if tracker is not None:
-            for p in self.pipelines:
+            for p in self._pipelines:
                 bus.subscribe(keys.camera_pose(p.camera), tracker.on_camera_pose)
+
+    @property
+    def pipelines(self) -> list[CameraPipeline]:
+        """The cameras' pipelines now (browser cameras come and go)."""
+        with self._lock:
+            return list(self._pipelines)
+
+    def add_pipeline(self, pipeline: CameraPipeline) -> None:
+        with self._lock:
+            self._pipelines.append(pipeline)
+
+    def remove_pipeline(self, pipeline: CameraPipeline) -> None:
+        with self._lock:
+            if pipeline in self._pipelines:
+                self._pipelines.remove(pipeline)
 
     # -- subscriptions (zenoh threads: decode, store, return) ---------------------------
     def _on_truth(self, key: str, payload: bytes) -> None:
@@ -113,8 +137,12 @@ class RegistrationService:
     def _on_control(self, key: str, payload: bytes) -> None:
         self._control(key, payload)
 
-    def _control(self, key: str, payload: bytes) -> str:
-        """A re-registration request; what became of it, in words."""
+    def _control(self, key: str, payload: bytes) -> str | None:
+        """A re-registration request; what became of it, in words (None: a request to a
+        browser camera this service does not serve, left to the service that does)."""
+        camera = self.keys.camera_of(key)
+        if self.browser is not None and (camera is None or not self.browser.serves(camera)):
+            return None
         try:
             request = CameraControl.from_bytes(payload)
         except MessageError as exc:
@@ -123,7 +151,6 @@ class RegistrationService:
         if request.robot is not None and request.robot != self.robot:
             log.debug("reregister for robot %s ignored (serving %s)", request.robot, self.robot)
             return f"ignored: this camera service registers robot {self.robot}"
-        camera = self.keys.camera_of(key)
         taken = False
         for p in self.pipelines:  # a stereo pair also obeys its base name
             if camera in (p.camera, p.camera.rsplit("-", 1)[0]):
@@ -131,15 +158,20 @@ class RegistrationService:
                 taken = True
         return "accepted: re-registering from the next frames" if taken else "no such camera"
 
-    def _on_control_query(self, key: str, payload: bytes | None, parameters: str) -> bytes:
+    def _on_control_query(self, key: str, payload: bytes | None,
+                          parameters: str) -> bytes | None:
         """The same request as a Zenoh query (a viewer may query but not publish)."""
         answer = self._control(key, payload or b"")
+        if answer is None:
+            return None
         return msgpack.packb({"schema": 1, "answer": answer}, use_bin_type=True)
 
     # -- lifecycle ------------------------------------------------------------------------
     def start(self) -> None:
         for p in self.pipelines:
             p.start()
+        if self.browser is not None:
+            self.browser.start()
         threading.Thread(target=self._late_join, name="registration-late-join",
                          daemon=True).start()
 
@@ -155,18 +187,25 @@ class RegistrationService:
             self._on_state(reply.key, functools.partial(bytes, reply.payload))
 
     def stop(self) -> None:
+        if self.browser is not None:
+            self.browser.stop()
         for p in self.pipelines:
             p.stop()
 
     def summary(self) -> dict[str, Any]:
         """What the service did (its final line)."""
-        return {"cameras": {p.camera: {
+        browser = self.browser
+        extra = {} if browser is None else {"browser": {
+            "joined": browser.joined, "left": browser.left, "cameras": browser.cameras,
+            "refused": dict(browser.drops.counts)}}
+        return {**extra, "cameras": {p.camera: {
             "frames": p.stats.published, "registrations": p.stats.registrations,
             "refused": p.stats.refused, "tracked": p.stats.tracked, "epoch": p.epoch,
             **_window_counts(p.parts.detector),
             "status": p.status} for p in self.pipelines},
             "dropped": self.drops.total + sum(p.read_errors.total for p in self.pipelines)
-            + (self.tracker.drops.total if self.tracker is not None else 0)}
+            + (self.tracker.drops.total if self.tracker is not None else 0)
+            + (0 if browser is None else browser.drops.total)}
 
     def run(self, stop: threading.Event, *, status_period_s: float = 10.0) -> None:
         """Run until ``stop`` is set, logging a status line every ``status_period_s``."""

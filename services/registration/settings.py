@@ -19,6 +19,7 @@ POSE_SOURCES = ("board", "tracker")
 _CAMERA = "camera and marker"
 _REGISTER = "registration"
 _SYNTHETIC = "synthetic camera"
+_BROWSER = "browser cameras"
 
 
 @dataclass(frozen=True)
@@ -29,10 +30,15 @@ class RegistrationSettings:
                                           "-right", group=_CAMERA)
     robot: str = setting("robot1", doc="robot whose marker registers the map frame",
                          group=_CAMERA)
-    source: str = setting("synthetic", doc="a device index (\"0\"), a video file, a stream URL, "
-                                           "a folder of images, or synthetic", group=_CAMERA)
+    source: str = setting("synthetic", doc="a device index (\"0\"), a video file, a stream URL "
+                                           "(http://…, rtsp://…), a folder of images, "
+                                           "synthetic, or browser: every camera C or C-… whose "
+                                           "frames a viewer's /ar page sends "
+                                           "(slamlens/camera/C/capture)", group=_CAMERA)
     calibration: str = setting("", doc="OpenCV calibration YAML; empty = the synthetic "
-                                       "camera's own (synthetic source only)",
+                                       "camera's own (synthetic source only). Browser "
+                                       "cameras: a file for all, or a folder of CAMERA.yml; "
+                                       "without one, the default phone model",
                                metavar="FILE.yml", group=_CAMERA)
     dictionary: str = setting("apriltag_36h11", doc="robot (and board) marker dictionary",
                               group=_CAMERA)
@@ -91,6 +97,19 @@ class RegistrationSettings:
     reconnect_max_s: float = setting(5.0, doc="longest wait between reconnection attempts of "
                                               "a lost camera", unit="s", min=0.1,
                                      group=_REGISTER)
+    # -- browser cameras (--source browser) -------------------------------------------
+    browser_hfov: float = setting(
+        67.0, doc="horizontal field of view of the default camera model of a browser "
+                  "camera without a calibration (a phone's main camera in 16:9)", unit="deg",
+        min=1.0, group=_BROWSER)
+    browser_idle_s: float = setting(3.0, doc="a browser camera that sent no frame this long "
+                                             "has left: its pipeline is released", unit="s",
+                                    min=0.1, group=_BROWSER)
+    max_browser_cameras: int = setting(8, doc="browser cameras served at once (more are "
+                                              "refused)", min=1, group=_BROWSER)
+    max_browser_frame_pixels: int = setting(
+        8_294_400, doc="browser frames whose JPEG claims more pixels are refused before "
+                       "decoding (3840x2160)", min=1, group=_BROWSER)
     # -- the synthetic camera ----------------------------------------------------------
     width: int = setting(1280, doc="image width", unit="px", min=16, group=_SYNTHETIC)
     height: int = setting(720, doc="image height", unit="px", min=16, group=_SYNTHETIC)
@@ -133,11 +152,12 @@ class RegistrationSettings:
                 or self.arena[1] >= self.arena[3]:
             raise ConfigError(f"setting 'arena': expected xmin,ymin,xmax,ymax, got "
                               f"{list(self.arena)}")
-        if self.hfov >= 180.0:
-            raise ConfigError(f"setting 'hfov': {self.hfov} must be below 180 degrees")
+        if self.hfov >= 180.0 or self.browser_hfov >= 180.0:
+            raise ConfigError(f"setting 'hfov' / 'browser_hfov': {self.hfov} / "
+                              f"{self.browser_hfov} must be below 180 degrees")
         if not self.source:
             raise ConfigError("setting 'source': empty; give a device index, a file, a "
-                              "folder, a URL or 'synthetic'")
+                              "folder, a URL, 'synthetic' or 'browser'")
         if self.stereo_baseline > 0 and self.source != "synthetic":
             raise ConfigError("setting 'stereo_baseline': stereo needs --source synthetic; "
                               "run one service per real camera (names C-left, C-right)")
@@ -145,6 +165,11 @@ class RegistrationSettings:
     @property
     def synthetic(self) -> bool:
         return self.source == "synthetic"
+
+    @property
+    def browser(self) -> bool:
+        """Frames from browsers through the bus (``--source browser``)."""
+        return self.source == "browser"
 
     def camera_names(self) -> tuple[str, ...]:
         """The camera names this service publishes (one, or a left/right stereo pair)."""

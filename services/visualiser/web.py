@@ -12,7 +12,12 @@ Endpoints (every ``client`` is a browser tab's random id; without one, the defau
 * ``GET/POST /api/settings?client=ID``, ``GET /api/status``, ``GET /api/features``,
   ``GET /api/health``, ``GET /api/series[?pairs=1-2,3-4]``,
   ``POST /api/record/start|stop?client=ID``, ``GET /recordings/NAME``,
-  ``POST /api/reregister[?robot=R]`` (asks the camera(s) to register the robot again).
+  ``POST /api/reregister[?robot=R]`` (asks the camera(s) to register the robot again);
+* ``GET /ar``, ``/ar/ws``, ``/api/ar/settings`` the AR page: a browser's own camera with the
+  overlay (:mod:`~slamlens.services.visualiser.ar_web`).
+
+With ``ssl_context`` it serves HTTPS (a phone's browser opens its camera only for a secure
+page; docs/viewer.md, "AR on a phone").
 
 User input never causes a 500: bad values answer 400 with ``{"error": "..."}``, a body
 over ``MAX_BODY_BYTES`` 413, a view or recording beyond the viewer's limits 503; each
@@ -26,6 +31,7 @@ import asyncio
 import json
 import logging
 import re
+import ssl
 import threading
 from collections.abc import Awaitable, Callable
 from pathlib import Path
@@ -36,6 +42,8 @@ from aiohttp import WSMsgType, web
 from slamlens.common.drops import DropCounter
 from slamlens.common.errors import ConfigError, SlamlensError
 from slamlens.services.visualiser.api import ViewerApi
+from slamlens.services.visualiser.ar import ArHub
+from slamlens.services.visualiser.ar_web import ArRoutes
 from slamlens.services.visualiser.clients import TooManyViews
 from slamlens.services.visualiser.recording import NAME_PATTERN, RecordingRefused, encode_png
 from slamlens.services.visualiser.service import ViewerService
@@ -148,13 +156,17 @@ class WebServer:
     def __init__(self, service: ViewerService, *, host: str = "127.0.0.1",
                  port: int = 8080, token: str | None = None,
                  allowed_hosts: tuple[str, ...] = (),
-                 allowed_origins: tuple[str, ...] = ()) -> None:
+                 allowed_origins: tuple[str, ...] = (), ar: ArHub | None = None,
+                 ssl_context: ssl.SSLContext | None = None) -> None:
         self.api: ViewerApi = service.api
         self.host = host
         self.port = port
+        self.ar = ar
+        self.ssl_context = ssl_context
         self.refusals = DropCounter(log)  #: refused requests, by kind ("web host", …)
         self.guard = AccessGuard(token=token, bound_host=host, allowed_hosts=allowed_hosts,
-                                 allowed_origins=allowed_origins, refusals=self.refusals)
+                                 allowed_origins=allowed_origins, refusals=self.refusals,
+                                 https=ssl_context is not None)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._runner: web.AppRunner | None = None
         self._thread: threading.Thread | None = None
@@ -165,7 +177,8 @@ class WebServer:
     @property
     def url(self) -> str:
         host = f"[{self.host}]" if ":" in self.host else self.host
-        return f"http://{host}:{self.port}"
+        scheme = "https" if self.ssl_context is not None else "http"
+        return f"{scheme}://{host}:{self.port}"
 
     @property
     def url_with_token(self) -> str:
@@ -212,7 +225,7 @@ class WebServer:
         self._runner = web.AppRunner(app, access_log=None, shutdown_timeout=2.0,
                                      logger=QuietServerLog(log, self.refusals))
         await self._runner.setup()
-        site = web.TCPSite(self._runner, self.host, self.port)
+        site = web.TCPSite(self._runner, self.host, self.port, ssl_context=self.ssl_context)
         await site.start()
         server = getattr(site, "_server", None)
         if server is not None and server.sockets:
@@ -273,6 +286,9 @@ class WebServer:
         r.add_post("/api/record/start", self.record_start)
         r.add_post("/api/record/stop", self.record_stop)
         r.add_get("/recordings/{name}", self.recording)
+        if self.ar is not None:
+            ArRoutes(self.ar, refusals=self.refusals, client=self._client,
+                     closing=lambda: self._closing).add_to(r)
         return app
 
     # -- helpers --------------------------------------------------------------------
@@ -427,7 +443,8 @@ class WebServer:
         return _json({"client": client, "settings": settings.to_dict()})
 
     async def status(self, request: web.Request) -> web.StreamResponse:
-        return _json({**self.api.status(), "refused": dict(self.refusals.counts)})
+        ar = None if self.ar is None else self.ar.status()
+        return _json({**self.api.status(), "refused": dict(self.refusals.counts), "ar": ar})
 
     async def features(self, request: web.Request) -> web.StreamResponse:
         return _json(self.api.features(self._settings(request)))
