@@ -49,8 +49,9 @@ class FrameRefused(SlamlensError):
     """A browser frame that is not used (the reason says why)."""
 
 
-def check_frame(payload: bytes, *, max_pixels: int) -> tuple[CameraFrame, np.ndarray]:
-    """The frame and its decoded BGR image; FrameRefused naming what is wrong."""
+def check_header(payload: bytes, *, max_pixels: int) -> CameraFrame:
+    """The frame, if its message and its JPEG's header (read without decoding) are sound;
+    FrameRefused naming what is wrong."""
     try:
         frame = CameraFrame.from_bytes(payload)
     except MessageError as exc:
@@ -64,10 +65,15 @@ def check_frame(payload: bytes, *, max_pixels: int) -> tuple[CameraFrame, np.nda
                            f"{frame.width}x{frame.height}")
     if width * height > max_pixels:
         raise FrameRefused(f"{width}x{height} is more than {max_pixels} pixels")
+    return frame
+
+
+def decode_image(frame: CameraFrame) -> np.ndarray:
+    """The frame's BGR image; FrameRefused if its JPEG does not decode."""
     image = cv2.imdecode(np.frombuffer(frame.data, np.uint8), cv2.IMREAD_COLOR)
-    if image is None or image.shape[:2] != (height, width):
+    if image is None or image.shape[:2] != (frame.height, frame.width):
         raise FrameRefused("its JPEG does not decode")
-    return frame, image
+    return image
 
 
 class BrowserFrames:
@@ -83,7 +89,7 @@ class BrowserFrames:
         self.max_pixels = max_pixels
         self.drops = drops
         self._clock = clock
-        self._slot: Latest[bytes] = Latest()
+        self._slot: Latest[CameraFrame] = Latest()
         self.last_offer = clock()  #: when the newest frame arrived
         self.size: tuple[int, int] | None = None  #: (width, height) of its frames
         self.resized = False  #: a frame of another size came: the camera must start anew
@@ -93,16 +99,16 @@ class BrowserFrames:
         """Frames replaced by a newer one before they were read."""
         return self._slot.dropped
 
-    def offer(self, payload: bytes) -> None:
-        self._slot.put(payload)
+    def offer(self, frame: CameraFrame) -> None:
+        self._slot.put(frame)
         self.last_offer = self._clock()
 
     def read(self) -> Frame | None:
-        payload = self._slot.take(timeout=0.1)
-        if payload is None:
+        frame = self._slot.take(timeout=0.1)
+        if frame is None:
             return None
         try:
-            frame, image = check_frame(payload, max_pixels=self.max_pixels)
+            image = decode_image(frame)
         except FrameRefused as exc:
             self.drops.drop("browser frame", f"camera {self.camera}: {exc}")
             return None
@@ -146,7 +152,7 @@ class BrowserCameras:
         self.left = 0  #: cameras released so far
         self._lock = threading.Lock()
         self._cameras: dict[str, _Camera] = {}
-        self._joining: dict[str, bytes] = {}  #: first frames of cameras not set up yet
+        self._joining: dict[str, CameraFrame] = {}  #: first frames of cameras not set up
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, name="browser-cameras", daemon=True)
@@ -161,14 +167,17 @@ class BrowserCameras:
         with self._lock:
             return sorted(self._cameras)
 
-    # -- Zenoh thread: check the size, store, return -------------------------------
+    # -- Zenoh thread: check the header, store, return ------------------------------
     def _on_frame(self, key: str, payload: bytes) -> None:
         camera = self.keys.camera_of(key)
         if camera is None or not self.serves(camera):
             return  # another service's browser camera
-        if len(payload) > self.max_bytes:
-            self.drops.drop("browser frame", f"camera {camera}: {len(payload)} bytes is more "
-                            f"than {self.max_bytes}")
+        try:
+            if len(payload) > self.max_bytes:
+                raise FrameRefused(f"{len(payload)} bytes is more than {self.max_bytes}")
+            frame = check_header(payload, max_pixels=self.max_pixels)
+        except FrameRefused as exc:
+            self.drops.drop("browser frame", f"camera {camera}: {exc}")
             return
         with self._lock:
             known = self._cameras.get(camera)
@@ -178,9 +187,9 @@ class BrowserCameras:
                     self.drops.drop("browser camera", f"camera {camera} refused: this service "
                                     f"already serves {self.max_cameras} browser cameras")
                     return
-                self._joining[camera] = payload
+                self._joining[camera] = frame
         if known is not None:
-            known.source.offer(payload)
+            known.source.offer(frame)
         else:
             self._wake.set()
 
@@ -205,9 +214,9 @@ class BrowserCameras:
             self._wake.clear()
             with self._lock:
                 joining, self._joining = self._joining, {}
-            for camera, payload in joining.items():
+            for camera, frame in joining.items():
                 try:
-                    self._join(camera, payload)
+                    self._join(camera, frame)
                 except Exception:  # a camera that cannot be set up must not stop the others
                     log.exception("camera %s: setting up the browser camera failed", camera)
             now = time.monotonic()
@@ -219,12 +228,7 @@ class BrowserCameras:
             for name, cam in leaving:
                 self._leave(name, cam, now)
 
-    def _join(self, camera: str, payload: bytes) -> None:
-        try:
-            frame, _ = check_frame(payload, max_pixels=self.max_pixels)
-        except FrameRefused as exc:
-            self.drops.drop("browser frame", f"camera {camera}: {exc}")
-            return
+    def _join(self, camera: str, frame: CameraFrame) -> None:
         source = BrowserFrames(camera, max_pixels=self.max_pixels, drops=self.drops)
         source.size = (frame.width, frame.height)
         pipeline = self._make(camera, source, frame.width, frame.height)
@@ -232,7 +236,7 @@ class BrowserCameras:
         pipeline.start()
         with self._lock:
             self._cameras[camera] = _Camera(source, pipeline)
-        source.offer(payload)
+        source.offer(frame)
         self.joined += 1
         log.info("camera %s: a browser joined (%dx%d frames); registering it", camera,
                  frame.width, frame.height)
