@@ -78,10 +78,15 @@ class ArRoutes:
         except (ValueError, UnicodeDecodeError, RecursionError):
             raise web.HTTPBadRequest(reason="the body must be a JSON object of settings") \
                 from None
-        if not isinstance(changes, dict) or not all(
-                v is None or isinstance(v, (str, int, float, bool)) for v in changes.values()):
-            raise web.HTTPBadRequest(reason="the body must be a JSON object of settings "
-                                            "(strings, numbers, booleans)")
+        if not isinstance(changes, dict):
+            raise web.HTTPBadRequest(reason="the body must be a JSON object of settings")
+        for key, value in changes.items():
+            if isinstance(value, list) and all(isinstance(v, int) and not isinstance(v, bool)
+                                               for v in value):
+                changes[key] = ",".join(str(v) for v in value)  # colours
+            elif value is not None and not isinstance(value, (str, int, float, bool)):
+                raise web.HTTPBadRequest(reason=f"setting {str(key)[:40]!r}: expected a "
+                                         "string, number, boolean or a list of integers")
         settings = self.hub.update_settings(client, changes)  # ConfigError: 400
         return _json({"client": client, "settings": settings.to_dict()})
 
