@@ -15,6 +15,7 @@ import numpy as np
 from slamlens.common.bus import Bus
 from slamlens.common.errors import ConfigError, SourceError
 from slamlens.common.keys import Keys
+from slamlens.services.registration.apriltag3 import AprilTagDetector, make_detector
 from slamlens.services.registration.board import MarkerBoard, default_board, load_board
 from slamlens.services.registration.browser import BrowserCameras, BrowserFrames
 from slamlens.services.registration.calibration import (
@@ -141,10 +142,10 @@ def real_source(settings: RegistrationSettings,
 
 
 def detector_for(settings: RegistrationSettings, *, moving: bool
-                 ) -> MarkerDetector | WindowedDetector:
+                 ) -> MarkerDetector | AprilTagDetector | WindowedDetector:
     """One camera's detector: a fixed camera's looks only around the last markers between
     full frames (``detect_full_every``); a moving camera's over every whole frame."""
-    detector = MarkerDetector(settings.dictionary)
+    detector = make_detector(settings.detector, settings.dictionary)
     if moving or settings.detect_full_every <= 1:
         return detector
     return WindowedDetector(detector, full_every=settings.detect_full_every)

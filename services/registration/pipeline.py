@@ -49,7 +49,7 @@ from slamlens.common.messages import CameraPose, Registration, Truth, peek_field
 from slamlens.services.registration.board import MarkerBoard, camera_pose_from_board
 from slamlens.services.registration.calibration import CameraCalibration
 from slamlens.services.registration.capture import FrameCapture, PipelineStats
-from slamlens.services.registration.markers import MarkerDetector, WindowedDetector
+from slamlens.services.registration.markers import AnyDetector, WindowedDetector
 from slamlens.services.registration.sources import FrameSource
 from slamlens.services.registration.tracking import (
     STATUS_WAITING,
@@ -117,7 +117,7 @@ class CameraParts:
 
     source: FrameSource
     calib: CameraCalibration
-    detector: MarkerDetector | WindowedDetector
+    detector: AnyDetector | WindowedDetector
     registrar: Registrar
     board: MarkerBoard | None = None
     tracker_pose: Callable[[], np.ndarray | None] | None = None

@@ -27,7 +27,7 @@ from slamlens.common.errors import MessageError
 from slamlens.common.keys import Keys
 from slamlens.common.messages import CameraControl, CameraPose, Truth
 from slamlens.services.registration.browser import BrowserCameras
-from slamlens.services.registration.markers import MarkerDetector, WindowedDetector
+from slamlens.services.registration.markers import AnyDetector, WindowedDetector
 from slamlens.services.registration.pipeline import CameraPipeline
 from slamlens.services.registration.sources import SyntheticSource
 
@@ -36,7 +36,7 @@ log = logging.getLogger(__name__)
 TRACKER_TIMEOUT_S = 1.0  #: an external CameraPose older than this is not used
 
 
-def _window_counts(detector: MarkerDetector | WindowedDetector) -> dict[str, int]:
+def _window_counts(detector: AnyDetector | WindowedDetector) -> dict[str, int]:
     """How a camera's frames were detected: over the whole image, in windows only, and
     the windows that lost a marker (detected whole again); empty if it never windows."""
     if not isinstance(detector, WindowedDetector):

@@ -14,6 +14,7 @@ from slamlens.common.errors import ConfigError
 from slamlens.common.keys import check_name
 
 MODES = ("overhead", "head-mounted")
+DETECTORS = ("opencv", "apriltag3")
 POSE_SOURCES = ("board", "tracker")
 
 _CAMERA = "camera and marker"
@@ -42,6 +43,11 @@ class RegistrationSettings:
                                metavar="FILE.yml", group=_CAMERA)
     dictionary: str = setting("apriltag_36h11", doc="robot (and board) marker dictionary",
                               group=_CAMERA)
+    detector: str = setting(
+        "opencv", doc="marker detector: opencv (ArUco, every dictionary) or apriltag3 (the "
+                      "AprilTag 3 C library, pupil-apriltags: apriltag_16h5, _25h9, _36h11; "
+                      "finds more small tags, ~6x the CPU; docs/registration_vision.md)",
+        choices=DETECTORS, group=_CAMERA)
     marker_id: int = setting(0, doc="the robot's marker id", min=0, group=_CAMERA)
     marker_size: float = setting(0.2, doc="marker black square side", unit="m", min=1e-3,
                                  group=_CAMERA)
@@ -197,3 +203,20 @@ class CalibrateSettings:
     def __post_init__(self) -> None:
         if not (self.square > 0 and self.marker > 0):
             raise ConfigError("calibrate: --square and --marker must be positive")
+
+
+@dataclass(frozen=True)
+class DetectSettings:
+    """``slamlens detect``: the fiducial markers in images."""
+
+    images: tuple[str, ...] = setting((), doc="images to look at", positional=True,
+                                      required=True, metavar="IMAGE")
+    dictionary: str = setting("apriltag_36h11", doc="marker dictionary (a name, or a custom "
+                                                    "FILE.yml)")
+    detector: str = setting("opencv", doc="opencv or apriltag3 (the AprilTag 3 C library)",
+                            choices=DETECTORS)
+    json: bool = setting(False, doc="one JSON object per image: {\"image\": PATH, "
+                                    "\"detections\": [{\"id\": ID, \"corners\": [[x, y] x4]}]} "
+                                    "(pixels, OpenCV's convention: pixel centres at integers; "
+                                    "corners top-left, top-right, bottom-right, bottom-left of "
+                                    "the marker)")
