@@ -29,6 +29,7 @@ from slamlens.services.registration.pipeline import CameraParts, CameraPipeline,
 from slamlens.services.registration.service import RegistrationService, TrackerPoses
 from slamlens.services.registration.settings import RegistrationSettings
 from slamlens.services.registration.sources import (
+    DeviceOptions,
     FrameSource,
     ReconnectingSource,
     SyntheticSource,
@@ -126,12 +127,19 @@ def synthetic_sources(settings: RegistrationSettings, calib: CameraCalibration,
     return sources
 
 
+def capture_factory(settings: RegistrationSettings) -> Callable[[], FrameSource]:
+    """Opens the ``--source`` a real camera is read from, with its device options."""
+    return open_capture(settings.source, loop=settings.loop, timeout_s=settings.stall_s,
+                        options=DeviceOptions(width=settings.width, height=settings.height,
+                                              fps=settings.fps, fourcc=settings.fourcc,
+                                              buffer_size=settings.buffer_size))
+
+
 def real_source(settings: RegistrationSettings,
                 factory: Callable[[], FrameSource] | None = None) -> FrameSource:
     """The capture source, opened now if it can be, else retried in the background."""
     if factory is None:
-        factory = open_capture(settings.source, loop=settings.loop, width=settings.width,
-                               height=settings.height, fps=settings.fps)
+        factory = capture_factory(settings)
     try:
         initial: FrameSource | None = factory()
     except SourceError as exc:
@@ -156,9 +164,7 @@ def build_service(bus: Bus, keys: Keys, settings: RegistrationSettings) -> Regis
     # a missing path fails first, a missing calibration second, before a device is opened
     if settings.browser:
         return build_browser_service(bus, keys, settings)
-    factory = None if settings.synthetic else open_capture(
-        settings.source, loop=settings.loop, width=settings.width, height=settings.height,
-        fps=settings.fps)
+    factory = None if settings.synthetic else capture_factory(settings)
     calib = calibration_for(settings)
     moving = settings.mode == "head-mounted"
     board = board_for(settings) if moving else None

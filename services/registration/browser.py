@@ -116,7 +116,7 @@ class BrowserFrames:
         if self.size is not None and size != self.size:
             self.resized = True  # its calibration was for the other size
             return None
-        return frame.stamp, image, frame.data  # type: ignore[return-value]
+        return frame.stamp, image, frame.data
 
     def close(self) -> None:
         self._slot.close()

@@ -105,7 +105,7 @@ class FrameCapture:
             # keep the cadence, but after a stall restart it instead of bursting to catch up
             next_t = next_t + period if next_t + period > now - period else now + period
             stamp, image = frame[0], frame[1]
-            jpeg = frame[2] if len(frame) > 2 else None  # type: ignore[misc]
+            jpeg = frame[2] if len(frame) == 3 else None
             self.stats.captured += 1
             seq += 1
             self.publish(seq, stamp, image, jpeg)

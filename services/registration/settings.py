@@ -75,6 +75,15 @@ class RegistrationSettings:
                 "between, only around the markers of the last frame (the same detections: "
                 "docs/registration.md, \"Detection windows\"); 1 = every frame whole; a "
                 "head-mounted camera always looks over the whole image", min=1, group=_CAMERA)
+    fourcc: str = setting("", doc="a USB camera's pixel format, four characters (MJPG: most "
+                                  "give 1280x720 at 30 Hz only compressed); empty = its "
+                                  "default", metavar="CODE", group=_CAMERA)
+    buffer_size: int = setting(0, doc="frames a USB camera's driver queues (1: always the "
+                                      "newest frame); 0 = its default", min=0,
+                               group=_CAMERA)
+    stall_s: float = setting(5.0, doc="a camera or stream that delivers no frame this long "
+                                      "has stalled: it is reopened (with back-off)",
+                             unit="s", min=0.1, group=_CAMERA)
     loop: bool = setting(False, doc="replay a video file / image folder from the start when "
                                     "it ends", group=_CAMERA)
     register_frames: int = setting(5, doc="frames averaged for a registration (the robot "
@@ -117,8 +126,10 @@ class RegistrationSettings:
         8_294_400, doc="browser frames whose JPEG claims more pixels are refused before "
                        "decoding (3840x2160)", min=1, group=_BROWSER)
     # -- the synthetic camera ----------------------------------------------------------
-    width: int = setting(1280, doc="image width", unit="px", min=16, group=_SYNTHETIC)
-    height: int = setting(720, doc="image height", unit="px", min=16, group=_SYNTHETIC)
+    width: int = setting(1280, doc="image width (a USB camera is asked for it too)", unit="px",
+                         min=16, group=_SYNTHETIC)
+    height: int = setting(720, doc="image height (a USB camera is asked for it too)",
+                          unit="px", min=16, group=_SYNTHETIC)
     hfov: float = setting(0.0, doc="horizontal field of view; 0 = fit the arena (head-mounted: "
                                    "75°)", unit="deg", min=0.0, group=_SYNTHETIC)
     camera_height: float = setting(3.0, doc="overhead camera height above the arena centre",
@@ -164,6 +175,9 @@ class RegistrationSettings:
         if not self.source:
             raise ConfigError("setting 'source': empty; give a device index, a file, a "
                               "folder, a URL, 'synthetic' or 'browser'")
+        if self.fourcc and (len(self.fourcc) != 4 or not self.fourcc.isascii()):
+            raise ConfigError(f"setting 'fourcc': {self.fourcc!r} is not four characters "
+                              "(e.g. MJPG, YUYV)")
         if self.stereo_baseline > 0 and self.source != "synthetic":
             raise ConfigError("setting 'stereo_baseline': stereo needs --source synthetic; "
                               "run one service per real camera (names C-left, C-right)")

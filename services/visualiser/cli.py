@@ -22,6 +22,7 @@ log = logging.getLogger("slamlens.viewer")
 def run(command: str, args: argparse.Namespace) -> int:
     # imported here so that `slamlens viewer --help` does not load the web stack
     from slamlens.services.visualiser.ar import ArHub, ArLimits
+    from slamlens.services.visualiser.camera_sources import SourceWatch
     from slamlens.services.visualiser.service import ViewerService
     from slamlens.services.visualiser.web import WebServer, parse_http
     from slamlens.services.visualiser.web_access import (
@@ -51,11 +52,13 @@ def run(command: str, args: argparse.Namespace) -> int:
             max_cameras=config.max_ar_cameras, max_frame_bytes=config.max_ar_frame_bytes,
             max_frame_pixels=config.max_frame_pixels, max_fps=config.max_ar_fps,
             wait_s=config.ar_wait_s, jpeg_quality=config.jpeg_quality))
+    sources = SourceWatch(bus, keys, config.cameras)
     web = WebServer(service, host=host, port=port, token=token,
                     allowed_hosts=config.allowed_hosts, allowed_origins=config.allowed_origins,
-                    ar=ar, ssl_context=ssl_context)
+                    ar=ar, ssl_context=ssl_context, sources=sources)
     try:
         service.start()
+        sources.start()
         url = web.start()
 
         def status() -> Report:
@@ -83,6 +86,7 @@ def run(command: str, args: argparse.Namespace) -> int:
         print(f"viewer stopped: {json.dumps(_final(service.api.status()))}", flush=True)
     finally:
         web.stop()
+        sources.stop()
         service.stop()
         bus.close()
     return 0

@@ -44,6 +44,7 @@ from slamlens.common.errors import ConfigError, SlamlensError
 from slamlens.services.visualiser.api import ViewerApi
 from slamlens.services.visualiser.ar import ArHub
 from slamlens.services.visualiser.ar_web import ArRoutes
+from slamlens.services.visualiser.camera_sources import SourceWatch
 from slamlens.services.visualiser.clients import TooManyViews
 from slamlens.services.visualiser.recording import NAME_PATTERN, RecordingRefused, encode_png
 from slamlens.services.visualiser.service import ViewerService
@@ -157,12 +158,14 @@ class WebServer:
                  port: int = 8080, token: str | None = None,
                  allowed_hosts: tuple[str, ...] = (),
                  allowed_origins: tuple[str, ...] = (), ar: ArHub | None = None,
-                 ssl_context: ssl.SSLContext | None = None) -> None:
+                 ssl_context: ssl.SSLContext | None = None,
+                 sources: SourceWatch | None = None) -> None:
         self.api: ViewerApi = service.api
         self.host = host
         self.port = port
         self.ar = ar
         self.ssl_context = ssl_context
+        self.sources = sources
         self.refusals = DropCounter(log)  #: refused requests, by kind ("web host", …)
         self.guard = AccessGuard(token=token, bound_host=host, allowed_hosts=allowed_hosts,
                                  allowed_origins=allowed_origins, refusals=self.refusals,
@@ -444,7 +447,9 @@ class WebServer:
 
     async def status(self, request: web.Request) -> web.StreamResponse:
         ar = None if self.ar is None else self.ar.status()
-        return _json({**self.api.status(), "refused": dict(self.refusals.counts), "ar": ar})
+        sources = {} if self.sources is None else self.sources.notes()
+        return _json({**self.api.status(), "refused": dict(self.refusals.counts), "ar": ar,
+                      "sources": sources})
 
     async def features(self, request: web.Request) -> web.StreamResponse:
         return _json(self.api.features(self._settings(request)))
