@@ -26,7 +26,7 @@ import pytest
 
 from slamlens.common.keys import Keys
 from slamlens.common.messages import SlamState
-from slamlens.services.visualiser.ar import ArHub
+from slamlens.services.visualiser.ar import ArHub, ArLimits
 from slamlens.services.visualiser.camera_model import CameraModel
 from slamlens.services.visualiser.render import Renderer
 from slamlens.services.visualiser.service import ViewerService
@@ -58,24 +58,26 @@ class ArRig:
     url: str
     video: Video
     y4m: Path
-    registration: Service
+    registration: Service | None
 
 
 def start_rig(make_client, router_endpoint: str, tmp_path: Path, video: Video, *,
-              calibrated: bool = True) -> Iterator[ArRig]:
+              calibrated: bool = True, registration: bool = True,
+              limits: ArLimits | None = None) -> Iterator[ArRig]:
     """Registration (a process), a viewer with the AR page, the robot's state at 10 Hz."""
     y4m = write_y4m(video, tmp_path / "walk.y4m")
     args = ["registration", "--source", "browser", "--mode", "head-mounted", "--camera",
             "phone", "--robot", ROBOT, "--connect", router_endpoint]
     if calibrated:
         args += ["--calibration", str(write_calibration(video, tmp_path / "phone.yml"))]
-    registration = spawn(*args)
-    registration.wait_for_line("registration ready", timeout=60)
+    service_proc = spawn(*args) if registration else None
+    if service_proc is not None:
+        service_proc.wait_for_line("registration ready", timeout=60)
     bus = make_client()
     service = ViewerService(bus, keys=KEYS, config=ViewerConfig(
         robot=ROBOT, recordings_dir=str(tmp_path)))
     service.start()
-    hub = ArHub(bus, KEYS, service.api, base_camera="phone")
+    hub = ArHub(bus, KEYS, service.api, base_camera="phone", limits=limits)
     web = WebServer(service, host="127.0.0.1", port=0, ar=hub)
     url = web.start()
     publisher = make_client().publisher(KEYS.state(ROBOT))
@@ -92,13 +94,14 @@ def start_rig(make_client, router_endpoint: str, tmp_path: Path, video: Video, *
     driver = threading.Thread(target=drive, daemon=True)
     driver.start()
     try:
-        yield ArRig(url, video, y4m, registration)
+        yield ArRig(url, video, y4m, service_proc)
     finally:
         done.set()
         driver.join()
         web.stop()
         service.stop()
-        stop(registration)
+        if service_proc is not None:
+            stop(service_proc)
 
 
 @pytest.fixture(scope="module")
