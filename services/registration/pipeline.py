@@ -16,7 +16,7 @@ it may query, not publish), re-registers from the next frames. A re-registration
 move the map frame by more than ``max_reregister_move_m`` / ``max_reregister_turn_deg``
 while the robot is not at its map origin is refused, with the reason, and the old one kept.
 
-Maps (SPEC §7a): the pipeline watches the robot's state header (epoch, origin_stamp,
+Maps (docs/delivery.md, epochs): the pipeline watches the robot's state header (epoch, origin_stamp,
 pose). The first map it sees keeps the registration made while the robot stood still; a
 new map (a new epoch) is registered from the remembered frame nearest its
 ``origin_stamp`` — where the robot stood when that map started. Every Registration says
