@@ -24,8 +24,9 @@ from slamlens.services.registration.calibration import (
     scaled_calibration,
     synthetic_calibration,
 )
+from slamlens.services.registration.maps import CameraSettings
 from slamlens.services.registration.markers import MarkerDetector, WindowedDetector
-from slamlens.services.registration.pipeline import CameraParts, CameraPipeline, CameraSettings
+from slamlens.services.registration.pipeline import CameraParts, CameraPipeline
 from slamlens.services.registration.service import RegistrationService, TrackerPoses
 from slamlens.services.registration.settings import RegistrationSettings
 from slamlens.services.registration.sources import (

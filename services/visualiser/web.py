@@ -37,7 +37,7 @@ from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
-from aiohttp import WSMsgType, web
+from aiohttp import web
 
 from slamlens.common.drops import DropCounter
 from slamlens.common.errors import ConfigError, SlamlensError
@@ -50,16 +50,15 @@ from slamlens.services.visualiser.recording import NAME_PATTERN, RecordingRefuse
 from slamlens.services.visualiser.service import ViewerService
 from slamlens.services.visualiser.settings import ViewSettings
 from slamlens.services.visualiser.web_access import AccessGuard, QuietServerLog
+from slamlens.services.visualiser.web_streams import Streams
 
 log = logging.getLogger("slamlens.viewer.web")
 
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 CLIENT_PATTERN = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
-BOUNDARY = "slamlensframe"
 SNAPSHOT_WAIT_S = 3.0  # how long a snapshot waits for a picture of the newest inputs
 NO_STORE = {"Cache-Control": "no-store"}
 MAX_BODY_BYTES = 64 * 1024  # a settings change is a few hundred bytes
-MAX_WS_MESSAGE = 1024  # the page only ever sends "next"
 UNAVAILABLE = (TooManyViews, RecordingRefused)  # answered 503: the viewer is at a limit
 
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
@@ -116,37 +115,6 @@ def _errors(refusals: DropCounter) -> Callable[..., Awaitable[web.StreamResponse
         return _json({"error": reason}, status=status)
 
     return errors
-
-
-class _Watch:
-    """The view one stream shows, watched while the stream lasts (so it is kept), and
-    followed when the client changes its settings."""
-
-    def __init__(self, api: ViewerApi, client: str | None) -> None:
-        self._api, self._client = api, client
-        self.settings: ViewSettings | None = None
-
-    def current(self) -> ViewSettings:
-        """The client's settings now (TooManyViews if the first has no room)."""
-        settings = self._api.settings_for(self._client)
-        if settings == self.settings:
-            self._api.touch(settings)
-            return settings
-        try:
-            self._api.watch(settings, self._client)
-        except TooManyViews:
-            if self.settings is None:
-                raise
-            return self.settings  # no room for the new settings: keep showing the old
-        if self.settings is not None:
-            self._api.unwatch(self.settings, self._client)
-        self.settings = settings
-        return settings
-
-    def close(self) -> None:
-        if self.settings is not None:
-            self._api.unwatch(self.settings, self._client)
-            self.settings = None
 
 
 class WebServer:
@@ -276,8 +244,10 @@ class WebServer:
         r = app.router
         r.add_get("/", self.index)
         r.add_static("/static", STATIC_DIR)
-        r.add_get("/ws", self.websocket)
-        r.add_get("/stream.mjpg", self.mjpeg)
+        streams = Streams(self.api, refusals=self.refusals, client=self._client,
+                          next_frames=self._next_frames, closing=lambda: self._closing)
+        r.add_get("/ws", streams.websocket)
+        r.add_get("/stream.mjpg", streams.mjpeg)
         r.add_get("/snapshot.png", self.snapshot)
         r.add_get("/api/settings", self.get_settings)
         r.add_post("/api/settings", self.post_settings)
@@ -312,86 +282,6 @@ class WebServer:
     # -- pages and pictures -----------------------------------------------------------
     async def index(self, request: web.Request) -> web.StreamResponse:
         return web.FileResponse(STATIC_DIR / "index.html", headers=NO_STORE)
-
-    async def mjpeg(self, request: web.Request) -> web.StreamResponse:
-        watch = _Watch(self.api, self._client(request))
-        watch.current()  # no room for its view: 503 before the stream starts
-        response = web.StreamResponse(headers={
-            "Content-Type": f"multipart/x-mixed-replace; boundary={BOUNDARY}",
-            "Cache-Control": "no-cache, no-store, must-revalidate", "Pragma": "no-cache"})
-        last = None
-        try:
-            await response.prepare(request)
-            while not self._closing:
-                transport = request.transport
-                if transport is None or transport.is_closing():
-                    break  # the client went away while no picture was written
-                rendered = self.api.latest(watch.current())
-                if rendered is None or rendered is last:
-                    await self._next_frames(1.0)
-                    continue
-                last = rendered
-                head = (f"--{BOUNDARY}\r\nContent-Type: image/jpeg\r\n"
-                        f"Content-Length: {len(rendered.jpeg)}\r\n"
-                        f"X-State-Seq: {'' if rendered.seq is None else rendered.seq}\r\n"
-                        f"X-State-Stamp: {'' if rendered.stamp is None else rendered.stamp!r}"
-                        f"\r\nX-Frame-Version: {rendered.version}\r\n\r\n")
-                await response.write(head.encode() + rendered.jpeg + b"\r\n")
-        except (ConnectionResetError, asyncio.CancelledError):
-            pass  # the viewer went away
-        finally:
-            watch.close()
-        return response
-
-    async def websocket(self, request: web.Request) -> web.StreamResponse:
-        watch = _Watch(self.api, self._client(request))
-        watch.current()  # no room for its view: 503 instead of the upgrade
-        ws = web.WebSocketResponse(heartbeat=20.0, max_msg_size=MAX_WS_MESSAGE)
-        try:
-            await ws.prepare(request)
-        except BaseException:
-            watch.close()
-            raise
-        wanted = asyncio.Event()
-        wanted.set()
-
-        async def read() -> None:
-            async for msg in ws:
-                if msg.type == WSMsgType.TEXT and msg.data == "next":
-                    wanted.set()
-                elif msg.type == WSMsgType.ERROR:  # e.g. a message over MAX_WS_MESSAGE
-                    self.refusals.drop("web websocket", f"closed the websocket of "
-                                       f"{request.remote}: {ws.exception()}")
-                    break
-
-        reader = asyncio.create_task(read())
-        last = None
-        try:
-            while not self._closing and not ws.closed and not reader.done():
-                rendered = self.api.latest(watch.current())
-                if not wanted.is_set():  # the page has not drawn the previous frame yet
-                    try:
-                        await asyncio.wait_for(wanted.wait(), 1.0)
-                    except TimeoutError:
-                        pass
-                    continue
-                if rendered is None or rendered is last:
-                    await self._next_frames(1.0)
-                    continue
-                last = rendered
-                wanted.clear()
-                height, width = rendered.image.shape[:2]
-                await ws.send_json({"seq": rendered.seq, "stamp": rendered.stamp,
-                                    "version": rendered.version, "width": width,
-                                    "height": height})
-                await ws.send_bytes(rendered.jpeg)
-        except (ConnectionResetError, asyncio.CancelledError):
-            pass
-        finally:
-            watch.close()
-            reader.cancel()
-            await ws.close()
-        return ws
 
     async def snapshot(self, request: web.Request) -> web.StreamResponse:
         settings = self._settings(request)
