@@ -265,9 +265,9 @@ class ViewerApi:
         at ``received``, monotonic s) under ``settings``, as the main view draws it over a
         camera; (None, why) if it cannot be: no state yet, or the registration places
         another map (an older epoch)."""
-        name = self._robot(robot)
+        name = robot or self._intake.robot
         inputs = self._intake.snapshot().robot(name)
-        if inputs is None or inputs.state is None:
+        if inputs is None or inputs.state is None:  # (a robot not discovered yet, too)
             return None, f"waiting for the state of robot {name}"
         if not inputs.registration_usable(registration, received):
             return None, (f"map restarted: waiting for camera {registration.camera} to "
@@ -281,7 +281,7 @@ class ViewerApi:
         return picture, ""
 
     def state_seq(self, robot: str | None) -> int | None:
-        inputs = self._intake.snapshot().robot(self._robot(robot))
+        inputs = self._intake.snapshot().robot(robot or self._intake.robot)
         return None if inputs is None or inputs.state is None else inputs.state.seq
 
     # -- recordings ---------------------------------------------------------------

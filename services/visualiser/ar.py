@@ -273,8 +273,8 @@ class ArHub:
             raise ArRefused("ar camera", f"camera {camera!r}: AR cameras of this viewer are "
                                          f"named {base} or {base}-… (--ar-camera)")
         names = self.api.robot_names()
-        name = robot or (names[0] if names else "")
-        if not name or name not in names:
+        name = robot or (names[0] if names else self.api.robot)
+        if not name or (robot is not None and name not in names):
             raise ArRefused("ar camera", f"robot {robot!r} is not shown by this viewer; "
                                          f"shown: {', '.join(names) or 'none yet'}")
         with self._lock:
