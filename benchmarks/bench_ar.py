@@ -1,7 +1,7 @@
 """The AR page end to end: browser frame → overlay shown, frames a second, and how far the
 overlay lands from the truth with the phone's default camera model.
 
-Debian's Chromium plays the synthetic head-mounted walk (tests/ar_video.py, 1280×720) as
+Debian's Chromium plays the synthetic head-mounted walk (services/harness/ar_video.py, 1280×720) as
 its camera; a viewer (in-process) and ``slamlens registration --source browser`` (a real
 process) on loopback Zenoh; the robot's state is the paper world's 15 features, all pairs
 drawn (the default view). The page measures, per frame, the time from taking it off the
@@ -36,9 +36,7 @@ from slamlens.common.session import (  # noqa: E402
     open_bus,
     router_settings,
 )
-from slamlens.services.visualiser.ar import ArLimits  # noqa: E402
-from tests.ar_video import read_index, render_walk  # noqa: E402
-from tests.integration.test_ar_browser import (  # noqa: E402
+from slamlens.services.harness.ar_rig import (  # noqa: E402
     CONES_ONLY,
     cone_offsets,
     open_ar_page,
@@ -46,6 +44,8 @@ from tests.integration.test_ar_browser import (  # noqa: E402
     shown_picture,
     start_rig,
 )
+from slamlens.services.harness.ar_video import read_index, render_walk  # noqa: E402
+from slamlens.services.visualiser.ar import ArLimits  # noqa: E402
 
 
 def measure(page, seconds: float) -> dict[str, float]:

@@ -28,7 +28,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from slamlens.common.bus import InProcessBus  # noqa: E402
+from slamlens.common.inprocess_bus import InProcessBus  # noqa: E402
 from slamlens.common.keys import Keys  # noqa: E402
 from slamlens.common.messages import Truth  # noqa: E402
 from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus, router_settings  # noqa: E402

@@ -40,8 +40,8 @@ sys.path.insert(0, str(REPO))
 from slamlens.common.keys import Keys  # noqa: E402
 from slamlens.common.messages import peek_fields  # noqa: E402
 from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus  # noqa: E402
-from tests.collect import StateCollector  # noqa: E402
-from tests.procs import Service, slamlens_cmd, spawn, stop  # noqa: E402
+from slamlens.services.harness.collect import StateCollector  # noqa: E402
+from slamlens.services.harness.procs import Service, slamlens_cmd, spawn, stop  # noqa: E402
 
 KEYS = Keys()
 ROBOT = "robot1"

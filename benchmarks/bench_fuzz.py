@@ -1,7 +1,7 @@
 """≥ 100 000 malformed payloads on every key a service subscribes to (issue 8).
 
 For each service (a real process behind a real router on loopback) and each key it
-subscribes to, this sends ``--count`` payloads from tests/fuzz.py (random bytes, wrong
+subscribes to, this sends ``--count`` payloads from services/harness/fuzz.py (random bytes, wrong
 types, dtype as a list or an unknown string, 70-dimensional or huge shapes, NaN/∞,
 truncated msgpack …), paced so that none is lost in transit, then one correct message,
 and reports: payloads per second taken, rejections counted against sent, whether the
@@ -29,8 +29,8 @@ sys.path.insert(0, str(REPO))
 from slamlens.common.keys import Keys  # noqa: E402
 from slamlens.common.messages import Health, Observations, Odometry, SlamState, Truth  # noqa: E402
 from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus  # noqa: E402
-from tests.fuzz import bad_payloads, valid  # noqa: E402
-from tests.procs import spawn, stop  # noqa: E402
+from slamlens.services.harness.fuzz import bad_payloads, valid  # noqa: E402
+from slamlens.services.harness.procs import spawn, stop  # noqa: E402
 
 KEYS = Keys()
 ROBOT = "robot1"

@@ -63,7 +63,7 @@ from slamlens.common.keys import Keys  # noqa: E402
 from slamlens.common.memory import keep_freed_memory  # noqa: E402
 from slamlens.common.messages import Health  # noqa: E402
 from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus  # noqa: E402
-from tests.procs import Service, spawn, stop  # noqa: E402
+from slamlens.services.harness.procs import Service, spawn, stop  # noqa: E402
 
 KEYS = Keys()
 ROBOT = "robot1"

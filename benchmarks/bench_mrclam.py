@@ -5,7 +5,8 @@ For each robot, three rows measured in the same run:
 1. ``defaults``  — the estimator's defaults (the simulator's noise), offline: the baseline;
 2. ``profile``   — ``deploy/mrclam.toml``, offline (an Estimator fed the dataset directly);
 3. ``processes`` — ``deploy/mrclam.toml`` through the real processes at ``--rate 0``: router,
-   ``slamlens estimator``, ``slamlens monitor``, ``slamlens replay`` (tests/mrclam_pipeline.py),
+   ``slamlens estimator``, ``slamlens monitor``, ``slamlens replay``
+   (services/harness/mrclam_pipeline.py),
    every state received and scored; and the monitor's verdicts.
 
 Figures: time-averaged pose NEES (3 expected), the fraction of 100-state windows whose mean
@@ -32,10 +33,10 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from slamlens.common.config import load_settings  # noqa: E402
+from slamlens.services.harness.mrclam_pipeline import DATA, PROFILE, run_pipeline  # noqa: E402
 from slamlens.services.slam import tuning  # noqa: E402
 from slamlens.services.slam.mrclam import load_mrclam  # noqa: E402
 from slamlens.services.slam.settings import EstimatorSettings  # noqa: E402
-from tests.mrclam_pipeline import DATA, PROFILE, run_pipeline  # noqa: E402
 
 HEADER = (f"{'robot':>6} {'run':>9} {'NEES':>7} {'windows':>8} {'states':>7} {'lm RMSE':>8} "
           f"{'rigid':>6} {'rot°':>6} {'pose':>6} {'head°':>6} {'DR pose':>8} {'DR head°':>8} "

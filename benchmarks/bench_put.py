@@ -31,7 +31,7 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus  # noqa: E402
-from tests.procs import spawn, stop  # noqa: E402
+from slamlens.services.harness.procs import spawn, stop  # noqa: E402
 
 KEY = "bench/put"
 _SUBSCRIBER = """

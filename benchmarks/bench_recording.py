@@ -35,13 +35,14 @@ sys.path.insert(0, str(REPO))
 
 from mcap.reader import make_reader  # noqa: E402
 
-from slamlens.common.bus import InProcessBus, Sample  # noqa: E402
+from slamlens.common.bus import Sample  # noqa: E402
+from slamlens.common.inprocess_bus import InProcessBus  # noqa: E402
 from slamlens.common.keys import Keys  # noqa: E402
 from slamlens.common.messages import peek_fields  # noqa: E402
 from slamlens.common.session import free_tcp_endpoint  # noqa: E402
+from slamlens.services.harness.procs import Service, spawn, stop  # noqa: E402
 from slamlens.services.recorder.record import Recorder  # noqa: E402
 from slamlens.services.recorder.settings import RecordSettings  # noqa: E402
-from tests.procs import Service, spawn, stop  # noqa: E402
 
 KEYS = Keys()
 ROBOT = "robot1"

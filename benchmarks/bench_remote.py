@@ -1,6 +1,7 @@
 """A remote viewer behind a 20 Mbit/s link (issue 13): full state vs. the summary stream.
 
-Two network namespaces (``tests/netns.py``: a robot and a workstation joined by a veth pair)
+Two network namespaces (``services/harness/netns.py``: a robot and a workstation joined by a
+veth pair)
 with a token bucket on the link, both ways: ``tc qdisc … tbf rate 20mbit burst 32kbit
 latency 400ms``. The robot runs its router (linked to the workstation's), a publisher of an
 n = 1000 map state (3 + 2·1000 = 2003 rows: a 32 MB ``SlamState``; synthetic, three spatial
@@ -232,9 +233,9 @@ WORKSTATION_NS: set[str] = set()  #: namespaces given a private /dev/shm (see _i
 
 def _in_ns(ns: str, argv: list[str]) -> list[str]:
     """``argv`` run in network namespace ``ns``; the workstation's processes also get an
-    empty /dev/shm of their own (``tests.netns.own_shm``: otherwise Zenoh hands the robot's
+    empty /dev/shm of their own (``harness.netns.own_shm``: otherwise Zenoh hands the robot's
     shared-memory buffers over by reference and 32 MB never cross the shaped link)."""
-    from tests.netns import own_shm
+    from slamlens.services.harness.netns import own_shm
 
     return ["ip", "netns", "exec", ns, *(own_shm(argv) if ns in WORKSTATION_NS else argv)]
 
@@ -311,7 +312,7 @@ def _phase(h, role: str, args: argparse.Namespace, rate: float) -> list[dict]:
 
 def _viewer_phase(h, args: argparse.Namespace) -> list[dict]:
     """(c): the viewer itself in summary mode, its state read from /api/status."""
-    from tests.netns import curl_json
+    from slamlens.services.harness.netns import curl_json
 
     me = str(Path(__file__).resolve())
     viewer = _netns_python(h.workstation, "-m", "slamlens.services", "viewer", "--robot", ROBOT,
@@ -405,7 +406,7 @@ def main() -> None:
          "probe_get": role_probe_get}[args.role](args)
         return
 
-    from tests.netns import available, make_hosts
+    from slamlens.services.harness.netns import available, make_hosts
 
     why = available()
     if why is not None:

@@ -31,11 +31,11 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
-from slamlens.common.bus import ZenohBus  # noqa: E402
 from slamlens.common.certs import extend_authority  # noqa: E402
 from slamlens.common.keys import Keys  # noqa: E402
 from slamlens.common.messages import Observations, SlamState  # noqa: E402
 from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus  # noqa: E402
+from slamlens.common.zenoh_bus import ZenohBus  # noqa: E402
 
 KEYS = Keys()
 ROBOT = "lat"

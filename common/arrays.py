@@ -141,85 +141,19 @@ def decode_array(
     want = _DTYPES.get(dtype) or _DTYPES.setdefault(dtype, np.dtype(dtype))
     # the common case first (a well-formed map of the field's own dtype): checked in full,
     # in a few operations, without a copy — every state a consumer decodes goes this way
-    if type(raw) is dict and raw.get("dtype") == dtype:
-        wire_shape, data = raw.get("shape"), raw.get("data")
-        if (type(data) is bytes or is_frozen_view(data)) and type(
-                wire_shape) is list and len(wire_shape) == len(shape):
-            count = 1
-            for d, s in zip(wire_shape, shape, strict=True):
-                if type(d) is not int or d < 0 or (s is not None and d != s):
-                    break
-                count *= d
-            else:
-                if len(data) == count * want.itemsize:
-                    array = np.frombuffer(data, dtype=want).reshape(wire_shape)
-                    if finite and want.kind == "f" and count and not (
-                            math.isfinite(float(array.sum())) or np.isfinite(array).all()):
-                        raise MessageError(message, field, "finite values", "NaN or infinity")
-                    return array  # read-only: a view of immutable bytes
+    array = _well_formed(raw, want, dtype, shape)
+    if array is not None:
+        if finite and want.kind == "f" and array.size and not (
+                math.isfinite(float(array.sum())) or np.isfinite(array).all()):
+            raise MessageError(message, field, "finite values", "NaN or infinity")
+        return array  # read-only: a view of immutable bytes
     if isinstance(raw, dict):
-        try:
-            wire_dtype = raw["dtype"]
-            wire_shape = raw["shape"]
-            data = raw["data"]
-        except KeyError as exc:
-            raise MessageError(message, field, "array map with dtype, shape, data",
-                               f"missing {exc.args[0]!r}") from None
-        if not isinstance(wire_dtype, str) or wire_dtype not in _WIRE_DTYPES:
-            raise MessageError(message, field, "little-endian dtype such as '<f8'",
-                               _describe(wire_dtype))
-        if not isinstance(wire_shape, (list, tuple)) or not all(
-            isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in wire_shape
-        ):
-            raise MessageError(message, field, "shape as a list of non-negative ints",
-                               _describe(wire_shape))
-        if len(wire_shape) != len(shape):
-            shown = ["n" if s is None else s for s in shape]
-            raise MessageError(message, field, f"shape {shown}",
-                               f"{len(wire_shape)} dimensions")
-        if not isinstance(data, (bytes, bytearray, memoryview)):
-            raise MessageError(message, field, "data as bytes", type(data).__name__)
-        wire = np.dtype(wire_dtype)
-        count = math.prod(wire_shape)
-        if len(data) != count * wire.itemsize:
-            raise MessageError(message, field,
-                               f"{count * wire.itemsize} data bytes for shape {list(wire_shape)}",
-                               f"{len(data)} bytes")
-        # a read-only view of the (immutable) bytes: no copy when the dtype is the field's
-        array = np.frombuffer(data if isinstance(data, bytes) or is_frozen_view(data)
-                              else bytes(data),
-                              dtype=wire).reshape(wire_shape)
+        array = _from_wire_map(raw, message, field, shape)
     elif isinstance(raw, (list, tuple)):
-        depth = 0
-        inner: Any = raw
-        while isinstance(inner, (list, tuple)) and depth <= MAX_DIMS:
-            depth += 1
-            inner = inner[0] if inner else None
-        if depth > MAX_DIMS:
-            raise MessageError(message, field, f"at most {MAX_DIMS} nested lists",
-                               "a deeper list")
-        try:
-            array = np.asarray(raw)
-        except (ValueError, TypeError, OverflowError):
-            raise MessageError(message, field, "a rectangular list of numbers",
-                               "a ragged or mixed list") from None
-        if array.size and array.dtype.kind not in "biuf":
-            raise MessageError(message, field, "numbers", f"elements of kind {array.dtype}")
+        array = _from_list(raw, message, field)
     else:
         raise MessageError(message, field, "an array map or list", type(raw).__name__)
-
-    if array.dtype != want:
-        if want.kind in "iu" and array.dtype.kind == "f":
-            if array.size and not np.all(np.isfinite(array) & (array == np.round(array))):
-                raise MessageError(message, field, "integers", "non-integral values")
-            if array.size and float(np.max(np.abs(array))) >= 2.0 ** 63:
-                raise MessageError(message, field, "64-bit integers", "values beyond ±2⁶³")
-        if want.kind == "b" and array.dtype.kind not in "bui":
-            raise MessageError(message, field, "booleans", str(array.dtype))
-        array = np.array(array, dtype=want, order="C")
-    elif not array.flags.c_contiguous or array.flags.writeable:
-        array = np.array(array, dtype=want, order="C")  # a list's array: own, then freeze
-
+    array = _as_dtype(array, want, message, field)
     dims: tuple[int, ...] = array.shape
     if len(shape) != array.ndim or any(
         s is not None and s != d for s, d in zip(shape, dims, strict=False)
@@ -229,6 +163,96 @@ def decode_array(
     if finite and want.kind == "f" and not np.isfinite(array).all():
         raise MessageError(message, field, "finite values", "NaN or infinity")
     array.setflags(write=False)
+    return array
+
+
+def _well_formed(raw: Any, want: np.dtype, dtype: str,
+                 shape: Sequence[int | None]) -> np.ndarray | None:
+    """The array of a map of exactly the field's dtype, shape and data size (a view of
+    its bytes), else None (the full checks decide)."""
+    if type(raw) is not dict or raw.get("dtype") != dtype:
+        return None
+    wire_shape, data = raw.get("shape"), raw.get("data")
+    if not (type(data) is bytes or is_frozen_view(data)) or type(wire_shape) is not list \
+            or len(wire_shape) != len(shape):
+        return None
+    count = 1
+    for d, s in zip(wire_shape, shape, strict=True):
+        if type(d) is not int or d < 0 or (s is not None and d != s):
+            return None
+        count *= d
+    if len(data) != count * want.itemsize:
+        return None
+    return np.frombuffer(data, dtype=want).reshape(wire_shape)
+
+
+def _from_wire_map(raw: dict[Any, Any], message: str, field: str,
+                   shape: Sequence[int | None]) -> np.ndarray:
+    """The array of a ``{"dtype", "shape", "data"}`` map in its wire dtype, validated."""
+    try:
+        wire_dtype = raw["dtype"]
+        wire_shape = raw["shape"]
+        data = raw["data"]
+    except KeyError as exc:
+        raise MessageError(message, field, "array map with dtype, shape, data",
+                           f"missing {exc.args[0]!r}") from None
+    if not isinstance(wire_dtype, str) or wire_dtype not in _WIRE_DTYPES:
+        raise MessageError(message, field, "little-endian dtype such as '<f8'",
+                           _describe(wire_dtype))
+    if not isinstance(wire_shape, (list, tuple)) or not all(
+        isinstance(d, int) and not isinstance(d, bool) and d >= 0 for d in wire_shape
+    ):
+        raise MessageError(message, field, "shape as a list of non-negative ints",
+                           _describe(wire_shape))
+    if len(wire_shape) != len(shape):
+        shown = ["n" if s is None else s for s in shape]
+        raise MessageError(message, field, f"shape {shown}", f"{len(wire_shape)} dimensions")
+    if not isinstance(data, (bytes, bytearray, memoryview)):
+        raise MessageError(message, field, "data as bytes", type(data).__name__)
+    wire = np.dtype(wire_dtype)
+    count = math.prod(wire_shape)
+    if len(data) != count * wire.itemsize:
+        raise MessageError(message, field,
+                           f"{count * wire.itemsize} data bytes for shape {list(wire_shape)}",
+                           f"{len(data)} bytes")
+    # a read-only view of the (immutable) bytes: no copy when the dtype is the field's
+    return np.frombuffer(data if isinstance(data, bytes) or is_frozen_view(data)
+                         else bytes(data), dtype=wire).reshape(wire_shape)
+
+
+def _from_list(raw: list[Any] | tuple[Any, ...], message: str, field: str) -> np.ndarray:
+    """The array of a (nested) list of numbers: rectangular, at most MAX_DIMS deep."""
+    depth = 0
+    inner: Any = raw
+    while isinstance(inner, (list, tuple)) and depth <= MAX_DIMS:
+        depth += 1
+        inner = inner[0] if inner else None
+    if depth > MAX_DIMS:
+        raise MessageError(message, field, f"at most {MAX_DIMS} nested lists", "a deeper list")
+    try:
+        array = np.asarray(raw)
+    except (ValueError, TypeError, OverflowError):
+        raise MessageError(message, field, "a rectangular list of numbers",
+                           "a ragged or mixed list") from None
+    if array.size and array.dtype.kind not in "biuf":
+        raise MessageError(message, field, "numbers", f"elements of kind {array.dtype}")
+    return array
+
+
+def _as_dtype(array: np.ndarray, want: np.dtype, message: str, field: str) -> np.ndarray:
+    """``array`` in the field's dtype, C-contiguous, owned (integers from floats only if
+    integral and within 64 bits)."""
+    if array.dtype != want:
+        if want.kind in "iu" and array.dtype.kind == "f":
+            if array.size and not np.all(np.isfinite(array) & (array == np.round(array))):
+                raise MessageError(message, field, "integers", "non-integral values")
+            if array.size and float(np.max(np.abs(array))) >= 2.0 ** 63:
+                raise MessageError(message, field, "64-bit integers", "values beyond ±2⁶³")
+        if want.kind == "b" and array.dtype.kind not in "bui":
+            raise MessageError(message, field, "booleans", str(array.dtype))
+        return np.array(array, dtype=want, order="C")
+    if not array.flags.c_contiguous or array.flags.writeable:
+        return np.array(array, dtype=want, order="C")  # a list's array: own, then freeze
     return array
 
 

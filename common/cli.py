@@ -55,6 +55,14 @@ class BusFlags:
 
 
 @dataclass(frozen=True)
+class ConfigFlag:
+    """Where a command's settings file is (a flag only)."""
+
+    config: str = setting("", doc="TOML file with this command's settings (flags override it)",
+                          metavar="FILE", group="settings file")
+
+
+@dataclass(frozen=True)
 class LogFlags:
     """How much a command logs (flags only)."""
 
@@ -64,13 +72,12 @@ class LogFlags:
 
 def add_common_flags(parser: argparse.ArgumentParser, *, bus: bool = True,
                      config: bool = True, groups: dict[str, Any] | None = None) -> None:
-    """Add the SPEC §9 common flags: the bus flags, ``--config FILE``, ``-v``/``-q``."""
+    """Add the common flags (docs/cli.md): the bus flags, ``--config FILE``, ``-v``/``-q``."""
     groups = {} if groups is None else groups
     if bus:
         add_flags(parser, BusFlags, groups=groups)
     if config:
-        parser.add_argument("--config", metavar="FILE",
-                            help="TOML file with this command's settings (flags override it)")
+        add_flags(parser, ConfigFlag, groups=groups)
     add_flags(parser, LogFlags, groups=groups)
 
 

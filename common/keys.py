@@ -12,6 +12,11 @@ from dataclasses import dataclass
 from slamlens.common.errors import ConfigError
 
 DEFAULT_PREFIX = "slamlens"
+#: every leaf under ``{prefix}/robot/{robot}/`` (a test holds the builders to it)
+ROBOT_LEAVES = ("odometry", "observations", "truth", "state", "health", "summary",
+                "alive/estimator")
+#: what the input keys' leaves, and no other leaf, start with (:meth:`Keys.inputs`)
+INPUT_LEAF_START = "o"
 _SEGMENT = re.compile(r"^[^/*$?#\s]+$")
 
 
@@ -49,6 +54,13 @@ class Keys:
 
     def observations(self, robot: str) -> str:
         return self.robot(robot, "observations")
+
+    def inputs(self, robot: str) -> str:
+        """Both input keys of ``robot`` (odometry, observations) in one key expression and
+        nothing else: the leaves starting with "o" (:data:`ROBOT_LEAVES`). One subscriber
+        on it gets one publishing session's inputs in publication order (docs/protocol.md,
+        "Inputs: order and delivery")."""
+        return self.robot(robot, f"{INPUT_LEAF_START}$*")
 
     def truth(self, robot: str) -> str:
         return self.robot(robot, "truth")

@@ -48,8 +48,8 @@ from slamlens.common.certs import (
     load_key,
     parse_name,
 )
+from slamlens.common.endpoints import effective_endpoints
 from slamlens.common.errors import ConfigError, SecurityError
-from slamlens.common.session import effective_endpoints
 
 #: every message kind Zenoh's access control filters
 ALL_MESSAGES = ("put", "delete", "declare_subscriber", "query", "reply", "declare_queryable",

@@ -27,9 +27,10 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from slamlens.common.bus import ZenohBus
+from slamlens.common.endpoints import check_endpoint, effective_endpoints
 from slamlens.common.errors import BusError, ConfigError
 from slamlens.common.keys import DEFAULT_PREFIX
+from slamlens.common.zenoh_bus import ZenohBus
 
 log = logging.getLogger(__name__)
 
@@ -50,22 +51,6 @@ class BusSettings:
     secure: str | None = None  #: directory of the certificate authority (SPEC §7b)
     name: str | None = None  #: identity in ``secure`` (certificate common name)
     prefix: str = DEFAULT_PREFIX  #: key prefix the router's access control protects
-
-
-def _check_endpoint(endpoint: str) -> str:
-    proto, sep, rest = endpoint.partition("/")
-    if not sep or proto not in {"tcp", "udp", "tls", "quic", "ws", "unixsock-stream"} or not rest:
-        raise ConfigError(f"endpoint {endpoint!r} is not of the form tcp/HOST:PORT")
-    return endpoint
-
-
-def effective_endpoints(conf: Any, section: str, mode: str | None) -> list[str]:
-    """The ``connect``/``listen`` endpoints ``conf`` would use in ``mode`` (Zenoh allows a
-    list or a map from mode to list)."""
-    raw = json.loads(conf.get_json(f"{section}/endpoints") or "[]")
-    if isinstance(raw, dict):
-        raw = raw.get(mode or "peer", [])
-    return [str(e) for e in raw or []]
 
 
 def _sets_listen(conf: Any) -> bool:
@@ -93,8 +78,8 @@ def build_config(settings: BusSettings):  # -> zenoh.Config
         conf = zenoh.Config()
 
     default_router = DEFAULT_SECURE_ROUTER if settings.secure else DEFAULT_ROUTER
-    connect = [_check_endpoint(e) for e in settings.connect]
-    listen = [_check_endpoint(e) for e in settings.listen]
+    connect = [check_endpoint(e) for e in settings.connect]
+    listen = [check_endpoint(e) for e in settings.listen]
     explicit = bool(connect or listen)
     if settings.mode == "router" and not listen and not _sets_listen(conf):
         listen = [default_router]  # neither flag nor file says where: loopback only

@@ -1,5 +1,5 @@
 import sys
 
-from slamlens.services.cli import main
+from slamlens.services.commands.cli import main
 
 sys.exit(main())

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import pytest
 
-from slamlens.common.bus import ZenohBus
 from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus, router_settings
-from tests.netns import two_hosts  # noqa: F401  (a fixture for every test)
+from slamlens.common.zenoh_bus import ZenohBus
+from slamlens.services.harness.netns import available, make_hosts
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = REPO.parent / "shared" / "data"
@@ -39,3 +39,15 @@ def make_client(router_endpoint: str) -> Iterator:
     yield make
     for bus in buses:
         bus.close()
+
+
+@pytest.fixture
+def two_hosts():
+    why = available()
+    if why is not None:
+        pytest.skip(f"two-host tests need network namespaces: {why}")
+    hosts = make_hosts()
+    try:
+        yield hosts
+    finally:
+        hosts.remove()

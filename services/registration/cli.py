@@ -1,7 +1,8 @@
 """Commands ``slamlens registration`` (camera capture + fiducial registration) and
 ``slamlens calibrate`` (intrinsics from ChArUco board photos).
 
-Settings: :mod:`slamlens.services.registration.settings` (flags built from them by services/cli.py).
+Settings: :mod:`slamlens.services.registration.settings` (flags built from them by
+services/commands/cli.py).
 """
 
 from __future__ import annotations

@@ -4,7 +4,7 @@
 Each command: its settings (:mod:`slamlens.services.slam.settings`) from ``--config FILE`` with the
 flags over it, a bus from the common flags, the service's ``run`` until SIGINT/SIGTERM (or
 the end of the data), and a clean close of the Zenoh session. The flags themselves are
-built from the settings by ``services/cli.py``.
+built from the settings by ``services/commands/cli.py``.
 """
 
 from __future__ import annotations
@@ -151,7 +151,7 @@ def _one_blas_thread() -> None:
 
 def _run_estimator(args: argparse.Namespace) -> int:
     _one_blas_thread()
-    from slamlens.services.slam.estimator_service import EstimatorService
+    from slamlens.services.slam.estimator_service import INPUT_COUNTS, EstimatorService
 
     settings = settings_from_args(EstimatorSettings, args)
     stop = stop_event()
@@ -164,12 +164,14 @@ def _run_estimator(args: argparse.Namespace) -> int:
             refused_by = summary["refused_by"]
             assert isinstance(refused_by, dict)
             state = "resumed" if service.resumed else "running"
-            if refused_by:  # issue 14: refusals by reason, visible in `slamlens status`
+            if service.waiting_for_sources:
+                state = service.waiting_for_sources
+            if refused_by:  # refusals by reason, visible in `slamlens status`
                 state += "; refused " + ", ".join(f"{k} {v}" for k, v in refused_by.items())
             return Report(state=state,
                           counts=counts_of(summary, "states", "odometry",
                                            "observation_batches", "landmarks",
-                                           "refused", "gated", "duplicates"),
+                                           "refused", "gated", *INPUT_COUNTS),
                           dropped=int(summary["dropped"]),  # type: ignore[call-overload]
                           lost=int(summary["lost"]),  # type: ignore[call-overload]
                           epoch=service.epoch)

@@ -14,6 +14,7 @@ from __future__ import annotations
 import logging
 import math
 from collections import Counter
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
@@ -324,9 +325,10 @@ class Estimator:
 
     def to_state(self, *, seq: int, stamp: float, step: str,
                  report: ObserveReport | None = None, epoch: int = 0,
-                 input_stamp: float | None = None,
-                 origin_stamp: float | None = None) -> SlamState:
-        """The current state as a SlamState message (covariance materialised once)."""
+                 input_stamp: float | None = None, origin_stamp: float | None = None,
+                 counts: Mapping[str, float] | None = None) -> SlamState:
+        """The current state as a SlamState message (covariance materialised once);
+        ``counts`` are more running counts for its ``diagnostics`` (the service's)."""
         n = self._n
         N = 3 + 2 * n
         # backed by a bytearray: shared memory takes it with one copy (common/bus.py);
@@ -370,7 +372,7 @@ class Estimator:
                              pose=self.pose, landmark_ids=self.landmark_ids,
                              landmarks=self.landmarks, covariance=cov, epoch=epoch,
                              input_stamp=input_stamp, origin_stamp=origin_stamp,
-                             diagnostics=self.diagnostics(), **extra)
+                             diagnostics={**self.diagnostics(), **(counts or {})}, **extra)
 
     def diagnostics(self) -> dict[str, float]:
         """Running counts published in every state (docs/protocol.md ``diagnostics``):

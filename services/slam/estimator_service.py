@@ -1,24 +1,21 @@
-"""The EKF-SLAM estimator as a bus service (SPEC §4, §7, §7a).
+"""The EKF-SLAM estimator as a bus service (docs/estimator.md, docs/protocol.md).
 
-Inputs: one recovering channel on the robot's odometry and observations keys (advanced subscribers:
-what congestion, a link cut or a router restart made it miss comes back from the drivers'
-caches). Its Zenoh callback only queues the sample; one worker thread decodes, puts the
-inputs in publication order exactly once (:mod:`slamlens.services.slam.input_order`) and applies
-them. After every event applied it publishes one ``SlamState`` through an advanced
-publisher with a cache (congestion control drop: a slow subscriber never slows it) and
-keeps its bytes as the answer to a ``get``. A liveliness token announces the estimator.
-
-Bursts: the worker takes everything queued at once. The small states of one burst (at most
-:data:`BURST_STATES`) are put back to back when it is applied, so Zenoh sends them in a few
-batches instead of one write each; a put on an idle link costs the publisher ~6× the CPU
-of one in a batch (``benchmarks/bench_put.py``). A state waits at most for the rest of its
-burst (≤ ``BURST_STATES`` events), and only when inputs queue up — in real time every burst
-is one input. Large states (a big map's, through shared memory) go out at once.
+Inputs: one advanced subscriber on one key expression covering both input keys
+(:meth:`~slamlens.common.keys.Keys.inputs`), so one publishing session's inputs arrive in the
+order it published them; what congestion, a link cut or a router restart made it miss comes
+back from the drivers' caches, and what cannot come back is reported (sample-miss
+detection). Its Zenoh callback only queues the sample; one worker thread decodes, puts the
+inputs in publication order exactly once (:mod:`slamlens.services.slam.input_order`) and
+applies them. After every event applied it publishes one ``SlamState``
+(:mod:`slamlens.services.slam.state_outlet`: an advanced publisher with a cache, the answer to
+a ``get``, a burst's states put back to back). A liveliness token announces the estimator.
 
 Epochs: a map started from scratch gets a new ``epoch`` (the wall-clock nanoseconds at its
 start: unique in practice and increasing); with ``--checkpoint DIR`` the service saves its
 whole state there and, started again, resumes the same epoch and seq numbering, asking the
-drivers' caches for the inputs published since (:mod:`slamlens.services.slam.checkpoint`).
+drivers' caches for the inputs published since (:mod:`slamlens.services.slam.checkpoint`):
+the caches' samples, sorted into each source's order, go first, what the checkpoint covered
+counted as duplicates.
 """
 
 from __future__ import annotations
@@ -27,14 +24,13 @@ import dataclasses
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
-from typing import Any
 
 import msgpack
 import numpy as np
 
-from slamlens.common.bus import BurstPuts, Bus, Payload, Sample, joined
+from slamlens.common.bus import Bus, Sample
 from slamlens.common.drops import DropCounter
 from slamlens.common.errors import EstimationError, MessageError
 from slamlens.common.keys import Keys
@@ -42,18 +38,23 @@ from slamlens.common.messages import Observations, Odometry, SlamState
 from slamlens.services.slam import checkpoint as ckpt
 from slamlens.services.slam.ekf import RefusedStepError
 from slamlens.services.slam.estimator import Estimator
-from slamlens.services.slam.input_order import Input, InputOrder
+from slamlens.services.slam.input_order import (
+    Input,
+    InputOrder,
+    Missed,
+    OrderStats,
+    sorted_for_replay,
+)
 from slamlens.services.slam.plausibility import ImplausibleInputError
 from slamlens.services.slam.settings import EstimatorSettings
+from slamlens.services.slam.state_outlet import StateOutlet
 
 log = logging.getLogger("slamlens.estimator")
 
 _NOISE = ("sigma_v", "sigma_w", "sigma_range", "sigma_bearing")
-#: at most this many states of one burst of inputs wait to be put back to back
-BURST_STATES = 32
-#: states of this size and up are put at once (a batch holds 64 kB; a large map's states
-#: go through shared memory, and holding them back would only hold their memory)
-BURST_BELOW_BYTES = 32 << 10
+#: the input order's counts, as the stop line, ``state?header``, ``slamlens status`` and a
+#: state's ``diagnostics`` (``inputs.NAME``) name them
+INPUT_COUNTS = ("duplicates", "late", "lost", "waited", "reordered", "joined_late")
 
 
 @dataclass
@@ -103,12 +104,12 @@ class EstimatorService:
         self.stats = EstimatorStats()
         self.drops = DropCounter(log)
         self.order = InputOrder(gap_wait_s=settings.input_gap_wait_s,
-                                reorder_s=settings.input_reorder_s)
+                                reorder_s=settings.input_reorder_s,
+                                sources=settings.input_sources)
         self._seq = 0
         self._input_stamp = 0.0
         self._said: set[str] = set()  #: refusal reasons already logged (once each)
         self._origin_stamp: float | None = None  #: when the robot stood at the map origin
-        self._lock = threading.Lock()
         self._writer: ckpt.CheckpointWriter | None = None
         self._last_checkpoint = time.monotonic()
         self.resumed = False
@@ -117,29 +118,24 @@ class EstimatorService:
         if settings.checkpoint:
             init = self._resume(settings.checkpoint)
             self._writer = ckpt.CheckpointWriter(settings.checkpoint)
-        self._publisher = bus.publisher(keys.state(self.robot), cache=settings.state_cache,
-                                        cache_bytes=int(settings.state_cache_mb * 2 ** 20))
-        #: a burst's small states put back to back; a get answers with the last one put
-        self._puts = BurstPuts(self._publisher, limit=BURST_STATES, sent=self._now_gettable,
-                               below_bytes=BURST_BELOW_BYTES)
+        self._out = StateOutlet(bus, keys.state(self.robot), cache=settings.state_cache,
+                                cache_bytes=int(settings.state_cache_mb * 2 ** 20),
+                                header=self._header_of)
         # The input channel is declared before the liveliness token, so a driver that
-        # waits for the token never publishes into the void; after a resume it also asks
-        # the drivers' caches for what was published while the estimator was down.
-        # One queue for both input keys (each subscribed on its own, so the router sends
-        # nothing else: not the truth, not our own states).
-        self._inputs = bus.channel(
-            keys.odometry(self.robot), also=(keys.observations(self.robot),), recover=True,
-            history_s=settings.input_history_s if self.resumed else 0.0)
+        # waits for the token never publishes into the void. One subscriber on one key
+        # expression for both input keys (and nothing else: not the truth, not our own
+        # states): one session's inputs arrive in publication order. After a resume the
+        # drivers' caches are asked for what was published meanwhile — after the channel
+        # exists, so nothing falls between the two (what both bring is a duplicate).
+        self._inputs = bus.channel(keys.inputs(self.robot), recover=True, report_misses=True)
+        #: the caches' replay, applied before the channel's first sample (resume only)
+        self._replay: list[Sample] = (
+            bus.cached(keys.inputs(self.robot), max_age_s=settings.input_history_s)
+            if self.resumed else [])
         if init is None:
             init = self.estimator.to_state(seq=0, stamp=0.0, step="init", epoch=self.epoch,
                                            input_stamp=0.0)
-        #: the latest state's encoding in parts (a large map's covariance not copied: it
-        #: is joined only when asked for, by a get or a checkpoint)
-        #: (a large state's, once put: what the publisher sent, answered as it is)
-        self._latest: Any = init.wire_parts()
-        self._header = self._header_of(init)
-        bus.answer(keys.state(self.robot), self._on_query)
-        self._publisher.put(self._latest)
+        self._out.open(init)
         bus.declare_alive(keys.estimator_alive(self.robot))
 
     # -- checkpoints ------------------------------------------------------------------
@@ -155,6 +151,7 @@ class EstimatorService:
                         "new settings", cp.noise, noise)
         self.estimator.restore(state, next_anonymous_id=cp.next_anonymous_id)
         self.order.resume(cp.positions)
+        _restore_counts(self.order.stats, state.diagnostics or {})
         self.epoch, self._seq = state.epoch, state.seq
         self._input_stamp = float(state.input_stamp or state.stamp)
         self._origin_stamp = state.origin_stamp
@@ -166,7 +163,8 @@ class EstimatorService:
 
     def _checkpoint(self) -> ckpt.Checkpoint:
         return ckpt.Checkpoint(
-            robot=self.robot, state=self.latest_bytes(), positions=self.order.positions(),
+            robot=self.robot, state=self._out.latest_bytes(),
+            positions=self.order.positions(),
             next_anonymous_id=self.estimator.next_anonymous_id,
             noise={k: float(getattr(self.settings, k)) for k in _NOISE})
 
@@ -174,24 +172,11 @@ class EstimatorService:
         """A checkpoint if one is due — after the states it covers were put."""
         if self._writer is not None and \
                 time.monotonic() - self._last_checkpoint >= self.settings.checkpoint_interval_s:
-            self._puts.flush()
+            self._out.flush()
             self._last_checkpoint = time.monotonic()
             self._writer.submit(self._checkpoint())
 
     # -- the event logic ----------------------------------------------------------------
-    def latest_bytes(self) -> bytes:
-        with self._lock:
-            latest = self._latest
-        if isinstance(latest, list):  # joined once, then kept (it may be asked again)
-            whole = joined(latest)
-            with self._lock:
-                if self._latest is latest:
-                    self._latest = whole
-            return whole
-        if isinstance(latest, bytes):
-            return latest
-        return latest.to_bytes()  # what the publisher sent (a shared-memory buffer)
-
     def _header_of(self, state: SlamState) -> bytes:
         """``get state?header``'s answer: what a driver paces on, not the map (and the
         service's counters)."""
@@ -200,28 +185,27 @@ class EstimatorService:
                               "epoch": state.epoch, "input_stamp": state.input_stamp,
                               "n": state.n,
                               "origin_stamp": state.origin_stamp,
-                              "dropped": self.drops.total, "lost": self.order.stats.lost},
+                              "dropped": self.drops.total, **self.input_counts()},
                              use_bin_type=True)
 
-    def _on_query(self, key: str, payload: bytes | None, parameters: str) -> Any:
-        """The latest state, or with ``?header`` only its header (SPEC §7: a ``get`` on
-        the state key answers the latest state; the header is ours, docs/protocol.md)."""
-        if "header" in parameters.split(";"):
-            with self._lock:
-                return self._header
-        with self._lock:
-            latest = self._latest
-        if isinstance(latest, list):  # parts: joined once, then kept
-            return self.latest_bytes()
-        return latest  # bytes, or a shared-memory buffer Zenoh answers with, no copy here
+    def latest_bytes(self) -> bytes:
+        """The latest state published, as bytes."""
+        return self._out.latest_bytes()
+
+    def input_counts(self) -> dict[str, int]:
+        """What the input order did, as every report names it (docs/protocol.md)."""
+        return {name: getattr(self.order.stats, name) for name in INPUT_COUNTS}
 
     def handle(self, key: str, payload: bytes) -> SlamState | None:
         """Decode and apply one input now (no ordering); the state published, or None."""
         item = self.decode(Sample(key, payload))
-        return None if item is None else self.apply(item)
+        return self.apply(item) if isinstance(item, Input) else None
 
-    def decode(self, sample: Sample) -> Input | None:
-        """The input a sample carries, or None (counted) if it is not one of ours."""
+    def decode(self, sample: Sample) -> Input | Missed | None:
+        """The input a sample carries (or Zenoh's report of missed inputs), or None
+        (counted) if it is not one of ours."""
+        if sample.missed:
+            return Missed(sample.source, sample.missed)
         leaf = self.keys.leaf_of(sample.key)
         if leaf not in ("odometry", "observations"):
             return None  # truth, state, health… share the prefix; not ours to apply
@@ -277,26 +261,14 @@ class EstimatorService:
     def _publish(self, *, stamp: float, step: str, report: object) -> SlamState:
         self._seq += 1
         self._input_stamp = stamp
+        counts = {f"inputs.{k}": float(v) for k, v in self.input_counts().items()}
         state = self.estimator.to_state(seq=self._seq, stamp=stamp, step=step,
                                         report=report,  # type: ignore[arg-type]
                                         epoch=self.epoch, input_stamp=stamp,
-                                        origin_stamp=self._origin_stamp)
-        payload = state.wire_parts()  # the covariance copied once, by the publisher
-        sent = self._puts.put(payload, (payload, self._header_of(state)))
-        if sent is not None:
-            # put at once (a large state): a get answers with what went out — a shared-
-            # memory buffer, or bytes — so nothing refers to the covariance's buffer any
-            # more and the next predict can patch it in place (Estimator.to_state)
-            with self._lock:
-                if self._latest is payload:
-                    self._latest = sent
+                                        origin_stamp=self._origin_stamp, counts=counts)
+        self._out.publish(state)
         self.stats.states += 1
         return state
-
-    def _now_gettable(self, latest: tuple[Payload, bytes]) -> None:
-        """What a ``get`` answers with from now on (a state put, or about to be)."""
-        with self._lock:
-            self._latest, self._header = latest
 
     # -- the worker -----------------------------------------------------------------
     def ingest(self, sample: Sample | None) -> list[SlamState]:
@@ -315,34 +287,52 @@ class EstimatorService:
 
     def _apply_burst(self, samples: list[Sample], each: Callable[[SlamState], None]) -> int:
         """Apply what ``samples`` make ready, handing each state published to ``each``;
-        returns how many. Nothing here holds a state once ``each`` returned: each holds its
-        covariance, which the estimator recycles — or, after a predict, patches in place —
-        only once nothing holds it (at n = 1000 a burst of 100 states held would be 3 GB,
-        each in a new buffer faulted in)."""
+        returns how many."""
+        return self._apply_items([self.decode(s) for s in samples], each)
+
+    def _apply_items(self, items: Iterable[Input | Missed | None],
+                     each: Callable[[SlamState], None]) -> int:
+        """Apply what ``items`` make ready, in order, handing each state published to
+        ``each``; returns how many. Nothing here holds a state once ``each`` returned: each
+        holds its covariance, which the estimator recycles — or, after a predict, patches
+        in place — only once nothing holds it (at n = 1000 a burst of 100 states held would
+        be 3 GB, each in a new buffer faulted in)."""
         published = 0
 
-        def apply_all(items: list[Input]) -> None:
+        def apply_all(ready: list[Input]) -> None:
             nonlocal published
-            for item in items:
+            for item in ready:
                 state = self.apply(item)
                 if state is not None:
                     published += 1
                     each(state)
                     del state  # before the next apply: nothing of ours holds it
 
-        with self._puts.burst():
-            for sample in samples:
-                item = self.decode(sample)
-                if item is not None:
+        with self._out.burst():
+            for item in items:
+                if isinstance(item, Missed):
+                    apply_all(self.order.missed(item))
+                elif item is not None:
                     apply_all(self.order.offer(item))
                     self._maybe_checkpoint()
             apply_all(self.order.expire())
         self._maybe_checkpoint()
         return published
 
+    def replay_cached(self) -> int:
+        """Apply what the drivers' caches held at a resume, each source in its own order
+        (once; :meth:`step` does it first). Returns the number of states published."""
+        replay, self._replay = self._replay, []
+        ordered = sorted_for_replay(x for x in map(self.decode, replay) if isinstance(x, Input))
+        log.info("replaying %d cached inputs of %d publisher sample(s) after the resume",
+                 len(ordered), len(replay))
+        return self._apply_items(ordered, lambda _state: None)
+
     def step(self, timeout: float = 0.2) -> int:
         """Take what arrived (waiting up to ``timeout`` s for the first) and apply what is
         in order; returns the number of states published."""
+        if self._replay:
+            return self.replay_cached()
         deadline = self.order.next_deadline()
         if deadline is not None:
             timeout = max(0.0, min(timeout, deadline - time.monotonic()))
@@ -350,13 +340,22 @@ class EstimatorService:
         burst = [] if first is None else [first, *self._inputs.take_all()]
         return self._apply_burst(burst, lambda _state: None)
 
+    @property
+    def waiting_for_sources(self) -> str:
+        """What the estimator waits for before applying anything, or "" (several input
+        sessions expected and not all heard yet)."""
+        seen, expected = self.order.sources_seen, self.settings.input_sources
+        return (f"waiting for {expected} input sessions, {seen} heard"
+                if 1 < expected and seen < expected else "")
+
     def status_line(self) -> str:
         o = self.order.stats
         refused = ", ".join(f"{k} {v}" for k, v in sorted(self.estimator.refusals.items()))
         return (f"epoch {self.epoch} seq {self._seq}, {self.estimator.n} landmarks, "
                 f"{self.stats.odometry} odometry + {self.stats.observation_batches} "
                 f"observation batches applied, backlog {self._inputs.backlog}, "
-                f"{o.duplicates} duplicates, {o.lost} lost, {self.drops.total} dropped, "
+                f"inputs {o.duplicates} duplicates, {o.late} late, {o.lost} lost, "
+                f"{o.waited} waited, {o.reordered} reordered, {self.drops.total} dropped, "
                 f"{self.stats.refused} refused{f' ({refused})' if refused else ''}, "
                 f"{self.estimator.gated} gated")
 
@@ -379,8 +378,7 @@ class EstimatorService:
         return {"epoch": self.epoch, "seq": self._seq, "landmarks": est.n,
                 "resumed": self.resumed, **dataclasses.asdict(self.stats),
                 "refused_by": dict(sorted(est.refusals.items())), "gated": est.gated,
-                "duplicates": self.order.stats.duplicates, "lost": self.order.stats.lost,
-                "dropped": self.drops.total}
+                **self.input_counts(), "dropped": self.drops.total}
 
     def status(self) -> dict[str, object]:
         """What ``slamlens status`` (or anyone) can read about this estimator: the
@@ -394,3 +392,11 @@ class EstimatorService:
                 "refused_updates": est.refused_updates, "stamp_resyncs": est.gates.resyncs,
                 "last_refused": None if last is None else dataclasses.asdict(last),
                 "bounds": bounds}
+
+
+def _restore_counts(stats: OrderStats, diagnostics: dict[str, float]) -> None:
+    """The input counts a checkpointed state carried (``inputs.*``), so they keep running."""
+    for name in INPUT_COUNTS:
+        value = diagnostics.get(f"inputs.{name}")
+        if value is not None:
+            setattr(stats, name, int(value))

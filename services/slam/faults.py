@@ -31,7 +31,13 @@ import numpy as np
 
 from slamlens.common.errors import ConfigError
 from slamlens.services.slam import ekf
-from slamlens.services.slam.settings import CROSS_COVARIANCE, FAULT_KINDS, MAP_UPDATE, NONE
+from slamlens.services.slam.settings import (
+    CROSS_COVARIANCE,
+    FAULT_KINDS,
+    MAP_UPDATE,
+    NONE,
+    check_fault,
+)
 
 DEFAULT_MAGNITUDE = {
     MAP_UPDATE: 2e-3,  # m² per update batch: σ grows ~4.5 cm in 1 s of 10 Hz batches
@@ -49,15 +55,9 @@ class PlantedFault:
     onset: float = 0.0  #: s; the fault acts on events with stamp ≥ onset
 
     def __post_init__(self) -> None:
-        if self.kind not in FAULT_KINDS or self.kind == NONE:
+        if self.kind == NONE:
             raise ConfigError(f"unknown fault kind {self.kind!r}; one of {FAULT_KINDS[1:]}")
-        if not self.feature_ids:
-            raise ConfigError(f"fault {self.kind!r} needs at least one faulty feature id")
-        if self.kind == MAP_UPDATE and not self.magnitude >= 0.0:
-            raise ConfigError(f"map-update magnitude must be ≥ 0 m², got {self.magnitude}")
-        if self.kind == CROSS_COVARIANCE and not 0.0 <= self.magnitude <= 1.0:
-            raise ConfigError(f"cross-covariance magnitude is a fraction in [0, 1], "
-                             f"got {self.magnitude}")
+        check_fault(self.kind, tuple(self.feature_ids), self.magnitude)
 
     def active(self, stamp: float) -> bool:
         return stamp >= self.onset

@@ -54,8 +54,10 @@ BLAME_KINDS = ("pair", "feature", "prediction")
 _add_reduce, _max_reduce = np.add.reduce, np.maximum.reduce
 _NO_IDS = frozen_array(np.zeros(0), "<i8")  #: read-only: one for every Health without suspects
 _NO_PAIRS = frozen_array(np.zeros((0, 2)), "<i8")
-_TRUTH_BUFFER = 512  # truths kept for matching (≥ 25 s at 20 Hz)
-_PENDING = 64  # states kept waiting for a late truth
+#: truths kept for matching: all those a state still to come may need (no older than the
+#: newest state checked, less the tolerance), up to this many (a memory bound, counted)
+_TRUTH_BUFFER = 8192
+_PENDING = 256  # states kept waiting for a late truth (beyond: counted ``truth_missing``)
 
 
 @dataclass(frozen=True)
@@ -124,9 +126,13 @@ class Monitor:
         self._prev: SlamState | None = None
         self._truth_stamps: list[float] = []
         self._truths: list[Truth] = []
-        self._pending: deque[_Pending] = deque(maxlen=_PENDING)
+        self._pending: deque[_Pending] = deque()
         self._pending_span = (math.inf, -math.inf)  #: bounds of the stamps waiting
         self._late: list[Violation] = []
+        self._checked_stamp = -math.inf  #: stamp of the newest state checked
+        self._truth_seen = False  #: any truth (or tracked pose) ever came
+        self._pending_dropped = 0  #: states pushed out of those waiting for a truth
+        self._truth_dropped = 0  #: truths pushed out of the buffer before their state came
         #: (the state's and the truth's landmark ids as bytes, their match_ids)
         self._id_match: tuple[tuple[bytes, bytes], tuple[np.ndarray, np.ndarray]] | None = None
         self._nis.reset()
@@ -216,13 +222,20 @@ class Monitor:
         States already checked that were waiting for this truth get their NEES now; their
         window results are reported with the next state checked.
         """
+        self._truth_seen = True
         k = bisect.bisect_right(self._truth_stamps, truth.stamp)
         self._truth_stamps.insert(k, truth.stamp)
         self._truths.insert(k, truth)
-        if len(self._truths) > _TRUTH_BUFFER:
-            del self._truth_stamps[0]
-            del self._truths[0]
         tol = self.settings.truth_tolerance_s
+        if len(self._truths) > _TRUTH_BUFFER:
+            # those no state to come can match go first (states come in stamp order);
+            # then, only if the monitor is that far behind, the oldest (counted)
+            stale = bisect.bisect_left(self._truth_stamps, self._checked_stamp - tol)
+            drop = max(1, min(stale, len(self._truths) - _TRUTH_BUFFER // 2))
+            if stale == 0:
+                self._truth_dropped += 1
+            del self._truth_stamps[:drop]
+            del self._truths[:drop]
         lo, hi = self._pending_span
         # no waiting state near: the stamps of those waiting lie in [lo, hi] and rounded
         # subtraction is monotone, so no |p.stamp − stamp| ≤ tol (the loop's test) holds
@@ -239,6 +252,12 @@ class Monitor:
         self._pending = still
         self._pending_span = (min((p.stamp for p in still), default=math.inf),
                               max((p.stamp for p in still), default=-math.inf))
+
+    @property
+    def truth_missing(self) -> int:
+        """States whose truth came too far from them to be matched (the buffers' bounds):
+        what the NEES windows miss, counted (states with no truth source at all: none)."""
+        return (self._pending_dropped if self._truth_seen else 0) + self._truth_dropped
 
     def _match_truth(self, stamp: float, *, aligned: bool = True) -> Truth | None:
         if not self._truths:
@@ -364,6 +383,8 @@ class Monitor:
             found += self._statistics(state, stats, screened.terms)
         found += self._late
         self._late = []
+        if self.truth_missing:
+            stats["truth_missing"] = float(self.truth_missing)
 
         weights = blame_weights(direct=direct, pairs=pairs, prior=self._evidence.scores)
         self._evidence.step(weights, present=state.landmark_ids)
@@ -583,10 +604,14 @@ class Monitor:
             stats["nis_window_mean"] = self._nis.sliding_mean
             stats["nis_window_lo"], stats["nis_window_hi"] = self._nis.lo, self._nis.hi
 
+        self._checked_stamp = max(self._checked_stamp, state.stamp)
         truth = self._match_truth(state.stamp)
         if truth is None:
             lo, hi = self._pending_span  # (still a bound when the oldest is pushed out)
             self._pending_span = (min(lo, state.stamp), max(hi, state.stamp))
+            if len(self._pending) >= _PENDING:
+                self._pending.popleft()
+                self._pending_dropped += 1
             self._pending.append(_Pending(state.seq, state.stamp, state.pose,
                                           state.covariance[:3, :3], state.landmark_ids,
                                           state.landmarks, terms))

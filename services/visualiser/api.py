@@ -196,8 +196,11 @@ class ViewerApi:
             if r is None or r.state is None:
                 return None
             state = r.state
+            counts = state.diagnostics or {}
             return {"seq": state.seq, "stamp": state.stamp, "step": state.step, "n": state.n,
                     "epoch": state.epoch,
+                    "inputs": {k.removeprefix("inputs."): int(v) for k, v in counts.items()
+                               if k.startswith("inputs.")},
                     "age_s": None if r.state_received is None else now - r.state_received,
                     "rate_hz": r.state_rate.rate(now)}
 

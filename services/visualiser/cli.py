@@ -1,7 +1,7 @@
 """``slamlens viewer``: the AR renderer and its web viewers.
 
 Settings: :class:`slamlens.services.visualiser.settings.ViewerConfig` (flags built from it by
-services/cli.py).
+services/commands/cli.py).
 """
 
 from __future__ import annotations

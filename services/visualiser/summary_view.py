@@ -31,7 +31,7 @@ from slamlens.services.visualiser.settings import ViewSettings
 class SummarisedState(SlamState):
     """A state rebuilt from a summary: blocks only (module docstring)."""
 
-    summary: StateSummary | None = field(default=None, metadata={"kind": "summary"})
+    summary: StateSummary | None = field(default=None, metadata={"kind": "local"})
 
 
 def summarised_state(summary: StateSummary) -> SummarisedState:

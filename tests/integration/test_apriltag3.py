@@ -15,10 +15,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from slamlens.services.harness.procs import REPO, slamlens_cmd
 from slamlens.services.registration import apriltag3
 from slamlens.services.registration.apriltag3 import AprilTagDetector
 from slamlens.services.registration.markers import DetectorTuning, MarkerDetector
-from tests.procs import REPO, slamlens_cmd
 
 PHOTO = REPO / "tests" / "fixtures" / "fiducials" / "apriltag" / "33369213973_9d9bb4cc96_c.jpg"
 

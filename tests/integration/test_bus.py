@@ -113,7 +113,8 @@ def test_a_callback_that_blocks_never_stops_the_channel_or_the_publisher(make_cl
 
 
 def test_channel_push_never_waits_and_bounds_memory() -> None:
-    from slamlens.common.bus import QueueChannel, Sample
+    from slamlens.common.bus import Sample
+    from slamlens.common.channel import QueueChannel
 
     ch = QueueChannel(name="t", max_bytes=1000)
     for i in range(300):  # nobody reads: push must not block

@@ -14,9 +14,9 @@ import numpy as np
 
 from slamlens.common.keys import Keys
 from slamlens.common.messages import Observations, Odometry, SlamState
+from slamlens.services.harness.collect import StateCollector
 from slamlens.services.slam.estimator_service import EstimatorService
 from slamlens.services.slam.settings import EstimatorSettings
-from tests.collect import StateCollector
 
 KEYS = Keys()
 ROBOT = "big"

@@ -1,6 +1,6 @@
 """Malformed payloads on every key a service subscribes to, through real processes.
 
-A fast sample of tests/fuzz.py per key (benchmarks/bench_fuzz.py sends ≥ 100 000 each):
+A fast sample of services/harness/fuzz.py per key (benchmarks/bench_fuzz.py sends ≥ 100 000 each):
 the service never crashes, counts every rejection, and still produces correct output
 afterwards.
 """
@@ -12,12 +12,13 @@ import threading
 import time
 from collections.abc import Callable
 
+import msgpack
 import numpy as np
 
 from slamlens.common.keys import Keys
 from slamlens.common.messages import Health, Observations, Odometry, SlamState, Truth
-from tests.fuzz import bad_payloads, valid
-from tests.procs import spawn, stop
+from slamlens.services.harness.fuzz import bad_payloads, valid
+from slamlens.services.harness.procs import spawn, stop
 
 KEYS = Keys()
 ROBOT = "robot1"
@@ -222,7 +223,8 @@ def test_registration_counts_a_control_flood_in_a_few_log_lines(router_endpoint,
 
 # ------------------------------------------------------------------------------ the viewer
 CAMERA = "cam1"
-RANDOM_PER_KEY = 36  #: random bytes, truncated msgpack, wrong roots (tests/fuzz.py) per key
+#: random bytes, truncated msgpack, wrong roots (services/harness/fuzz.py) per key
+RANDOM_PER_KEY = 36
 
 
 def _viewer_payloads(kind, seed: int) -> list[bytes]:
@@ -231,7 +233,7 @@ def _viewer_payloads(kind, seed: int) -> list[bytes]:
     then a random sample of the other malformed kinds."""
     import msgpack
 
-    from tests.fuzz import field_breakers
+    from slamlens.services.harness.fuzz import field_breakers
 
     template = valid(kind, robot=ROBOT, camera=CAMERA).to_dict()
     out = []
@@ -262,7 +264,7 @@ def test_viewer_survives_garbage_on_every_key_it_subscribes(router_endpoint, mak
     import zenoh
 
     from slamlens.common.messages import CameraFrame, Registration
-    from tests.web_client import http
+    from slamlens.services.harness.web_client import http
 
     viewer = spawn("viewer", "--robot", ROBOT, "--camera", CAMERA, "--connect",
                    router_endpoint, "--http", "127.0.0.1:0", "--late-join-timeout-s", "0",
@@ -302,8 +304,10 @@ def test_viewer_survives_garbage_on_every_key_it_subscribes(router_endpoint, mak
         queues[f"registration {CAMERA}"] += [
             dataclasses.replace(reg, **change).to_bytes() for change in (
                 {"K": np.zeros((3, 3))}, {"K": np.diag([500.0, 500.0, 2.0])},
-                {"dist": np.zeros(3)}, {"width": 10 ** 9, "height": 10 ** 9},
-                {"width": -640})]
+                {"dist": np.zeros(3)}, {"width": 10 ** 9, "height": 10 ** 9})]
+        negative = msgpack.unpackb(reg.to_bytes(), raw=False)  # malformed on the wire
+        negative["width"] = -640
+        queues[f"registration {CAMERA}"].append(msgpack.packb(negative, use_bin_type=True))
         for name, pub in pubs.items():  # a new publisher drops what it puts before matching
             deadline = time.monotonic() + 10
             while not pub.matching_status and time.monotonic() < deadline:

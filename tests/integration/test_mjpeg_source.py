@@ -23,6 +23,7 @@ import pytest
 
 from slamlens.common.keys import Keys
 from slamlens.common.messages import CameraFrame, Registration
+from slamlens.services.harness.procs import spawn, stop
 from slamlens.services.registration.calibration import save_calibration, synthetic_calibration
 from slamlens.services.registration.synthetic import (
     ImagingSettings,
@@ -36,7 +37,6 @@ from slamlens.services.visualiser.service import ViewerService
 from slamlens.services.visualiser.settings import ViewerConfig
 from slamlens.services.visualiser.web import WebServer
 from tests.integration.test_registration_service import Inbox, wait_for
-from tests.procs import spawn, stop
 
 KEYS = Keys()
 ROBOT, CAMERA = "r1", "top"

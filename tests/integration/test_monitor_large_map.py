@@ -14,7 +14,7 @@ import math
 
 import numpy as np
 
-from slamlens.common.bus import InProcessBus
+from slamlens.common.inprocess_bus import InProcessBus
 from slamlens.common.keys import Keys
 from slamlens.common.messages import Health
 from slamlens.services.slam.estimator import Estimator

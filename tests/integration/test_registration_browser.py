@@ -21,9 +21,9 @@ import pytest
 
 from slamlens.common.keys import Keys
 from slamlens.common.messages import CameraFrame, CameraPose, Registration
-from tests.ar_video import Video, render_walk, truth_pixels, write_calibration
+from slamlens.services.harness.ar_video import Video, render_walk, truth_pixels, write_calibration
+from slamlens.services.harness.procs import spawn, stop
 from tests.integration.test_registration_service import Inbox, wait_for
-from tests.procs import spawn, stop
 from tests.routes import put_until_seen
 
 KEYS = Keys()

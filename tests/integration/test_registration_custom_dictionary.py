@@ -16,9 +16,9 @@ import pytest
 
 from slamlens.common.keys import Keys
 from slamlens.common.messages import Registration
+from slamlens.services.harness.procs import REPO, spawn, stop
 from slamlens.services.registration.calibration import CameraCalibration, save_calibration
 from slamlens.services.registration.markers import get_dictionary, is_custom
-from tests.procs import REPO, spawn, stop
 
 ARUCO = REPO.parent / "shared" / "data" / "fiducials" / "opencv_aruco"
 DICT, PHOTO, CAMERA = (ARUCO / "tutorial_dict.yml", ARUCO / "gboriginal.png",

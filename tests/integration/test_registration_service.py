@@ -22,6 +22,7 @@ import pytest
 from slamlens.common.geometry import T_from_pose2, invert_T, rotation_angle_deg
 from slamlens.common.keys import Keys
 from slamlens.common.messages import CameraFrame, CameraPose, Registration, Truth
+from slamlens.services.harness.procs import spawn, stop
 from slamlens.services.registration.assemble import build_service
 from slamlens.services.registration.calibration import save_calibration, synthetic_calibration
 from slamlens.services.registration.service import RegistrationService
@@ -37,7 +38,6 @@ from slamlens.services.registration.synthetic import (
 )
 from slamlens.services.slam.sim import Simulator
 from slamlens.services.slam.world import load_world
-from tests.procs import spawn, stop
 from tests.routes import put_until_seen
 
 KEYS = Keys()
@@ -446,8 +446,8 @@ def test_head_mounted_with_an_external_tracker(make_client, run_service) -> None
 
 
 def test_calibrate_command_writes_a_loadable_calibration(tmp_path: Path) -> None:
+    from slamlens.services.harness.procs import REPO
     from slamlens.services.registration.calibration import load_calibration
-    from tests.procs import REPO
 
     photos = REPO / "tests" / "fixtures" / "fiducials" / "opencv_aruco"
     output = tmp_path / "cam.yml"

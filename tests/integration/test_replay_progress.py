@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from tests.procs import REPO, spawn
+from slamlens.services.harness.procs import REPO, spawn
 
 SMALL = REPO / "tests" / "fixtures" / "mrclam_small"
 

@@ -22,11 +22,11 @@ import pytest
 import zenoh
 import zenoh.ext as zx
 
-from slamlens.common.bus import ZenohBus
 from slamlens.common.certs import extend_authority
 from slamlens.common.errors import BusError, SecurityError
 from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus
-from tests.procs import REPO, slamlens_cmd, spawn, stop
+from slamlens.common.zenoh_bus import ZenohBus
+from slamlens.services.harness.procs import REPO, slamlens_cmd, spawn, stop
 
 NAMES = ["router-ws", "robot-r1", "robot-r2", "camera-overhead", "monitor-r1", "viewer-lab"]
 STATE = "slamlens/robot/r1/state"

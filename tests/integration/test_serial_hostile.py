@@ -11,8 +11,8 @@ from pathlib import Path
 
 from slamlens.common.keys import Keys
 from slamlens.common.messages import Observations, Odometry
+from slamlens.services.harness.procs import spawn, stop
 from slamlens.services.slam.serial_link import checksum
-from tests.procs import spawn, stop
 
 KEYS = Keys()
 

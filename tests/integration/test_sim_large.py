@@ -9,8 +9,8 @@ import numpy as np
 
 from slamlens.common.keys import Keys
 from slamlens.common.messages import SlamState
+from slamlens.services.harness.procs import spawn, stop, wait_for_line
 from slamlens.services.slam.world import load_world
-from tests.procs import spawn, stop, wait_for_line
 
 KEYS = Keys()
 

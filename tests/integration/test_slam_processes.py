@@ -12,8 +12,8 @@ import zenoh
 
 from slamlens.common.keys import Keys
 from slamlens.common.messages import SlamState
-from tests.collect import StateCollector
-from tests.procs import spawn, stop, wait_for_line
+from slamlens.services.harness.collect import StateCollector
+from slamlens.services.harness.procs import spawn, stop, wait_for_line
 
 KEYS = Keys()
 

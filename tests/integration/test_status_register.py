@@ -16,7 +16,7 @@ import time
 import pytest
 
 from slamlens.common.session import free_tcp_endpoint
-from tests.procs import REPO, Service, slamlens_cmd, spawn, stop
+from slamlens.services.harness.procs import REPO, Service, slamlens_cmd, spawn, stop
 
 CALIBRATION = "deploy/calibration_synthetic_1280x720.yml"
 

@@ -14,9 +14,9 @@ from slamlens.common.keys import Keys
 from slamlens.common.messages import StateSummary
 from slamlens.common.summary import SummaryQuery
 from slamlens.common.summary_pull import SummaryPuller, error_text
+from slamlens.services.harness.procs import spawn, stop, wait_for_line
 from slamlens.services.slam.settings import SummarySettings
 from slamlens.services.slam.summary_service import SummaryService
-from tests.procs import spawn, stop, wait_for_line
 from tests.routes import put_until_seen
 from tests.unit.test_summary import consistent_state, oracle_pd
 

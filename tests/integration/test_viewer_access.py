@@ -16,10 +16,10 @@ from pathlib import Path
 import pytest
 
 from slamlens.common.keys import Keys
+from slamlens.services.harness.web_client import ROUTES, http, post_json, websocket
 from slamlens.services.visualiser.service import ViewerService
 from slamlens.services.visualiser.settings import ViewerConfig
 from slamlens.services.visualiser.web import WebServer
-from tests.web_client import ROUTES, http, post_json, websocket
 
 KEYS = Keys()
 ROBOT = "robot1"

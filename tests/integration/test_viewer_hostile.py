@@ -25,10 +25,10 @@ import pytest
 
 from slamlens.common.keys import Keys
 from slamlens.common.messages import CameraFrame, Registration
+from slamlens.services.harness.procs import Service, spawn, stop
+from slamlens.services.harness.web_client import http, post_json
 from slamlens.services.visualiser.jpeg import JpegError, jpeg_size
-from tests.procs import Service, spawn, stop
 from tests.routes import put_until_seen
-from tests.web_client import http, post_json
 
 KEYS = Keys()
 ROBOT, CAMERA = "robot1", "top"

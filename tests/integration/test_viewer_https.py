@@ -14,7 +14,7 @@ from pathlib import Path
 import pytest
 
 from slamlens.common.certs import load_cert, san_hosts
-from tests.procs import REPO, slamlens_cmd, spawn, stop
+from slamlens.services.harness.procs import REPO, slamlens_cmd, spawn, stop
 
 TOKEN = "https-token-0123456789abcdef"
 

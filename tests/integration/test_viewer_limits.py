@@ -21,11 +21,11 @@ import pytest
 
 from slamlens.common.keys import Keys
 from slamlens.common.messages import SlamState
+from slamlens.services.harness.web_client import http, post_json
 from slamlens.services.visualiser.service import ViewerService
 from slamlens.services.visualiser.settings import ViewerConfig
 from slamlens.services.visualiser.web import WebServer
 from tests.routes import put_until_seen
-from tests.web_client import http, post_json
 
 KEYS = Keys()
 ROBOT = "robot1"

@@ -6,6 +6,7 @@ Registration, CameraFrame and Health, and reads the viewer's HTTP endpoints.
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import time
 import urllib.error
@@ -237,6 +238,19 @@ def test_a_late_viewer_shows_the_current_picture_at_once(start_viewer, make_clie
     assert image.shape == (HEIGHT, WIDTH, 3)  # registered size, though no frame came yet
     assert red_pixels(image, midpoint(0, 1)) >= 40
     assert red_pixels(image, midpoint(1, 4)) >= 40
+
+
+def test_the_estimators_input_counts_reach_the_status_the_page_shows(start_viewer,
+                                                                     make_client) -> None:
+    estimator = make_client()
+    counts = {"gated": 0.0, "inputs.late": 2.0, "inputs.lost": 1.0, "inputs.duplicates": 5.0}
+    state = dataclasses.replace(make_state(9), diagnostics=counts)
+    estimator.serve_latest(KEYS.state(ROBOT), lambda: state.to_bytes())
+    probe = make_client()
+    wait_until(lambda: len(probe.get(KEYS.state(ROBOT), timeout=1.0)) == 1)
+    _, url = start_viewer(camera=CAMERA)
+    wait_until(lambda: (status_of(url).get("state") or {}).get("seq") == 9)
+    assert status_of(url)["state"]["inputs"] == {"late": 2, "lost": 1, "duplicates": 5}
 
 
 def test_malformed_states_are_counted_and_the_viewer_keeps_going(start_viewer,

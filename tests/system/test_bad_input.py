@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from slamlens.common.session import free_tcp_endpoint
-from tests.procs import REPO, slamlens_cmd
+from slamlens.services.harness.procs import REPO, slamlens_cmd
 
 
 def _run(*args: str) -> subprocess.CompletedProcess:

@@ -19,8 +19,8 @@ import pytest
 from slamlens.common.keys import Keys
 from slamlens.common.messages import SlamState, peek_fields
 from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus
-from tests.collect import StateCollector
-from tests.procs import REPO, Service, spawn, stop
+from slamlens.services.harness.collect import StateCollector
+from slamlens.services.harness.procs import REPO, Service, spawn, stop
 
 KEYS = Keys()
 ROBOT = "robot1"

@@ -10,7 +10,7 @@ import urllib.request
 import cv2
 import numpy as np
 
-from tests.procs import REPO, slamlens_cmd
+from slamlens.services.harness.procs import REPO, slamlens_cmd
 
 
 def test_demo_runs_everything_and_serves_the_picture(tmp_path) -> None:

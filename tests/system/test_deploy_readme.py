@@ -8,7 +8,7 @@ What is taken as the reader would:
 * **Install** is the one block not run: it needs the network for pip. The test checks it
   is the documented three lines and gives the commands what they leave behind — a
   ``.venv/bin/slamlens`` of this interpreter on the ``PATH``, exactly the console script
-  ``pip install -e .`` writes (``slamlens.services.cli:main``).
+  ``pip install -e .`` writes (``slamlens.services.commands.cli:main``).
 * A block's first comment says where it runs: ``# on the workstation``, ``# on the robot``
   (``# on either machine``: the workstation); a block without one runs on the one machine.
   ``192.0.2.10``, the example's workstation address, is the workstation namespace's.
@@ -40,8 +40,8 @@ from pathlib import Path
 
 import pytest
 
-from tests.netns import Hosts, curl_json
-from tests.procs import REPO, Service
+from slamlens.services.harness.netns import Hosts, curl_json
+from slamlens.services.harness.procs import REPO, Service
 
 README = REPO / "deploy" / "README.md"
 EXAMPLE_WORKSTATION = "192.0.2.10"
@@ -117,8 +117,8 @@ def clone(tmp_path: Path) -> Path:
     bin_dir = root / ".venv" / "bin"
     bin_dir.mkdir(parents=True)
     script = bin_dir / "slamlens"  # what pip writes for [project.scripts] slamlens
-    script.write_text(f"#!{sys.executable}\nimport sys\nfrom slamlens.services.cli import main\n"
-                      "sys.exit(main())\n")
+    script.write_text(f"#!{sys.executable}\nimport sys\n"
+                      "from slamlens.services.commands.cli import main\nsys.exit(main())\n")
     script.chmod(0o755)
     (tmp_path / "home").mkdir()
     return root

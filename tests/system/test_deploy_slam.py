@@ -11,7 +11,7 @@ import pytest
 from slamlens.common.keys import Keys
 from slamlens.common.messages import Health
 from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus
-from tests.procs import REPO, slamlens_cmd, spawn, stop, wait_for_line
+from slamlens.services.harness.procs import REPO, slamlens_cmd, spawn, stop, wait_for_line
 
 DEPLOY = REPO / "deploy"
 KEYS = Keys()

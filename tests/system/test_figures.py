@@ -7,7 +7,7 @@ import subprocess
 import cv2
 import numpy as np
 
-from tests.procs import REPO, slamlens_cmd
+from slamlens.services.harness.procs import REPO, slamlens_cmd
 
 
 def test_figures_writes_twelve_panels_and_only_the_faulty_end_differs(tmp_path) -> None:

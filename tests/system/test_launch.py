@@ -15,7 +15,7 @@ from pathlib import Path
 from slamlens.common.keys import Keys
 from slamlens.common.messages import Health, ServiceStatus
 from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus
-from tests.procs import REPO, Service, slamlens_cmd
+from slamlens.services.harness.procs import REPO, Service, slamlens_cmd
 
 KEYS = Keys()
 

@@ -1,7 +1,7 @@
 """Issue 11's acceptance on real data: UTIAS MRCLAM dataset 6, robots 1 and 3, through the
 real processes at --rate 0 (router + ``slamlens estimator --config deploy/mrclam.toml`` +
 ``slamlens monitor`` + ``slamlens replay``), every state received and scored against the
-dataset's ground truth (tests/mrclam_pipeline.py). About 1.5 min per robot on 2 cores.
+dataset's ground truth (services/harness/mrclam_pipeline.py). About 1.5 min per robot on 2 cores.
 
 - time-averaged pose NEES ≤ 6 (3 expected) and ≥ 80 % of 100-state windows inside the 95 %
   band of the window mean (the dependence-robust band, docs/monitor.md);
@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import pytest
 
-from tests.mrclam_pipeline import run_pipeline
+from slamlens.services.harness.mrclam_pipeline import run_pipeline
 
 
 @pytest.mark.slow

@@ -13,7 +13,7 @@ from pathlib import Path
 from slamlens.common.keys import Keys
 from slamlens.common.messages import Health
 from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus
-from tests.procs import REPO, Service, slamlens_cmd, spawn, stop
+from slamlens.services.harness.procs import REPO, Service, slamlens_cmd, spawn, stop
 
 FIXTURE = REPO / "tests" / "fixtures" / "mrclam_small"
 

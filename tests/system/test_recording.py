@@ -31,10 +31,10 @@ from mcap.stream_reader import StreamReader
 from slamlens.common.keys import Keys
 from slamlens.common.messages import SlamState, peek_fields
 from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus
+from slamlens.services.harness.collect import StateCollector
+from slamlens.services.harness.procs import Service, spawn, stop
 from slamlens.services.recorder.reading import Recording, valid_payload
-from tests.collect import StateCollector
 from tests.mcap_check import protobuf_class, validate
-from tests.procs import Service, spawn, stop
 
 KEYS = Keys()
 ROBOT = "robot1"
@@ -419,3 +419,68 @@ def test_a_recorder_killed_with_sigkill_leaves_a_file_readable_to_its_last_chunk
             recording.messages(topics={KEYS.state(ROBOT)})]
     assert len(seqs) > 300 and seqs == list(range(seqs[0], seqs[0] + len(seqs)))
     assert recording.bad.total == 0
+
+
+def _recorded_stamps(path: Path, topics: tuple[str, ...]) -> list[float]:
+    """The ``stamp`` of every message on ``topics`` in the file's order (what is complete
+    of a file still being written)."""
+    stamps: list[float] = []
+    channels: dict[int, str] = {}
+    try:
+        with path.open("rb") as f:
+            for record in StreamReader(f, validate_crcs=True).records:
+                if isinstance(record, McapChannel):
+                    channels[record.id] = record.topic
+                elif isinstance(record, McapMessage) and channels.get(record.channel_id) in topics:
+                    stamps.append(peek_fields(record.data, ("stamp",))["stamp"])
+    except Exception:  # the chunk being written: what came before it is what there is
+        pass
+    return stamps
+
+
+def test_a_robots_inputs_are_recorded_in_the_order_they_were_published(tmp_path) -> None:
+    """A third-party driver (plain zenoh-python, no input_seq) publishing as fast as it can
+    beside two CPU burners: ``record --robot R`` subscribes to the robot's keys with one
+    key expression, so its file holds odometry and observations in publication order —
+    what ``play --inputs-only`` then publishes again (docs/recording.md)."""
+    import subprocess
+    import sys
+
+    import zenoh
+
+    from slamlens.common.messages import Observations, Odometry
+
+    path = tmp_path / "order.mcap"
+    topics = (KEYS.odometry(ROBOT), KEYS.observations(ROBOT))
+    router, ep = _router()
+    burners = [subprocess.Popen([sys.executable, "-c", "while True: pass"]) for _ in range(2)]
+    rec = spawn("record", str(path), "--robot", ROBOT, "--connect", ep, "--no-foxglove",
+                "--flush-s", "0.2", "--chunk-kb", "64")
+    rec.wait_for_line("record ready")
+    conf = zenoh.Config()
+    for key, value in (("mode", '"client"'), ("connect/endpoints", f'["{ep}"]'),
+                       ("scouting/multicast/enabled", "false"),
+                       ("timestamping/enabled", "true")):
+        conf.insert_json5(key, value)
+    session = zenoh.open(conf)
+    count = 4000
+    try:
+        pubs = [session.declare_publisher(k, congestion_control=zenoh.CongestionControl.BLOCK)
+                for k in topics]
+        for pub in pubs:  # the recorder's subscription has reached this publisher
+            assert _wait(lambda pub=pub: pub.matching_status.matching)
+        for i in range(count):
+            msg = (Odometry(robot=ROBOT, stamp=float(i), dt=0.01, v=0.1, w=0.0) if i % 2 == 0
+                   else Observations(robot=ROBOT, stamp=float(i), ids=[1], ranges=[1.0],
+                                     bearings=[0.0]))
+            pubs[i % 2].put(msg.to_bytes())
+        assert _wait(lambda: len(_recorded_stamps(path, topics)) >= count, timeout=120.0)
+    finally:
+        session.close()
+        rec_out, rec_err = stop(rec)
+        for b in burners:
+            b.kill()
+            b.wait()
+        stop(router)
+    assert rec.returncode == 0, rec_err
+    assert _recorded_stamps(path, topics) == [float(i) for i in range(count)]

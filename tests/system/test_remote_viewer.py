@@ -2,7 +2,7 @@
 (issue 13, docs/remote_viewers.md).
 
 Two network namespaces joined by a veth pair shaped to 20 Mbit/s both ways (``tbf``); the
-workstation's processes get a /dev/shm of their own (``tests.netns.own_shm``), as a real
+workstation's processes get a /dev/shm of their own (``harness.netns.own_shm``), as a real
 second host has. The robot runs its router, the simulator, the estimator and ``slamlens
 summary``; the workstation its router and ``slamlens viewer --source summary``, which pulls
 the clustered summary instead of subscribing to the state. The viewer's picture follows
@@ -14,8 +14,8 @@ from __future__ import annotations
 import subprocess
 import time
 
-from tests.netns import Hosts, curl_json, own_shm
-from tests.procs import Service, slamlens_cmd, spawn, stop
+from slamlens.services.harness.netns import Hosts, curl_json, own_shm
+from slamlens.services.harness.procs import Service, slamlens_cmd, spawn, stop
 
 ROBOT = "robot1"
 VIEWER = "http://127.0.0.1:8080"

@@ -16,7 +16,7 @@ from slamlens.common.geometry import T_from_pose2, rotation_angle_deg
 from slamlens.common.keys import Keys
 from slamlens.common.messages import CameraControl, Registration, Truth, peek_fields
 from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus
-from tests.procs import Service, spawn, stop
+from slamlens.services.harness.procs import Service, spawn, stop
 
 KEYS = Keys()
 ROBOT, CAMERA = "robot1", "overhead"

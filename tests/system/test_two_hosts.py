@@ -12,8 +12,8 @@ from __future__ import annotations
 import json
 import time
 
-from tests.netns import Hosts, curl_json
-from tests.procs import Service, spawn, stop
+from slamlens.services.harness.netns import Hosts, curl_json
+from slamlens.services.harness.procs import Service, spawn, stop
 
 ROBOT = "robot1"
 VIEWER = "http://127.0.0.1:8080"

@@ -17,8 +17,8 @@ import time
 from pathlib import Path
 
 from slamlens.common.certs import extend_authority
-from tests.netns import Hosts, curl_json
-from tests.procs import REPO, Service, slamlens_cmd
+from slamlens.services.harness.netns import Hosts, curl_json
+from slamlens.services.harness.procs import REPO, Service, slamlens_cmd
 
 NAMES = ["router-ws", "router-robot", "robot-robot1", "monitor-robot1", "camera-overhead",
          "viewer-lab"]

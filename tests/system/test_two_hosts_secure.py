@@ -12,8 +12,8 @@ import json
 import sys
 
 from slamlens.common.certs import extend_authority
-from tests.netns import Hosts
-from tests.procs import REPO, Service, slamlens_cmd, spawn, stop
+from slamlens.services.harness.netns import Hosts
+from slamlens.services.harness.procs import REPO, Service, slamlens_cmd, spawn, stop
 
 NAMES = ["router-ws", "router-robot", "robot-r1", "monitor-r1", "viewer-ws", "viewer-robot"]
 

@@ -2,7 +2,7 @@
 
 Two network namespaces joined by a veth pair: the viewer runs on the "workstation" and
 binds its veth address; the browser side is a real HTTP / websocket client
-(tests/web_client.py) run in the "robot" namespace, across the link.
+(services/harness/web_client.py) run in the "robot" namespace, across the link.
 """
 
 from __future__ import annotations
@@ -13,16 +13,17 @@ import subprocess
 import sys
 from pathlib import Path
 
-from tests.netns import Hosts
-from tests.procs import REPO, Service, spawn, stop
-from tests.web_client import ROUTES
+from slamlens.services.harness.netns import Hosts
+from slamlens.services.harness.procs import REPO, Service, spawn, stop
+from slamlens.services.harness.web_client import ROUTES
 
 ROBOT = "robot1"
 
 
 def probe(ns: str, requests: list[dict]) -> list[dict]:
     """Run the requests from inside namespace ``ns``; their answers."""
-    out = subprocess.run(["ip", "netns", "exec", ns, sys.executable, "-m", "tests.web_client"],
+    out = subprocess.run(["ip", "netns", "exec", ns, sys.executable, "-m",
+                          "slamlens.services.harness.web_client"],
                          input=json.dumps(requests), capture_output=True, text=True, cwd=REPO,
                          timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]

@@ -17,20 +17,22 @@ import pytest
 from slamlens.common.cli import BusFlags, LogFlags, bus_flags, bus_settings, keys_from, log_flags
 from slamlens.common.config import settings_from_args
 from slamlens.common.errors import ConfigError
-from slamlens.services.cli import COMMANDS, Command, command_parser, main
-from slamlens.services.cli_reference import DOC, reference
-from slamlens.services.recorder.settings import PlaySettings, RecordSettings
-from slamlens.services.registration.settings import (
-    CalibrateSettings,
-    DetectSettings,
-    RegistrationSettings,
-)
-from slamlens.services.settings import (
+from slamlens.services.commands.cli import command_parser, main
+from slamlens.services.commands.reference import DOC, reference
+from slamlens.services.commands.registry import COMMANDS, Command
+from slamlens.services.commands.settings import (
     CertsSettings,
     DemoSettings,
     FigureSettings,
     LaunchSettings,
     RegisterSettings,
+)
+from slamlens.services.harness.procs import REPO
+from slamlens.services.recorder.settings import PlaySettings, RecordSettings
+from slamlens.services.registration.settings import (
+    CalibrateSettings,
+    DetectSettings,
+    RegistrationSettings,
 )
 from slamlens.services.slam.settings import (
     EstimatorSettings,
@@ -41,7 +43,6 @@ from slamlens.services.slam.settings import (
     TuneSettings,
 )
 from slamlens.services.visualiser.settings import ViewerConfig, ViewSettings
-from tests.procs import REPO
 
 #: every flag each command had before its settings were declared once (must keep working)
 LEGACY_FLAGS = {
@@ -317,7 +318,7 @@ def test_help_prints_every_flag(capsys) -> None:
 
 def test_cli_reference_is_up_to_date() -> None:
     assert DOC.read_text() == reference(), \
-        "docs/cli.md is out of date: run `python -m slamlens.services.cli_reference`"
+        "docs/cli.md is out of date: run `python -m slamlens.services.commands.reference`"
 
 
 def test_cli_reference_names_every_flag_of_every_command() -> None:
@@ -337,7 +338,7 @@ def test_cli_reference_names_every_flag_of_every_command() -> None:
 
 def test_help_does_not_load_numpy_or_opencv() -> None:
     # the estimator sets one BLAS thread before numpy is imported; --help must not import it
-    code = ("import sys; from slamlens.services.cli import command_parser\n"
+    code = ("import sys; from slamlens.services.commands.cli import command_parser\n"
             "for c in ('estimator', 'monitor', 'figures', 'registration', 'viewer', 'demo'):\n"
             "    command_parser(c).format_help()\n"
             "print(sorted(m for m in ('numpy', 'cv2', 'zenoh') if m in sys.modules))")

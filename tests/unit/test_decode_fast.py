@@ -3,7 +3,7 @@ rejects exactly what the full validation does, with the same message or the same
 
 ``Message.decode_reference`` is the decoder without the fast path (every field through the
 constructor's checks, as before the fast path existed); ``from_bytes`` is what services
-call. Both are driven with the same payloads: every hostile payload of tests/fuzz.py
+call. Both are driven with the same payloads: every hostile payload of services/harness/fuzz.py
 (random bytes, truncated msgpack, wrong types, dtype as a list or an unknown string,
 70-dimensional or huge shapes, NaN/∞ …), valid messages of every type (with and without
 their optional fields, covariance flat and square), and random mutations of those: a
@@ -16,6 +16,7 @@ read-only arrays) or the same MessageError text.
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from typing import Any
 
@@ -25,7 +26,7 @@ import pytest
 
 from slamlens.common.errors import MessageError
 from slamlens.common.messages import MESSAGE_TYPES, Message, SlamState, Truth
-from tests.fuzz import bad_payloads, valid
+from slamlens.services.harness.fuzz import bad_payloads, valid
 from tests.unit.test_messages import SAMPLES
 from tests.unit.test_monitor import run
 
@@ -39,7 +40,7 @@ def _outcome(decode: Any, payload: bytes, **options: Any) -> tuple[str, Any]:
 
 def _same_message(a: Message, b: Message) -> None:
     assert type(a) is type(b)
-    for f in a._fields():
+    for f in dataclasses.fields(a):  # type: ignore[arg-type]
         x, y = getattr(a, f.name), getattr(b, f.name)
         assert type(x) is type(y), f.name
         if isinstance(x, np.ndarray):

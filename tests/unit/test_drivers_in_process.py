@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-from slamlens.common.bus import InProcessBus
+from slamlens.common.inprocess_bus import InProcessBus
 from slamlens.common.keys import Keys
 from slamlens.common.messages import Message, Observations, Odometry, SlamState, peek_fields
 from slamlens.services.slam.drivers import Fleet, RobotPublisher, play

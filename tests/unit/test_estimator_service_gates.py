@@ -9,7 +9,8 @@ import logging
 
 import numpy as np
 
-from slamlens.common.bus import InProcessBus, Sample
+from slamlens.common.bus import Sample
+from slamlens.common.inprocess_bus import InProcessBus
 from slamlens.common.keys import Keys
 from slamlens.common.messages import Observations, Odometry, SlamState
 from slamlens.services.slam.estimator_service import EstimatorService

@@ -1,4 +1,5 @@
-"""Every malformed payload of tests/fuzz.py is refused with MessageError, never a crash."""
+"""Every malformed payload of services/harness/fuzz.py is refused with MessageError, never a
+crash."""
 
 from __future__ import annotations
 
@@ -7,7 +8,7 @@ import pytest
 
 from slamlens.common.errors import MessageError
 from slamlens.common.messages import MESSAGE_TYPES
-from tests.fuzz import bad_payloads, field_breakers, valid
+from slamlens.services.harness.fuzz import bad_payloads, field_breakers, valid
 
 
 @pytest.mark.parametrize("kind", MESSAGE_TYPES, ids=lambda k: k.__name__)

@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 
 from slamlens.common.errors import ConfigError
-from slamlens.services.launch_file import load_launch, plan_from_mapping, to_toml
-from tests.procs import REPO, slamlens_cmd
+from slamlens.services.commands.launch_file import load_launch, plan_from_mapping, to_toml
+from slamlens.services.harness.procs import REPO, slamlens_cmd
 
 DEPLOY = REPO / "deploy"
 

@@ -16,7 +16,7 @@ import sys
 
 import pytest
 
-from tests.procs import REPO
+from slamlens.services.harness.procs import REPO
 
 WORKLOAD = """
 import json, resource, sys, threading
@@ -59,7 +59,7 @@ def test_freed_large_arrays_are_reused_without_faulting_their_pages_in_again() -
 
 
 def test_the_slamlens_program_sets_the_policy_before_the_command_runs(monkeypatch) -> None:
-    import slamlens.services.cli as cli
+    import slamlens.services.commands.cli as cli
 
     calls: list[str] = []
     monkeypatch.setattr(cli, "keep_freed_memory", lambda: calls.append("policy"))

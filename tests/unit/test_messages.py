@@ -254,3 +254,26 @@ def test_wire_parts_join_to_the_msgpack_encoding_with_large_arrays_not_copied() 
     small = SlamState(robot="r", seq=1, stamp=0.0, step="init", pose=[0, 0, 0],
                       landmark_ids=[], landmarks=np.zeros((0, 2)), covariance=np.zeros((3, 3)))
     assert small.wire_parts() == [msgpack.packb(small.to_dict(), use_bin_type=True)]
+
+
+@pytest.mark.parametrize("message,field,value", [
+    (SAMPLES[3], "seq", -2), (SAMPLES[3], "seq", -(2 ** 63)), (SAMPLES[3], "epoch", -1),
+    (SAMPLES[0], "input_seq", -5), (SAMPLES[4], "seq", -1), (SAMPLES[4], "verdict_since", -3),
+    (SAMPLES[5], "seq", -1), (SAMPLES[5], "width", -4), (SAMPLES[5], "height", -2),
+    (SAMPLES[6], "width", -640), (SAMPLES[6], "height", -1), (SAMPLES[10], "seq", -7),
+], ids=lambda v: str(v) if not hasattr(v, "TYPE") else v.TYPE)
+def test_negative_sequence_numbers_epochs_and_sizes_are_refused_naming_the_field(
+        message, field, value) -> None:
+    raw = msgpack.unpackb(message.to_bytes(), raw=False)
+    raw[field] = value
+    with pytest.raises(MessageError) as err:
+        type(message).from_bytes(msgpack.packb(raw, use_bin_type=True))
+    assert f"{message.TYPE}.{field}" in str(err.value) and str(value) in str(err.value)
+
+
+def test_a_violation_with_a_negative_step_or_count_is_refused() -> None:
+    for key in ("step", "first_step", "count"):
+        raw = Violation("pair", (4, 5), 3, 0.01, first_step=2, count=1).to_dict()
+        raw[key] = -1
+        with pytest.raises(MessageError, match=key):
+            Violation.from_dict(raw)

@@ -355,6 +355,50 @@ def test_truth_arriving_after_its_state_still_counts(correct_run) -> None:
     assert a == pytest.approx(b, rel=1e-12)
 
 
+def test_the_nees_does_not_depend_on_how_far_truth_and_states_are_apart(
+        correct_run, monkeypatch) -> None:
+    """State and truth come from different sessions: no order between them. All truths
+    before the states (a monitor behind the driver), all after (a truth source behind),
+    or interleaved: the same NEES. Beyond the buffers' bounds what is missed is counted."""
+    states, truths = correct_run
+    states = states[:200]  # within the states that may wait for a truth (256)
+    truths = [t for t in truths if t.stamp <= states[-1].stamp]
+    assert truths[-1].stamp == states[-1].stamp
+
+    def last_health(order: str) -> Health:
+        monitor = Monitor(MonitorSettings(nees_window=10))
+        by_stamp = {t.stamp: t for t in truths}
+        if order == "truth first":
+            for truth in truths:
+                monitor.add_truth(truth)
+        for s in states[:-1]:
+            if order == "interleaved" and s.stamp in by_stamp:
+                monitor.add_truth(by_stamp[s.stamp])
+            monitor.check(s)
+        if order == "truth last":  # every truth after its state was checked
+            for truth in truths[:-1]:
+                monitor.add_truth(truth)
+        if order != "truth first":
+            monitor.add_truth(truths[-1])
+        return monitor.check(states[-1])  # reports what the late truths found, too
+
+    def nees(h: Health) -> tuple[float | None, float | None]:
+        return h.statistics.get("nees_pose_window_mean"), h.statistics.get("nees_features_mean")
+
+    interleaved = last_health("interleaved")
+    assert nees(interleaved)[0] is not None
+    assert nees(last_health("truth first")) == nees(interleaved)
+    late = last_health("truth last")
+    assert "truth_missing" not in late.statistics
+    assert late.statistics["nees_pose_window_mean"] == pytest.approx(
+        interleaved.statistics["nees_pose_window_mean"], rel=1e-12)
+    # a buffer too small for the distance: what it cannot keep is counted, never silent
+    monkeypatch.setattr("slamlens.services.slam.monitor._TRUTH_BUFFER", 20)
+    assert last_health("truth first").statistics["truth_missing"] > 0
+    monkeypatch.setattr("slamlens.services.slam.monitor._PENDING", 20)
+    assert last_health("truth last").statistics["truth_missing"] > 0
+
+
 def test_gaps_are_compared_across_without_false_alarms(correct_run) -> None:
     states, truths = correct_run
     rng = np.random.default_rng(5)

@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from slamlens.common.bus import InProcessBus
+from slamlens.common.inprocess_bus import InProcessBus
 from slamlens.common.keys import Keys
 from slamlens.common.messages import Health, SlamState, Truth
 from slamlens.services.slam import monitor_checks as checks

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from slamlens.common.bus import InProcessBus
+from slamlens.common.inprocess_bus import InProcessBus
 from slamlens.common.keys import Keys
 from slamlens.common.messages import Health, SlamState
 from slamlens.services.slam.monitor_service import MonitorService

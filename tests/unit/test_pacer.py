@@ -13,7 +13,7 @@ import time
 
 import msgpack
 
-from slamlens.common.bus import InProcessBus
+from slamlens.common.inprocess_bus import InProcessBus
 from slamlens.common.keys import Keys
 from slamlens.common.pacer import Pacer
 

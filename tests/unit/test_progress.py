@@ -6,7 +6,7 @@ import threading
 
 import numpy as np
 
-from slamlens.common.bus import InProcessBus
+from slamlens.common.inprocess_bus import InProcessBus
 from slamlens.common.keys import Keys
 from slamlens.common.messages import Odometry, Truth
 from slamlens.common.progress import NoBar, count_bar, enabled, time_bar

@@ -16,6 +16,7 @@ from mcap.writer import CompressionType, Writer
 from slamlens.common.errors import SourceError
 from slamlens.common.messages import Health, SlamState, Violation
 from slamlens.common.scene3d import VIOLATION, SceneSettings, pair_glyphs
+from slamlens.services.harness.procs import REPO
 from slamlens.services.recorder.channels import FoxgloveTranslator, covariance_summary
 from slamlens.services.recorder.layout import message_of_key, ntp64_to_ns, record_expressions
 from slamlens.services.recorder.reading import Recording
@@ -24,7 +25,6 @@ from slamlens.services.recorder.timeline import PlayClock
 from slamlens.services.visualiser.scene import build_scene
 from slamlens.services.visualiser.settings import ViewSettings
 from tests.mcap_check import protobuf_class
-from tests.procs import REPO
 
 SCENE = None
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import logging
 
-from slamlens.services.router_log import ZenohLogReader
+from slamlens.services.commands.router_log import ZenohLogReader
 
 ZID_R2 = "ef6c7c738976c5fdbb0d5ad08f26e971"
 ZID_V = "5f3760ef872617ada4411fc578951a9c"

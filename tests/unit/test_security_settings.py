@@ -13,12 +13,12 @@ from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import NameOID
 
 from slamlens.common.certs import extend_authority, identities_in
+from slamlens.common.endpoints import effective_endpoints
 from slamlens.common.errors import ConfigError, SecurityError
 from slamlens.common.security import access_control, check_identity
 from slamlens.common.session import (
     BusSettings,
     build_config,
-    effective_endpoints,
     listen_endpoints,
     router_settings,
     zenoh_reason,

@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import pytest
 
-from slamlens.common.bus import InProcessBus
 from slamlens.common.errors import ConfigError
+from slamlens.common.inprocess_bus import InProcessBus
 from slamlens.common.keys import Keys
 from slamlens.common.messages import ServiceStatus
 from slamlens.common.status import Report, StatusAnnouncer, role_name
-from slamlens.services.status import cells, gather, table
+from slamlens.services.commands.status import cells, gather, table
 
 
 def test_status_keys_name_identity_service_and_instance() -> None:

@@ -18,7 +18,7 @@ from contextlib import contextmanager
 
 import pytest
 
-from tests.procs import REPO
+from slamlens.services.harness.procs import REPO
 
 CHILD = textwrap.dedent("""
     import sys, time

@@ -12,10 +12,10 @@ import numpy as np
 import pytest
 
 from slamlens.common.config import load_settings
+from slamlens.services.harness.procs import REPO, spawn
 from slamlens.services.slam import tuning
 from slamlens.services.slam.mrclam import load_mrclam
 from slamlens.services.slam.settings import EstimatorSettings
-from tests.procs import REPO, spawn
 
 SMALL = REPO / "tests" / "fixtures" / "mrclam_small"
 

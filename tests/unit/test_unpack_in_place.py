@@ -13,8 +13,10 @@ import msgpack
 import numpy as np
 import pytest
 
+from slamlens.common.codec import IN_PLACE_ABOVE
 from slamlens.common.errors import MessageError
-from slamlens.common.messages import _NOT_UNPACKED, IN_PLACE_ABOVE, SlamState, unpack_in_place
+from slamlens.common.messages import SlamState
+from slamlens.common.msgpack_walk import NOT_UNPACKED, unpack_in_place
 
 
 def _state(n: int, seed: int = 0) -> SlamState:
@@ -75,8 +77,8 @@ def test_unpack_in_place_is_msgpacks_map() -> None:
         got = unpack_in_place(payload)
         assert got == msgpack.unpackb(payload, raw=False, strict_map_key=False)
         assert isinstance(got["big"]["data"], memoryview)  # in place, one level down
-    assert unpack_in_place(payload + b"\x00") is _NOT_UNPACKED  # trailing: msgpack decides
-    assert unpack_in_place(msgpack.packb([1, 2])) is _NOT_UNPACKED  # not a map
+    assert unpack_in_place(payload + b"\x00") is NOT_UNPACKED  # trailing: msgpack decides
+    assert unpack_in_place(msgpack.packb([1, 2])) is NOT_UNPACKED  # not a map
 
 
 @pytest.mark.parametrize("seed", range(3))

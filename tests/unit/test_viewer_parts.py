@@ -582,8 +582,8 @@ def test_a_registration_no_camera_has_is_a_bad_message_not_a_failed_render() -> 
     (counted, one line each), so the picture never fails; a good one afterwards is used."""
     import logging
 
-    from slamlens.common.bus import InProcessBus
     from slamlens.common.drops import DropCounter
+    from slamlens.common.inprocess_bus import InProcessBus
     from slamlens.common.keys import Keys
     from slamlens.services.visualiser.intake import Intake
 

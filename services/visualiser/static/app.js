@@ -318,7 +318,7 @@ async function refreshStatus() {
     for (const r of s.robots) {
       const st = r.state;
       parts.push(st ? `${s.robots.length > 1 ? r.name + ": " : ""}state seq ${st.seq} ` +
-                      `(${st.step}), age ${age(st.age_s)}, n = ${st.n}`
+                      `(${st.step}), age ${age(st.age_s)}, n = ${st.n}` + inputCounts(st.inputs)
                     : `${r.name}: no state yet`);
     }
     if (!s.robots.length) parts.push("no state yet");
@@ -330,6 +330,17 @@ async function refreshStatus() {
   } catch (e) {
     $("status").textContent = "viewer unreachable";
   }
+}
+
+// The estimator's input counts (docs/protocol.md): shown when any is not zero; late and
+// lost inputs mean the map is not what an in-order run would have made.
+function inputCounts(inputs) {
+  if (!inputs) return "";
+  const named = ["late", "lost", "duplicates", "waited", "reordered"]
+    .filter((k) => inputs[k] > 0).map((k) => `${inputs[k]} ${k}`);
+  if (!named.length) return "";
+  const bad = (inputs.late || 0) + (inputs.lost || 0) > 0;
+  return `, <span class="${bad ? "bad" : ""}" id="input-counts">inputs: ${esc(named.join(", "))}</span>`;
 }
 
 async function refreshHealth() {

@@ -1,6 +1,7 @@
 """Real HTTP and websocket clients for the viewer's web tests (urllib, aiohttp).
 
-Also runnable as a program inside a network namespace: ``python -m tests.web_client``
+Also runnable as a program inside a network namespace:
+``python -m slamlens.services.harness.web_client``
 reads a JSON list of requests on stdin and prints a JSON list of answers, so a test can
 probe a viewer bound to an address only that namespace reaches.
 """

@@ -26,7 +26,7 @@ from slamlens.common.errors import MessageError
 from slamlens.common.keys import Keys
 from slamlens.common.messages import ServiceStatus
 from slamlens.common.session import open_bus
-from slamlens.services.settings import StatusSettings
+from slamlens.services.commands.settings import StatusSettings
 
 COLUMNS = ("SERVICE", "NAME", "HOST", "ROBOT", "CAMERA", "STATE", "RATE", "DROPPED", "LOST",
            "EPOCH", "VERSION", "UP")

@@ -1,5 +1,6 @@
-"""The test video of the AR page: the synthetic head-mounted camera walking round the paper
-world, with the robot standing at its map origin, as a Y4M file for Chromium's fake camera.
+"""The test video of the AR page (tests and benchmarks): the synthetic head-mounted camera
+walking round the paper world, the robot standing at its map origin, as a Y4M file for
+Chromium's fake camera.
 
 Every frame carries its index as a code in its top-left corner (:func:`read_index`), so a
 picture the page shows can be matched to the exact camera pose it was rendered from (the

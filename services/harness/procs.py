@@ -18,7 +18,7 @@ import time
 from pathlib import Path
 from typing import IO
 
-REPO = Path(__file__).resolve().parents[1]
+REPO = Path(__file__).resolve().parents[2]  #: the checkout (services/harness/ is in it)
 
 
 def slamlens_cmd(*args: str) -> list[str]:

@@ -1,6 +1,7 @@
 """``slamlens demo``: the whole system on one machine, as real separate processes.
 
-The demo is a launch (:mod:`slamlens.services.launch`): from its settings it builds a launch plan —
+The demo is a launch (:mod:`slamlens.services.commands.launch`): from its settings it builds a
+launch plan —
 a Zenoh router on loopback, the estimator, the behaviour monitor, the synthetic overhead
 camera with registration, the AR viewer and, once they are all ready, the simulated robot
 (which first stands still while the camera registers) — writes it to ``LOG_DIR/demo.toml``
@@ -37,9 +38,9 @@ from slamlens.common.keys import Keys
 from slamlens.common.messages import Health, SlamState
 from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus
 from slamlens.common.verdict import summary_text
-from slamlens.services.launch import Supervisor
-from slamlens.services.launch_file import plan_from_mapping, to_toml
-from slamlens.services.settings import DemoSettings
+from slamlens.services.commands.launch import Supervisor
+from slamlens.services.commands.launch_file import plan_from_mapping, to_toml
+from slamlens.services.commands.settings import DemoSettings
 
 log = logging.getLogger("slamlens.demo")
 
@@ -85,7 +86,7 @@ def _check_http(host_port: str) -> str:
 
 def demo_launch(s: DemoSettings, *, endpoint: str, prefix: str, http: str | None,
                 camera: str | None) -> dict[str, Any]:
-    """The demo as a launch file's tables (:mod:`slamlens.services.launch_file`)."""
+    """The demo as a launch file's tables (:mod:`slamlens.services.commands.launch_file`)."""
     bus = {"connect": [endpoint], "prefix": prefix}
     services: dict[str, dict[str, Any]] = {
         "router": {"command": "router", "listen": [endpoint], "prefix": prefix},

@@ -23,10 +23,10 @@ overhead camera (``services/registration/synthetic.py``) seeing the true robot a
 features as posts, so estimated cones can be compared with the truth as in the paper's
 photographs.
 
-This is a composition-level tool, like ``services/demo.py``: it joins the simulator and the
+This is a composition-level tool, like ``services/commands/demo.py``: it joins the simulator and the
 estimator (SLAM), the synthetic camera (registration) and the renderer (viewer) in one
 process, which no service may do. Its settings are
-:class:`slamlens.services.settings.FigureSettings`.
+:class:`slamlens.services.commands.settings.FigureSettings`.
 """
 
 from __future__ import annotations
@@ -44,13 +44,13 @@ from slamlens.common.config import settings_from_args
 from slamlens.common.errors import RenderError
 from slamlens.common.geometry import invert_T
 from slamlens.common.messages import Odometry, SlamState, Truth
+from slamlens.services.commands.settings import FigureSettings
 from slamlens.services.registration.synthetic import (
     ImagingSettings,
     SceneSettings,
     SyntheticCamera,
     look_at,
 )
-from slamlens.services.settings import FigureSettings
 from slamlens.services.slam.estimator import Estimator
 from slamlens.services.slam.settings import EstimatorSettings
 from slamlens.services.slam.sim import Simulator

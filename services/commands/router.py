@@ -9,7 +9,7 @@ where they are given. It listens where ``--listen`` says, else where the file sa
 
 With ``--secure DIR --name router-X`` it serves mutual TLS only and enforces the roles of
 every identity in DIR (SPEC §7b, :mod:`slamlens.common.security`); what it refuses shows in its log
-(:mod:`slamlens.services.router_log`).
+(:mod:`slamlens.services.commands.router_log`).
 """
 
 from __future__ import annotations
@@ -18,13 +18,14 @@ import argparse
 import json
 import logging
 
-from slamlens.common.bus import ZenohBus
 from slamlens.common.cli import bus_settings, setup_logging, stop_event
 from slamlens.common.config import settings_from_args
-from slamlens.common.session import build_config, effective_endpoints, open_bus, router_settings
+from slamlens.common.endpoints import effective_endpoints
+from slamlens.common.session import build_config, open_bus, router_settings
 from slamlens.common.status import Report, announce
-from slamlens.services.router_log import ZenohLog
-from slamlens.services.settings import RouterSettings
+from slamlens.common.zenoh_bus import ZenohBus
+from slamlens.services.commands.router_log import ZenohLog
+from slamlens.services.commands.settings import RouterSettings
 
 log = logging.getLogger("slamlens.router")
 

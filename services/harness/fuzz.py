@@ -127,13 +127,13 @@ def _nested(depth: int) -> Any:
     return out
 
 
-_WRONG = {
+_WRONG: dict[str, list[Any]] = {
     "float": ["x", [1.0], {"a": 1}, True, math.nan, math.inf, -math.inf],
     "int": [1.5, "3", True, [1]],
     "str": [5, b"bytes", [], {"a": "b"}, 1.0],
     "bool": [1, "true", None, []],
     "bytes": ["str", 5, [1, 2]],
-    "violations": ["x", [1, 2], [{"kind": "nope", "ids": [], "step": 1, "growth": 1.0}],
+    "records": ["x", [1, 2], [{"kind": "nope", "ids": [], "step": 1, "growth": 1.0}],
                    [{"kind": "pair", "ids": "12", "step": 1, "growth": 1.0}]],
     "stats": ["x", [1.0], {"a": "b"}, {"a": math.nan}],
 }

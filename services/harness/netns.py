@@ -13,8 +13,6 @@ import shutil
 import subprocess
 from dataclasses import dataclass, field
 
-import pytest
-
 
 def _ip(*args: str) -> None:
     subprocess.run(["ip", *args], check=True, capture_output=True, text=True, timeout=10)
@@ -89,18 +87,6 @@ def make_hosts() -> Hosts:
         hosts.remove()
         raise
     return hosts
-
-
-@pytest.fixture
-def two_hosts():
-    why = available()
-    if why is not None:
-        pytest.skip(f"two-host tests need network namespaces: {why}")
-    hosts = make_hosts()
-    try:
-        yield hosts
-    finally:
-        hosts.remove()
 
 
 def own_shm(argv: list[str]) -> list[str]:

@@ -25,7 +25,7 @@ from slamlens.common.errors import BusError, MessageError, ServiceError
 from slamlens.common.keys import Keys, check_name
 from slamlens.common.messages import CameraControl, Registration
 from slamlens.common.session import open_bus
-from slamlens.services.settings import RegisterSettings
+from slamlens.services.commands.settings import RegisterSettings
 
 REREGISTERING = "reregistering"  #: the status a camera says while it averages anew
 

@@ -54,7 +54,8 @@ from slamlens.common.config import (
     spec_of,
 )
 from slamlens.common.errors import ConfigError, SlamlensError
-from slamlens.services.cli import COMMANDS, command_parser
+from slamlens.services.commands.cli import command_parser
+from slamlens.services.commands.registry import COMMANDS
 
 #: the line each command prints on stdout when it is ready to serve
 READY_LINES = {"router": "router ready", "estimator": "estimator ready",
@@ -281,9 +282,27 @@ def plan_from_mapping(raw: Mapping[str, Any], *, source: str,
                                         source=f"{source} [launch]")
     except ConfigError as exc:
         raise ConfigError(f"{source} [launch]: {exc}") from None
+    variables = _variables(raw.get("vars", {}), values, source)
+    tables = raw.get("service", {})
+    if not tables:
+        raise ConfigError(f"{source}: no [service.NAME] table: nothing to launch")
+    defaults = {k: _substitute(v, variables, f"{source} [defaults] key {k!r}")
+                for k, v in raw.get("defaults", {}).items()}
+    used_defaults: set[str] = set()
+    specs = [_service(name, table, source=source, variables=variables, defaults=defaults,
+                      options=options, used=used_defaults)
+             for name, table in tables.items()]
+    unused = sorted(set(defaults) - used_defaults)
+    if unused:
+        raise ConfigError(f"{source} [defaults]: key(s) {', '.join(unused)} are settings of "
+                          "none of its services")
+    return LaunchPlan(source=source, options=options, services=_start_order(specs, source))
 
+
+def _variables(table: Mapping[str, Any], values: Sequence[str], source: str) -> dict[str, str]:
+    """The file's [vars], with ``--set NAME=VALUE`` over them (only names the file has)."""
     variables: dict[str, str] = {}
-    for name, value in raw.get("vars", {}).items():
+    for name, value in table.items():
         if not isinstance(value, (str, int, float)) or isinstance(value, bool):
             raise ConfigError(f"{source} [vars] key {name!r}: expected a string or a number, "
                               f"got {value!r}")
@@ -296,62 +315,54 @@ def plan_from_mapping(raw: Mapping[str, Any], *, source: str,
             raise ConfigError(f"--set {name}: {source} has no variable {name!r} in [vars] "
                               f"(it has: {', '.join(variables) or 'none'})")
         variables[name] = value
+    return variables
 
-    tables = raw.get("service", {})
-    if not tables:
-        raise ConfigError(f"{source}: no [service.NAME] table: nothing to launch")
-    defaults = {k: _substitute(v, variables, f"{source} [defaults] key {k!r}")
-                for k, v in raw.get("defaults", {}).items()}
-    used_defaults: set[str] = set()
-    specs = []
-    for name, table in tables.items():
-        where = f"{source} [service.{name}]"
-        if not _NAME.match(name) or name == "launch":
-            raise ConfigError(f"{where}: a service name is letters, digits, '-' and '_', "
-                              "and not 'launch' (the supervisor's own name in the log)")
-        if not isinstance(table, Mapping):
-            raise ConfigError(f"{source} key 'service.{name}' must be a table")
-        command = table.get("command")
-        if not isinstance(command, str) or command not in COMMANDS:
-            choices = [c for c in COMMANDS if c not in NOT_SERVICES]
-            raise ConfigError(f"{where} key 'command': {command!r} is not a slamlens "
-                              f"service (one of {', '.join(choices)})")
-        if command in NOT_SERVICES:
-            raise ConfigError(f"{where} key 'command': `slamlens {command}` is not a service "
-                              "a launch can run")
-        own = {k: _substitute(v, variables, f"{where} key {k!r}") for k, v in table.items()}
-        known = _known_fields(command)
-        settings = {k: v for k, v in defaults.items() if k in known or k == "config"}
-        used_defaults |= set(settings)
-        settings.update({k: v for k, v in own.items() if k not in _LAUNCH_KEYS})
-        argv = _checked_argv(command, settings, where)
-        extra = own.get("args", [])
-        if not isinstance(extra, list) or not all(isinstance(a, str) for a in extra):
-            raise ConfigError(f"{where} key 'args': expected a list of strings")
-        argv += extra
-        _parse_whole(command, argv, where)
-        after = own.get("after", [])
-        if isinstance(after, str):
-            after = [after]
-        if not isinstance(after, list) or not all(isinstance(a, str) for a in after):
-            raise ConfigError(f"{where} key 'after': expected a list of service names")
-        ready = own.get("ready", READY_LINES.get(command, ""))
-        respawn = own.get("respawn", options.respawn)
-        required = own.get("required", False)
-        for key, value in (("ready", ready), ("respawn", respawn), ("required", required)):
-            expected = str if key == "ready" else bool
-            if not isinstance(value, expected):
-                raise ConfigError(f"{where} key {key!r}: expected "
-                                  f"{'a string' if expected is str else 'true or false'}, "
-                                  f"got {value!r}")
-        specs.append(ServiceSpec(name=name, command=command, argv=tuple(argv),
-                                 after=tuple(after), ready=ready, respawn=respawn,
-                                 required=required))
-    unused = sorted(set(defaults) - used_defaults)
-    if unused:
-        raise ConfigError(f"{source} [defaults]: key(s) {', '.join(unused)} are settings of "
-                          "none of its services")
-    return LaunchPlan(source=source, options=options, services=_start_order(specs, source))
+
+def _service(name: str, table: Any, *, source: str, variables: Mapping[str, str],
+             defaults: Mapping[str, Any], options: LaunchOptions,
+             used: set[str]) -> ServiceSpec:
+    """One [service.NAME] table, checked (the [defaults] it takes are added to ``used``)."""
+    where = f"{source} [service.{name}]"
+    if not _NAME.match(name) or name == "launch":
+        raise ConfigError(f"{where}: a service name is letters, digits, '-' and '_', "
+                          "and not 'launch' (the supervisor's own name in the log)")
+    if not isinstance(table, Mapping):
+        raise ConfigError(f"{source} key 'service.{name}' must be a table")
+    command = table.get("command")
+    if not isinstance(command, str) or command not in COMMANDS:
+        choices = [c for c in COMMANDS if c not in NOT_SERVICES]
+        raise ConfigError(f"{where} key 'command': {command!r} is not a slamlens "
+                          f"service (one of {', '.join(choices)})")
+    if command in NOT_SERVICES:
+        raise ConfigError(f"{where} key 'command': `slamlens {command}` is not a service "
+                          "a launch can run")
+    own = {k: _substitute(v, variables, f"{where} key {k!r}") for k, v in table.items()}
+    known = _known_fields(command)
+    settings = {k: v for k, v in defaults.items() if k in known or k == "config"}
+    used |= set(settings)
+    settings.update({k: v for k, v in own.items() if k not in _LAUNCH_KEYS})
+    argv = _checked_argv(command, settings, where)
+    extra = own.get("args", [])
+    if not isinstance(extra, list) or not all(isinstance(a, str) for a in extra):
+        raise ConfigError(f"{where} key 'args': expected a list of strings")
+    argv += extra
+    _parse_whole(command, argv, where)
+    after = own.get("after", [])
+    if isinstance(after, str):
+        after = [after]
+    if not isinstance(after, list) or not all(isinstance(a, str) for a in after):
+        raise ConfigError(f"{where} key 'after': expected a list of service names")
+    ready = own.get("ready", READY_LINES.get(command, ""))
+    respawn = own.get("respawn", options.respawn)
+    required = own.get("required", False)
+    for key, value in (("ready", ready), ("respawn", respawn), ("required", required)):
+        expected = str if key == "ready" else bool
+        if not isinstance(value, expected):
+            raise ConfigError(f"{where} key {key!r}: expected "
+                              f"{'a string' if expected is str else 'true or false'}, "
+                              f"got {value!r}")
+    return ServiceSpec(name=name, command=command, argv=tuple(argv), after=tuple(after),
+                       ready=ready, respawn=respawn, required=required)
 
 
 def _toml_value(value: Any) -> str:

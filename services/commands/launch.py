@@ -1,7 +1,7 @@
 """``slamlens launch FILE.toml``: a described group of services, supervised as one.
 
-Like ``ros2 launch``: each service of the file (:mod:`slamlens.services.launch_file`) runs as its
-own ``slamlens`` process, and the supervisor
+Like ``ros2 launch``: each service of the file (:mod:`slamlens.services.commands.launch_file`)
+runs as its own ``slamlens`` process, and the supervisor
 
 * **orders** them: a service starts once every service in its ``after`` is ready — has
   printed its "… ready" line on stdout (the router, estimator, monitor, registration,
@@ -38,8 +38,8 @@ from slamlens.common.backoff import Backoff
 from slamlens.common.cli import setup_logging, stop_event
 from slamlens.common.config import settings_from_args
 from slamlens.common.errors import ServiceError
-from slamlens.services.launch_file import LaunchPlan, ServiceSpec, load_launch
-from slamlens.services.settings import LaunchSettings
+from slamlens.services.commands.launch_file import LaunchPlan, ServiceSpec, load_launch
+from slamlens.services.commands.settings import LaunchSettings
 
 #: a service that stays up this long after it was ready starts its back-off afresh
 STABLE_S = 60.0

@@ -18,9 +18,9 @@ from pathlib import Path
 from slamlens.common.keys import Keys
 from slamlens.common.messages import Health, SlamState
 from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus
+from slamlens.services.harness.procs import REPO, spawn, stop
 from slamlens.services.slam.mrclam import load_mrclam
 from slamlens.services.slam.tuning import Evaluation, Scorer, TruthTrack, dead_reckoning_track
-from tests.procs import REPO, spawn, stop
 
 DATA = REPO.parent / "shared" / "data" / "mrclam6"
 PROFILE = REPO / "deploy" / "mrclam.toml"

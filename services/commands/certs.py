@@ -10,7 +10,7 @@ import argparse
 
 from slamlens.common.certs import CA_CERT, CA_KEY, extend_authority
 from slamlens.common.config import settings_from_args
-from slamlens.services.settings import CertsSettings
+from slamlens.services.commands.settings import CertsSettings
 
 
 def run(command: str, args: argparse.Namespace) -> int:
