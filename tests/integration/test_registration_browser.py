@@ -1,7 +1,7 @@
 """``slamlens registration --source browser`` as a real process over real Zenoh on loopback.
 
 The test plays the viewer's AR page: it publishes the frames of the synthetic head-mounted
-camera's walk (tests/ar_video.py) on ``slamlens/camera/C/capture`` and checks what comes
+camera's walk (services/harness/ar_video.py) on ``slamlens/camera/C/capture`` and checks what comes
 back against the pose each frame was rendered from: registrations of every frame, a second
 camera at once (starting from the first one's registration), bad frames refused and
 counted while the service goes on, a third camera beyond the limit refused, and a camera
