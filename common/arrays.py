@@ -1,6 +1,6 @@
 """numpy arrays on the wire, and the validators every message uses.
 
-SPEC §7: an array travels as ``{"dtype": "<f8", "shape": [...], "data": <bytes>}``,
+docs/protocol.md: an array travels as ``{"dtype": "<f8", "shape": [...], "data": <bytes>}``,
 little-endian. Decoding also accepts a plain (nested) list of numbers, which is what
 a hand-written third-party client most often sends; the dtype is then the field's.
 Every array a message holds is a read-only, C-contiguous copy.
@@ -24,7 +24,7 @@ MAX_DIMS = 4
 
 
 def encode_array(array: np.ndarray, dtype: str, *, view: bool = False) -> dict[str, Any]:
-    """Encode ``array`` as the SPEC §7 map with the little-endian ``dtype`` given; with
+    """Encode ``array`` as the docs/protocol.md map with the little-endian ``dtype`` given; with
     ``view`` the data is the array's own memory (its bytearray, or a memoryview), which
     msgpack packs as the same bin value without a copy first."""
     a = np.ascontiguousarray(array, dtype=np.dtype(dtype))

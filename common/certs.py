@@ -1,4 +1,4 @@
-"""A small certificate authority for slamlens identities (SPEC §7b), with ``cryptography``.
+"""A small certificate authority for slamlens identities (docs/security.md), with ``cryptography``.
 
 A directory holds the authority and the identities it issued::
 

@@ -1,9 +1,9 @@
 """Pieces every service's ``cli.py`` shares: common flags, logging, stop signals, errors.
 
-Common flags (SPEC §9) are settings too (:mod:`slamlens.common.config`), declared once below:
+Common flags (docs/cli.md) are settings too (:mod:`slamlens.common.config`), declared once below:
 :class:`BusFlags` (``--connect ENDPOINT`` repeatable, ``--listen ENDPOINT``,
 ``--zenoh-config FILE``, ``--prefix``, ``--secure DIR --name NAME`` for mutual TLS with an
-identity, SPEC §7b) for every command on the bus, ``--config FILE`` for
+identity, docs/security.md) for every command on the bus, ``--config FILE`` for
 every command with settings, and :class:`LogFlags` (``-v``/``-q``) for all. A new common
 flag is one more field here (then read it from :func:`bus_flags`).
 """
@@ -112,7 +112,7 @@ def setup_logging(args: argparse.Namespace, name: str) -> None:
 
 
 #: seconds a service may take to shut down after SIGINT/SIGTERM before it is cut short
-#: (SPEC §7a: every service exits within 2 s of a signal, in every state, on any load)
+#: (docs/delivery.md: every service exits within 2 s of a signal, in every state, on any load)
 SHUTDOWN_GRACE_S = 1.8
 
 

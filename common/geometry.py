@@ -10,7 +10,7 @@ from slamlens.common.errors import ConfigError
 
 
 def wrap_angle(angle: float | np.ndarray) -> float | np.ndarray:
-    """Wrap radians to [-π, π) (SPEC §4); angles already in range come back unchanged.
+    """Wrap radians to [-π, π) (docs/estimator.md); angles already in range come back unchanged.
 
     The modulo formula alone adds a rounding error (~1e-16) to in-range angles, which
     would make a dataset's bearings differ from the file they were read from.
@@ -82,7 +82,7 @@ def rotation_angle_deg(R: np.ndarray) -> float:
 
 
 def relative_covariance(P: np.ndarray, i: int, j: int) -> np.ndarray:
-    """P_d = P_ii + P_jj − P_ij − P_ijᵀ for landmarks at state indices i, j (SPEC §5).
+    """P_d = P_ii + P_jj − P_ij − P_ijᵀ for landmarks at state indices i, j (docs/monitor.md).
 
     ``i`` and ``j`` are landmark positions in the state (0-based), so landmark k occupies
     rows 3 + 2k and 3 + 2k + 1.

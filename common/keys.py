@@ -1,4 +1,4 @@
-"""Every Zenoh key expression slamlens uses is built here (SPEC §7); nowhere else.
+"""Every Zenoh key expression slamlens uses is built here (docs/protocol.md); nowhere else.
 
 Robot and camera names are single key segments: non-empty, without ``/`` or the Zenoh
 wildcard and verbatim characters (``* $ ? #``).
@@ -76,9 +76,9 @@ class Keys:
         return self.robot(robot, "summary")
 
     def tracked(self, robot: str) -> str:
-        """Every camera's measured pose of ``robot`` (issue 3, fields as Truth): the key
+        """Every camera's measured pose of ``robot`` (fields as Truth): the key
         expression to subscribe to. A camera publishes on :meth:`tracked_by` — under its own
-        name, the only keys a camera identity may publish on (SPEC §7b)."""
+        name, the only keys a camera identity may publish on (docs/security.md)."""
         return f"{self.prefix}/camera/*/tracked/{check_name('robot', robot)}"
 
     def tracked_by(self, camera: str, robot: str) -> str:

@@ -52,7 +52,7 @@ class Odometry(Message):
     w: float = scalar_field("float", "turn rate, rad/s")
     input_seq: int | None = scalar_field(
         "int", "optional: the driver's input counter, +1 per odometry or observations "
-        "message on either key (SPEC §7a ordering; docs/protocol.md)", optional=True,
+        "message on either key (docs/delivery.md ordering; docs/protocol.md)", optional=True,
         range=UINT64)
 
     def _check(self) -> None:
@@ -108,7 +108,7 @@ class Truth(Message):
 
 @dataclass(frozen=True, eq=False)
 class SlamState(Message):
-    """The estimator's full state after one event (SPEC §7)."""
+    """The estimator's full state after one event (docs/protocol.md)."""
 
     TYPE: ClassVar[str] = "SlamState"
     robot: str = scalar_field("str", "robot name")
@@ -248,8 +248,8 @@ SUMMARY_WHATS = ("blocks", "clusters", "pairs")
 
 @dataclass(frozen=True, eq=False)
 class StateSummary(Message):
-    """What a remote viewer draws of one ``SlamState``, not the whole matrix (issue 13;
-    key ``robot/R/summary``, a queryable; docs/protocol.md, docs/remote_viewers.md).
+    """What a remote viewer draws of one ``SlamState``, not the whole matrix (key
+    ``robot/R/summary``, a queryable; docs/protocol.md, docs/remote_viewers.md).
 
     Always the map's blocks (pose and its 3×3 covariance, each feature's mean and 2×2
     marginal covariance); with ``what = "clusters"`` the min / mean / max of the relative
@@ -412,7 +412,7 @@ def _count(message: str, name: str, value: Any) -> int:
 
 @dataclass(frozen=True, eq=False)
 class Health(Message):
-    """The monitor's verdict on one state (SPEC §5, §7)."""
+    """The monitor's verdict on one state (docs/monitor.md)."""
 
     TYPE: ClassVar[str] = "Health"
     robot: str = scalar_field("str", "robot name")
@@ -470,7 +470,7 @@ class Registration(Message):
     status: str = field(default="registered", metadata={
         "kind": "str", "doc": "registered / tracking / marker not found …"})
     epoch: int | None = scalar_field(
-        "int", "optional: the epoch of the map this registration is for (SPEC §7a: a new "
+        "int", "optional: the epoch of the map this registration is for (docs/delivery.md: a new "
         "map has a new frame); absent: whichever map the camera saw the robot start",
         optional=True, range=UINT64)
     reason: str | None = scalar_field(
@@ -529,8 +529,8 @@ class ServiceStatus(Message):
                                 optional=True)
     camera: str | None = scalar_field("str", "the camera(s) it serves, comma-separated",
                                  optional=True)
-    epoch: int | None = scalar_field("int", "the map epoch it is on (SPEC §7a)", optional=True,
-                                range=UINT64)
+    epoch: int | None = scalar_field("int", "the map epoch it is on (docs/delivery.md)",
+                                     optional=True, range=UINT64)
     counts: dict[str, float] = field(
         default_factory=dict, metadata={"kind": "stats",
                                         "doc": "running totals: states, frames, inputs …; "

@@ -1,4 +1,4 @@
-"""Large maps within a glyph budget (issue 13): which pairs a picture can afford, and the
+"""Large maps within a glyph budget: which pairs a picture can afford, and the
 min / mean / max of every group pair without a Python-level pass over all pairs.
 
 A picture of n features in "all" mode has n(n−1)/2 glyphs: 1225 at n = 50, 499 500 at

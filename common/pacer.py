@@ -1,9 +1,9 @@
 """Pacing a producer on the estimator: at most a window of inputs ahead of its ``input_stamp``.
 
-SPEC §7a: at ``--rate 0`` the drivers (``sim``, ``replay``) and ``slamlens play --inputs-only``
-stay at most :data:`PACE_WINDOW` inputs ahead of the ``input_stamp`` in the estimator's newest
-state, so a whole run goes through at the estimator's speed with every input applied (moved
-here unchanged from ``services/slam/drivers.py`` so that both services use the same one).
+At ``--rate 0`` (docs/delivery.md) the drivers (``sim``, ``replay``) and ``slamlens play
+--inputs-only`` stay at most :data:`PACE_WINDOW` inputs ahead of the ``input_stamp`` in the
+estimator's newest state, so a whole run goes through at the estimator's speed with every
+input applied (the drivers and the player use this one).
 """
 
 from __future__ import annotations

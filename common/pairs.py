@@ -1,6 +1,6 @@
 """Which feature pairs a picture shows, and the min / mean / max of P_d per cluster pair.
 
-Pure helpers of SPEC §6's three modes, shared by the viewer's scene and the recorder's
+Pure helpers of docs/visualisation.md's three modes, shared by the viewer's scene and the recorder's
 Foxglove scene (they were ``services/visualiser/scene.py``'s; behaviour unchanged):
 ``all`` every pair, ``inter`` pairs in different clusters, ``minmeanmax`` per cluster pair
 the smallest, the element-wise mean and the largest P_d, sizes by ``pd_size_m`` (why: the

@@ -1,4 +1,5 @@
-"""Mutual TLS and role-based access control for slamlens sessions (SPEC §7b), in Zenoh's terms.
+"""Mutual TLS and role-based access control for slamlens sessions, in Zenoh's terms
+(docs/security.md).
 
 ``--secure DIR --name NAME`` makes a session speak TLS only, with the identity ``NAME`` of the
 authority in ``DIR`` (see :mod:`slamlens.common.certs`): the authority's ``ca.pem`` is the only root
@@ -20,7 +21,8 @@ common name, default deny:
   (:mod:`slamlens.common.status`):
   hold a liveliness token, declare a queryable and reply under ``PREFIX/status/NAME/**``.
 
-Zenoh's advanced publishers and subscribers (SPEC §7a) talk in key spaces under the data key:
+Zenoh's advanced publishers and subscribers (docs/delivery.md) talk in key spaces under the data
+key:
 a publisher's cache queryable, heartbeat puts and detection token live on
 ``KEY/@adv/pub/<zid>/<eid>/_``; a subscriber queries ``KEY/@adv/**`` and
 ``KEY/@adv/pub/<zid>/<eid>/_`` (history, recovery), subscribes to ``KEY/@adv/pub/**``
@@ -81,7 +83,7 @@ def _scope(*keys: str) -> list[str]:
 
 
 def write_scope(identity: Identity, prefix: str) -> list[str]:
-    """Key expressions ``identity`` may put, reply and hold tokens on (SPEC §7b roles)."""
+    """Key expressions ``identity`` may put, reply and hold tokens on (docs/security.md roles)."""
     if identity.role == "robot":
         return _scope(f"{prefix}/robot/{identity.subject}/**")
     if identity.role == "camera":

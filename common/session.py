@@ -12,7 +12,7 @@ scouting off: slamlens never talks to the network unless told to. A client waits
 A router listens where ``--listen`` says, else where its Zenoh config file says, else on
 ``tcp/127.0.0.1:7447``: flags override only what they name.
 
-``--secure DIR --name NAME`` (SPEC §7b) makes every link mutual TLS with that identity and,
+``--secure DIR --name NAME`` (docs/security.md) makes every link mutual TLS with that identity and,
 on a router, enforces the roles of every identity in DIR (:mod:`slamlens.common.security`); the
 default endpoint is then ``tls/127.0.0.1:7447`` and a ``tcp/`` endpoint is an error.
 """
@@ -48,7 +48,7 @@ class BusSettings:
     zenoh_config: str | None = None  #: path of a Zenoh JSON5 config file
     mode: str | None = None  #: "client", "peer" or "router"; derived when None
     extra: dict[str, str] = field(default_factory=dict)  #: raw JSON5 inserts, key → value
-    secure: str | None = None  #: directory of the certificate authority (SPEC §7b)
+    secure: str | None = None  #: directory of the certificate authority (docs/security.md)
     name: str | None = None  #: identity in ``secure`` (certificate common name)
     prefix: str = DEFAULT_PREFIX  #: key prefix the router's access control protects
 
@@ -103,11 +103,11 @@ def build_config(settings: BusSettings):  # -> zenoh.Config
         if mode == "client" and not settings.zenoh_config:
             # services may start before their router (the demo, a reboot): wait for it
             conf.insert_json5("connect/timeout_ms", f"{{client: {ROUTER_WAIT_MS}}}")
-        # the advanced publishers of SPEC §7a need timestamps (off by default in client
+        # the advanced publishers of docs/delivery.md need timestamps (off by default in client
         # mode); they also give the estimator its publication order (HLC per session)
         conf.insert_json5("timestamping/enabled", "true")
         # on one host, large payloads (states of big maps) travel through shared memory;
-        # to another host Zenoh sends their bytes as usual (issue 13; docs/delivery.md)
+        # to another host Zenoh sends their bytes as usual (docs/delivery.md)
         conf.insert_json5("transport/shared_memory/enabled", "true")
         for key, value in settings.extra.items():
             conf.insert_json5(key, value)

@@ -82,7 +82,7 @@ def _host() -> str:
 
 
 def role_name(service: str, *, robot: str | None = None, camera: str | None = None) -> str:
-    """The identity a service would hold for its role (SPEC §7b names), used as its name
+    """The identity a service would hold for its role (docs/security.md names), used as its name
     when it runs without ``--secure``."""
     first_robot = (robot or "").split(",")[0]
     first_camera = (camera or "").split(",")[0]

@@ -1,4 +1,4 @@
-"""What a remote viewer draws of a state, made from the full state (issue 13; pure).
+"""What a remote viewer draws of a state, made from the full state (pure).
 
 A viewer on a slow link asks the robot's ``summary`` queryable (docs/remote_viewers.md) for
 what it will draw instead of receiving the whole covariance (32 MB at n = 1000):

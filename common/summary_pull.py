@@ -1,4 +1,4 @@
-"""The remote viewer's side of the summary stream: pull, one query at a time (issue 13).
+"""The remote viewer's side of the summary stream: pull, one query at a time.
 
 :class:`SummaryPuller` asks the robot's ``summary`` queryable, and asks again as soon as
 the answer arrived, with ``after=SEQ;epoch=E`` of the summary it has: the robot holds

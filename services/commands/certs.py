@@ -1,4 +1,4 @@
-"""``slamlens certs DIR --name NAME [--name NAME …] [--host HOST …]`` (SPEC §7b).
+"""``slamlens certs DIR --name NAME [--name NAME …] [--host HOST …]`` (docs/security.md).
 
 Creates or extends the small certificate authority in DIR (:mod:`slamlens.common.certs`) and prints
 one line per identity it created, kept or re-issued, then what to copy where.

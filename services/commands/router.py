@@ -8,7 +8,8 @@ where they are given. It listens where ``--listen`` says, else where the file sa
 (e.g. the robot's to the workstation's).
 
 With ``--secure DIR --name router-X`` it serves mutual TLS only and enforces the roles of
-every identity in DIR (SPEC §7b, :mod:`slamlens.common.security`); what it refuses shows in its log
+every identity in DIR (docs/security.md, :mod:`slamlens.common.security`); what it refuses
+shows in its log
 (:mod:`slamlens.services.commands.router_log`).
 """
 

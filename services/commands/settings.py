@@ -89,7 +89,7 @@ class RouterSettings:
 
 @dataclass(frozen=True)
 class CertsSettings:
-    """``slamlens certs``: create or extend the certificate authority of SPEC §7b."""
+    """``slamlens certs``: create or extend the certificate authority of docs/security.md."""
 
     directory: str = setting("", doc="folder of the authority (created 0700); existing files "
                                      "are kept", positional=True, required=True, metavar="DIR")

@@ -1,4 +1,4 @@
-"""Crash recovery for the estimator (SPEC §7a): its whole state on disk, written atomically.
+"""Crash recovery for the estimator (docs/delivery.md): its whole state on disk, written atomically.
 
 A checkpoint is one msgpack file ``DIR/estimator-{robot}.ckpt`` holding the last published
 ``SlamState`` (pose, map, covariance, seq, epoch, input stamp) plus what the state does not

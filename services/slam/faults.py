@@ -1,4 +1,4 @@
-"""Planted programming faults, for demonstrations and for testing the monitor (SPEC §8).
+"""Planted programming faults, for demonstrations and for testing the monitor (docs/simulator.md).
 
 A fault acts only on the features whose ids are listed (``--faulty-features``) and only on
 events whose stamp is ≥ ``onset`` (s). With no fault the estimator never calls this module:

@@ -1,4 +1,4 @@
-"""Plausibility gates on the estimator's inputs (issue 14; docs/estimator.md).
+"""Plausibility gates on the estimator's inputs (docs/estimator.md).
 
 A well-formed message can still be absurd: ``dt = 1e200``, a range of 1e300 m, a batch of a
 thousand new landmarks. Each gate has a documented bound in SI units

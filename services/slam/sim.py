@@ -1,17 +1,18 @@
 """The simulated robot: a seeded, deterministic stream of odometry, observations and truth.
 
 The true robot is a unicycle following the world's waypoint loop with a simple heading
-controller. Its true pose integrates the *commanded* (v, ω) with the SPEC §4 first-order
+controller. Its true pose integrates the *commanded* (v, ω) with the first-order (docs/estimator.md)
 model, and the odometry it reports is the commanded (v, ω) plus Gaussian noise of the
-world's σv, σω. So an estimator using the SPEC §4 model with the same σ has an exactly
-right motion and noise model: its NEES is χ²-consistent (the consistency tests rely on it).
+world's σv, σω. So an estimator using the standard model (docs/estimator.md) with the same σ
+has an exactly right motion and noise model: its NEES is χ²-consistent (the consistency
+tests rely on it).
 The true trajectory does not depend on the seed; only the measurement noises do.
 
 Per step k (from t = (k−1)·dt to t = k·dt) the stream is: ``Odometry(stamp=t)``, then
 ``Truth(stamp=t)`` (pose after the step, every landmark), then, when a sensor period has
 elapsed, ``Observations(stamp=t)`` of every landmark within range and field of view of the
 true pose. One ``Truth`` at t = 0 comes first. Everything is in the map frame = the robot's
-start pose (SPEC §3).
+start pose (docs/protocol.md).
 """
 
 from __future__ import annotations
@@ -45,7 +46,7 @@ class Trajectory:
 
 
 def step_pose(pose: np.ndarray, v: float, w: float, dt: float) -> np.ndarray:
-    """SPEC §4 first-order velocity model (θ wrapped)."""
+    """The first-order velocity model of docs/estimator.md (θ wrapped)."""
     x, y, theta = pose
     return np.array([x + v * dt * math.cos(theta), y + v * dt * math.sin(theta),
                      float(wrap_angle(theta + w * dt))])
@@ -152,7 +153,7 @@ def staggered(world: World, k: int) -> tuple[World, np.ndarray]:
     Robot 0 is the world as it is. Robot k ≥ 1 starts on waypoint k − 1, facing waypoint
     k, and visits the loop in the same order from there, so at the same speed the robots
     stay a side of the loop apart. Returns its world and the pose of its start in robot 0's
-    map frame (the arena frame its truth is said in: SPEC §3 gives each robot its own map
+    map frame (the arena frame its truth is said in: docs/protocol.md gives each robot its own map
     frame, its start pose).
     """
     m = world.waypoints_xy.shape[0]
@@ -175,7 +176,7 @@ def staggered(world: World, k: int) -> tuple[World, np.ndarray]:
 
 
 class Simulator:
-    """A simulated robot driver: ``events()`` yields the SPEC §7 messages in stream order.
+    """A simulated robot driver: ``events()`` yields the docs/protocol.md messages in stream order.
 
     ``truth_origin`` is the pose of the robot's map frame in the frame its ``Truth`` is said
     in (several robots in one arena, :func:`staggered`); ``marker_id`` goes in every Truth.

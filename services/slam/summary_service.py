@@ -1,4 +1,4 @@
-"""``slamlens summary``: what remote viewers draw of the newest state, on request (issue 13).
+"""``slamlens summary``: what remote viewers draw of the newest state, on request.
 
 It runs beside the estimator (on the robot, where states arrive through shared memory)
 and answers the queryable ``robot/R/summary`` with a :class:`~slamlens.common.messages.StateSummary`

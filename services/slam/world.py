@@ -1,13 +1,13 @@
 """Simulated worlds: landmarks, a waypoint loop, sensor, motion and noise, read from TOML.
 
-A world file is small and documented (``worlds/paper.toml`` is the reference, SPEC §8)::
+A world file is small and documented (``worlds/paper.toml`` is the reference, docs/simulator.md)::
 
     name = "paper"
     landmarks = [[x, y], ...]          # or [[id, x, y], ...]; ids default to 1..n
     [landmark_grid] rows, columns, spacing_m, origin_xy, jitter_m, seed, first_id
                                        # instead of ``landmarks``: a seeded, generated grid
     waypoints = [[x, y], ...]          # a closed loop, visited in order, then again
-    [start]  pose = [0.0, 0.0, 0.0]    # x m, y m, θ rad; the map frame is this pose (SPEC §3)
+    [start]  pose = [0.0, 0.0, 0.0]    # x m, y m, θ rad; the map frame is this pose
     [area]   min_xy = [-1, -1]  max_xy = [2, 2]   # optional: every landmark must lie inside
     [sensor] max_range_m, fov_rad, period_s
     [motion] speed_mps, dt_s, waypoint_tolerance_m, max_turn_rate, heading_gain
