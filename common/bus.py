@@ -236,6 +236,12 @@ class Bus(Protocol):
 
     def alive(self, key: str, *, timeout: float = 2.0) -> list[str]: ...
 
+    def release(self, entity: Any) -> None:
+        """Undeclare one thing this bus declared (a publisher, subscriber, channel,
+        queryable or liveliness token) before the bus closes: what a service that adds
+        and drops parts while it runs (a browser camera that comes and goes) gives back."""
+        ...
+
     def close(self) -> None: ...
 
 

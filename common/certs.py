@@ -9,7 +9,9 @@ Keys are ECDSA P-256 in PKCS#8 PEM, written 0600; certificates are PEM, 0644. Ev
 certificate serves both ends of a TLS link (extended key usage serverAuth + clientAuth) and
 names itself as a DNS subject alternative name; ``router-*`` identities also carry
 ``localhost``, ``127.0.0.1``, ``::1`` and the ``--host`` names (DNS or IP), because clients
-check the router's name against the address they dial.
+check the router's name against the address they dial; so do ``viewer-*`` identities
+issued with ``--host`` (a browser checks the viewer's HTTPS certificate the same way), and
+they are valid 825 days (iOS trusts no longer TLS server certificate).
 
 :func:`extend_authority` is idempotent: an existing authority and existing identities are
 kept as they are (their files are not rewritten), so adding a name never invalidates a
@@ -38,6 +40,9 @@ CA_KEY = "ca.key"
 CA_COMMON_NAME = "slamlens CA"
 CA_DAYS = 3650  #: ten years: a lab's authority should outlive its robots
 IDENTITY_DAYS = 1825  #: five years: within the CA's life, long enough never to surprise a lab
+#: a viewer's certificate also serves its HTTPS page to phones, and iOS trusts no TLS
+#: server certificate valid for more than 825 days
+VIEWER_DAYS = 825
 ROLES = ("robot", "camera", "monitor", "viewer", "router", "ros2")
 ROUTER_DEFAULT_HOSTS = ("localhost", "127.0.0.1", "::1")
 _LABEL = re.compile(r"^[A-Za-z0-9](?:[A-Za-z0-9-]{0,61}[A-Za-z0-9])?$")
@@ -189,6 +194,7 @@ def _ca_certificate(key):
 
 def _identity_certificate(identity: Identity, key, hosts: Sequence[str],
                           ca_cert, ca_key):
+    days = VIEWER_DAYS if identity.role == "viewer" else IDENTITY_DAYS
     from cryptography import x509
     from cryptography.hazmat.primitives import hashes
     from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
@@ -204,7 +210,7 @@ def _identity_certificate(identity: Identity, key, hosts: Sequence[str],
             .public_key(key.public_key())
             .serial_number(x509.random_serial_number())
             .not_valid_before(now - dt.timedelta(minutes=5))
-            .not_valid_after(min(now + dt.timedelta(days=IDENTITY_DAYS),
+            .not_valid_after(min(now + dt.timedelta(days=days),
                                  ca_cert.not_valid_after_utc))
             .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
             .add_extension(x509.KeyUsage(
@@ -261,7 +267,8 @@ def extend_authority(directory: str | os.PathLike[str], names: Iterable[str], *,
                      hosts: Sequence[str] = ()) -> list[str]:
     """Create or extend the authority in ``directory`` with ``names``; one line per action.
 
-    ``hosts`` are added to the subject alternative names of ``router-*`` identities.
+    ``hosts`` are added to the subject alternative names of ``router-*`` identities, and of
+    ``viewer-*`` ones (the viewer's HTTPS page, ``slamlens viewer --tls-cert``).
     """
     identities = [parse_name(n) for n in dict.fromkeys(names)]
     if not identities:
@@ -282,8 +289,9 @@ def extend_authority(directory: str | os.PathLike[str], names: Iterable[str], *,
 
 def _issue(root: Path, identity: Identity, hosts: Sequence[str], ca_cert, ca_key) -> str:
     cert_path, key_path = root / f"{identity.name}.pem", root / f"{identity.name}.key"
+    # clients dial a router, and phones a viewer's HTTPS page, by these names
     wanted = list(dict.fromkeys([*ROUTER_DEFAULT_HOSTS, *hosts])) if (
-        identity.role == "router") else []
+        identity.role == "router" or (identity.role == "viewer" and hosts)) else []
     if cert_path.exists():
         cert = load_cert(cert_path)
         key = load_key(key_path)

@@ -188,6 +188,13 @@ class InProcessBus:
     def alive(self, key: str, *, timeout: float = 2.0) -> list[str]:
         return sorted(k for k in self._alive if _intersects(key, k))
 
+    def release(self, entity: Any) -> None:
+        for entries in (self._subs, self._queryables, self._answerers, self._later):
+            if entity in entries:
+                entries.remove(entity)  # type: ignore[arg-type]
+        if isinstance(entity, str):
+            self._alive.discard(entity)
+
     def close(self) -> None:
         self._subs.clear()
         self._queryables.clear()

@@ -122,9 +122,26 @@ class Keys:
         """Requests to the registration service, e.g. re-register (docs/protocol.md)."""
         return self.camera(camera, "control")
 
+    def any_camera_control(self) -> str:
+        """Every camera's :meth:`camera_control` key."""
+        return f"{self.prefix}/camera/*/control"
+
     def registrations(self, camera: str) -> str:
         """The registrations of ``camera``, for every robot it registers."""
         return self.camera(camera, "registration/*")
+
+    def capture(self, camera: str) -> str:
+        """Frames a remote capture device sends for registration (a browser through the
+        viewer's ``/ar`` page): CameraFrame, to ``slamlens registration --source browser``."""
+        return self.camera(camera, "capture")
+
+    def any_capture(self) -> str:
+        """Every camera's :meth:`capture` key."""
+        return f"{self.prefix}/camera/*/capture"
+
+    def any_registration(self) -> str:
+        """Every camera's registration of every robot."""
+        return f"{self.prefix}/camera/*/registration/*"
 
     def camera_alive(self, camera: str) -> str:
         return self.camera(camera, "alive/registration")

@@ -14,7 +14,8 @@ common name, default deny:
   prefix, and receives whatever is routed to them there;
 * ``robot-R`` may put, delete, reply, declare queryables and liveliness tokens under
   ``PREFIX/robot/R/**`` only; ``camera-C`` under ``PREFIX/camera/C/**`` only; ``monitor-R``
-  on ``PREFIX/robot/R/health`` only; ``viewer-…`` nothing; ``router-…`` links routers and may
+  on ``PREFIX/robot/R/health`` only; ``viewer-…`` only puts the frames of the browsers its
+  ``/ar`` page serves, on ``PREFIX/camera/*/capture``; ``router-…`` links routers and may
   send anything under the prefix (a router enforces the roles of its own clients);
 * ``ros2-R``, the ROS 2 bridge of robot R (``slamlens ros2``), may say the robot's
   ``state``, ``odometry``, ``observations`` and its estimator's liveliness token (what it
@@ -117,6 +118,11 @@ def write_scope(identity: Identity, prefix: str) -> list[str]:
     return []  # viewers say nothing
 
 
+def frames_scope(identity: Identity, prefix: str) -> list[str]:
+    """Where a viewer puts its AR pages' camera frames (plain puts: no advanced publisher)."""
+    return [f"{prefix}/camera/*/capture"] if identity.role == "viewer" else []
+
+
 def status_scope(identity: Identity, prefix: str) -> list[str]:
     """Key expressions where ``identity`` announces and answers its own status."""
     return [f"{prefix}/status/{identity.name}/**"]
@@ -158,6 +164,12 @@ def access_control(prefix: str, identities: Iterable[Identity]) -> dict[str, Any
                           "flows": ["ingress"], "messages": ["declare_subscriber"],
                           "key_exprs": [f"*/{ros_name(identity.subject)}/**"]})
             own.append(f"take {identity.name}")
+        frames = frames_scope(identity, prefix)
+        if frames:
+            rule = f"frames {identity.name}"
+            rules.append({"id": rule, "permission": "allow", "flows": ["ingress"],
+                          "messages": ["put"], "key_exprs": frames})
+            own.append(rule)
         if identity.role != "router":  # a router may say anything under the prefix anyway
             rule = f"status {identity.name}"
             rules.append({"id": rule, "permission": "allow", "flows": ["ingress"],

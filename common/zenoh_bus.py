@@ -327,6 +327,20 @@ class ZenohBus:
         return sorted({str(r.ok.key_expr) for r in self.session.liveliness().get(
             key, timeout=timeout) if r.ok is not None})
 
+    def release(self, entity: Any) -> None:
+        with self._lock:
+            try:
+                self._entities.remove(entity)
+            except ValueError:
+                return  # released already, or the bus closed
+        try:
+            if isinstance(entity, QueueChannel):
+                entity.close()
+            else:
+                entity.undeclare()
+        except Exception:  # the session may be closing
+            log.debug("releasing %r failed", entity, exc_info=True)
+
     def close(self) -> None:
         with self._lock:
             if self._closed:

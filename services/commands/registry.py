@@ -63,6 +63,8 @@ COMMANDS: dict[str, Command] = {
     "calibrate": Command("registration.cli",
                          "camera intrinsics from ChArUco board images",
                          "registration.settings:CalibrateSettings", bus=False),
+    "detect": Command("registration.cli", "the fiducial markers in images (text or JSON)",
+                      "registration.settings:DetectSettings", bus=False),
     "viewer": Command("visualiser.cli", "the AR renderer and its web viewers",
                       "visualiser.settings:ViewerConfig"),
     "figures": Command("commands.figures",

@@ -97,8 +97,9 @@ class CertsSettings:
         (), doc="identity to issue (repeatable): robot-R, camera-C, monitor-R, ros2-R, viewer-…, "
                 "router-…", flag="--name", action="append", required=True, metavar="NAME")
     hosts: tuple[str, ...] = setting(
-        (), doc="DNS name or IP address clients dial a router at (repeatable); added to the "
-                "router-… certificates", flag="--host", action="append", metavar="HOST")
+        (), doc="DNS name or IP address clients dial a router at, or browsers open a "
+                "viewer's HTTPS page at (repeatable); added to the router-… and viewer-… "
+                "certificates", flag="--host", action="append", metavar="HOST")
 
 
 @dataclass(frozen=True)

@@ -8,28 +8,29 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from pathlib import Path
 
 import numpy as np
 
 from slamlens.common.bus import Bus
 from slamlens.common.errors import ConfigError, SourceError
 from slamlens.common.keys import Keys
+from slamlens.services.registration.apriltag3 import AprilTagDetector, make_detector
 from slamlens.services.registration.board import MarkerBoard, default_board, load_board
+from slamlens.services.registration.browser import BrowserCameras, BrowserFrames
 from slamlens.services.registration.calibration import (
     CameraCalibration,
     load_calibration,
+    scaled_calibration,
     synthetic_calibration,
 )
+from slamlens.services.registration.maps import CameraSettings
 from slamlens.services.registration.markers import MarkerDetector, WindowedDetector
-from slamlens.services.registration.service import (
-    CameraParts,
-    CameraPipeline,
-    CameraSettings,
-    RegistrationService,
-    TrackerPoses,
-)
+from slamlens.services.registration.pipeline import CameraParts, CameraPipeline
+from slamlens.services.registration.service import RegistrationService, TrackerPoses
 from slamlens.services.registration.settings import RegistrationSettings
 from slamlens.services.registration.sources import (
+    DeviceOptions,
     FrameSource,
     ReconnectingSource,
     SyntheticSource,
@@ -131,12 +132,19 @@ def synthetic_sources(settings: RegistrationSettings, calib: CameraCalibration,
     return sources
 
 
+def capture_factory(settings: RegistrationSettings) -> Callable[[], FrameSource]:
+    """Opens the ``--source`` a real camera is read from, with its device options."""
+    return open_capture(settings.source, loop=settings.loop, timeout_s=settings.stall_s,
+                        options=DeviceOptions(width=settings.width, height=settings.height,
+                                              fps=settings.fps, fourcc=settings.fourcc,
+                                              buffer_size=settings.buffer_size))
+
+
 def real_source(settings: RegistrationSettings,
                 factory: Callable[[], FrameSource] | None = None) -> FrameSource:
     """The capture source, opened now if it can be, else retried in the background."""
     if factory is None:
-        factory = open_capture(settings.source, loop=settings.loop, width=settings.width,
-                               height=settings.height, fps=settings.fps)
+        factory = capture_factory(settings)
     try:
         initial: FrameSource | None = factory()
     except SourceError as exc:
@@ -147,10 +155,10 @@ def real_source(settings: RegistrationSettings,
 
 
 def detector_for(settings: RegistrationSettings, *, moving: bool
-                 ) -> MarkerDetector | WindowedDetector:
+                 ) -> MarkerDetector | AprilTagDetector | WindowedDetector:
     """One camera's detector: a fixed camera's looks only around the last markers between
     full frames (``detect_full_every``); a moving camera's over every whole frame."""
-    detector = MarkerDetector(settings.dictionary)
+    detector = make_detector(settings.detector, settings.dictionary)
     if moving or settings.detect_full_every <= 1:
         return detector
     return WindowedDetector(detector, full_every=settings.detect_full_every)
@@ -159,20 +167,14 @@ def detector_for(settings: RegistrationSettings, *, moving: bool
 def build_service(bus: Bus, keys: Keys, settings: RegistrationSettings) -> RegistrationService:
     """Everything ``slamlens registration`` runs, wired to ``bus`` (not started)."""
     # a missing path fails first, a missing calibration second, before a device is opened
-    factory = None if settings.synthetic else open_capture(
-        settings.source, loop=settings.loop, width=settings.width, height=settings.height,
-        fps=settings.fps)
+    if settings.browser:
+        return build_browser_service(bus, keys, settings)
+    factory = None if settings.synthetic else capture_factory(settings)
     calib = calibration_for(settings)
     moving = settings.mode == "head-mounted"
     board = board_for(settings) if moving else None
     tracker = TrackerPoses() if moving and settings.camera_pose_source == "tracker" else None
-    registrar_settings = RegistrarSettings(
-        marker_id=settings.marker_id, marker_size_m=settings.marker_size,
-        marker_offset_xyz=tuple(settings.marker_offset),  # type: ignore[arg-type]
-        register_frames=settings.register_frames,
-        still_tolerance_m=settings.still_tolerance_m,
-        still_tolerance_deg=settings.still_tolerance_deg,
-        max_reprojection_error_px=settings.max_reprojection_error_px, moving_camera=moving)
+    registrar_settings = registrar_settings_for(settings)
     synthetic: list[SyntheticSource] = []
     sources: list[FrameSource]
     if settings.synthetic:
@@ -182,13 +184,7 @@ def build_service(bus: Bus, keys: Keys, settings: RegistrationSettings) -> Regis
         sources = [real_source(settings, factory)]
     pipelines = []
     for i, (name, source) in enumerate(zip(settings.camera_names(), sources, strict=True)):
-        camera = CameraSettings(
-            camera=name, robot=settings.robot, fps=settings.fps,
-            jpeg_quality=settings.jpeg_quality, moving=moving, publish_tracked=i == 0,
-            registration_period_s=settings.registration_period_s,
-            max_reregister_move_m=settings.max_reregister_move_m,
-            max_reregister_turn_deg=settings.max_reregister_turn_deg,
-            origin_tolerance_m=settings.origin_tolerance_m)
+        camera = camera_settings_for(settings, name, publish_tracked=i == 0)
         parts = CameraParts(
             source=source, calib=calib,
             detector=detector_for(settings, moving=moving),
@@ -200,3 +196,85 @@ def build_service(bus: Bus, keys: Keys, settings: RegistrationSettings) -> Regis
     return RegistrationService(bus, keys, robot=settings.robot, base_camera=settings.camera,
                                pipelines=pipelines, synthetic_sources=synthetic,
                                tracker=tracker)
+
+
+def registrar_settings_for(settings: RegistrationSettings) -> RegistrarSettings:
+    return RegistrarSettings(
+        marker_id=settings.marker_id, marker_size_m=settings.marker_size,
+        marker_offset_xyz=tuple(settings.marker_offset),  # type: ignore[arg-type]
+        register_frames=settings.register_frames,
+        still_tolerance_m=settings.still_tolerance_m,
+        still_tolerance_deg=settings.still_tolerance_deg,
+        max_reprojection_error_px=settings.max_reprojection_error_px,
+        moving_camera=settings.mode == "head-mounted")
+
+
+def camera_settings_for(settings: RegistrationSettings, name: str, *,
+                        publish_tracked: bool) -> CameraSettings:
+    return CameraSettings(
+        camera=name, robot=settings.robot, fps=settings.fps,
+        jpeg_quality=settings.jpeg_quality, moving=settings.mode == "head-mounted",
+        publish_tracked=publish_tracked,
+        registration_period_s=settings.registration_period_s,
+        max_reregister_move_m=settings.max_reregister_move_m,
+        max_reregister_turn_deg=settings.max_reregister_turn_deg,
+        origin_tolerance_m=settings.origin_tolerance_m)
+
+
+def browser_calibration(settings: RegistrationSettings, camera: str, width: int,
+                        height: int) -> tuple[CameraCalibration, str]:
+    """A browser camera's intrinsics for its frames' size, and where they come from: its
+    calibration (``--calibration FILE`` or ``FOLDER/CAMERA.yml``; scaled to frames of the
+    same aspect ratio), else the default phone model (``browser_hfov``)."""
+    if settings.calibration:
+        given = Path(settings.calibration)
+        path = given / f"{camera}.yml" if given.is_dir() else given
+        if path.is_file():
+            calib = load_calibration(path)
+            if (calib.width, calib.height) == (width, height):
+                return calib, str(path)
+            if calib.width * height == calib.height * width:
+                return scaled_calibration(calib, width, height), f"{path}, scaled"
+            log.warning("camera %s: %s is for %dx%d frames, its frames are %dx%d: using "
+                        "the default phone model", camera, path, calib.width, calib.height,
+                        width, height)
+    return (synthetic_calibration(width, height, hfov_deg=settings.browser_hfov),
+            f"the default phone model ({settings.browser_hfov:g}° wide)")
+
+
+def build_browser_service(bus: Bus, keys: Keys,
+                          settings: RegistrationSettings) -> RegistrationService:
+    """``--source browser``: no camera until a browser sends frames; then one pipeline
+    per camera, made here (services/registration/browser.py)."""
+    moving = settings.mode == "head-mounted"
+    board = board_for(settings) if moving else None
+    registrar_settings = registrar_settings_for(settings)
+
+    def browser(service: RegistrationService) -> BrowserCameras:
+        def make(camera: str, source: BrowserFrames, width: int, height: int
+                 ) -> CameraPipeline:
+            calib, origin = browser_calibration(settings, camera, width, height)
+            log.info("camera %s: intrinsics from %s", camera, origin)
+            parts = CameraParts(source=source, calib=calib,
+                                detector=detector_for(settings, moving=moving),
+                                registrar=Registrar(registrar_settings, calib), board=board)
+            pipeline = CameraPipeline(bus, keys, parts=parts, settings=camera_settings_for(
+                settings, camera, publish_tracked=True))
+            if moving:  # a head-mounted camera starts from another's registration
+                for other in service.pipelines:
+                    T = other.registrar.T_anchor_from_map
+                    if T is not None and other.settings.moving:
+                        pipeline.inherit(T, epoch=other.epoch, camera=other.camera,
+                                         reprojection_error_px=other.registrar
+                                         .reprojection_error_px)
+                        break
+            return pipeline
+
+        return BrowserCameras(bus, keys, base=settings.camera, make=make,
+                              add=service.add_pipeline, remove=service.remove_pipeline,
+                              idle_s=settings.browser_idle_s,
+                              max_cameras=settings.max_browser_cameras,
+                              max_pixels=settings.max_browser_frame_pixels)
+
+    return RegistrationService(bus, keys, robot=settings.robot, base_camera=settings.camera,
+                               pipelines=[], browser=browser)

@@ -43,6 +43,9 @@ from slamlens.services.registration.pose import (
 )
 
 log = logging.getLogger(__name__)
+#: a board pose of three markers or more fitting worse than this is checked for a marker
+#: that does not fit the others (px RMS; a clean pose of a few markers fits to ~0.3 px)
+OUTLIER_RMS_PX = 0.6
 
 
 def rotation_from_rpy_deg(rpy_deg: Sequence[float]) -> np.ndarray:
@@ -183,7 +186,9 @@ def camera_pose_from_board(detections: Iterable[Detection], board: MarkerBoard,
 
     One marker: IPPE_SQUARE (exact for a square). Several: SQPNP, a globally optimal solver
     that needs no initial guess, over every visible corner, then Levenberg–Marquardt.
-    A board id seen twice in one image is ambiguous and left out.
+    A board id seen twice in one image is ambiguous and left out. With three markers or
+    more and an RMS error over :data:`OUTLIER_RMS_PX`, the marker whose leaving out halves
+    the error at least is left out (a corner hidden behind a post, a marker knocked).
     """
     by_id: dict[int, list[Detection]] = {}
     for det in detections:
@@ -195,6 +200,21 @@ def camera_pose_from_board(detections: Iterable[Detection], board: MarkerBoard,
             log.debug("board marker %d seen %d times; left out", marker_id, len(dets))
     if not used:
         return None
+    found = _solve(used, board, calib)
+    if found is not None and found[1] > OUTLIER_RMS_PX and len(used) >= 3:
+        # one marker that does not fit the others (a corner hidden behind something,
+        # a marker moved): without it the rest must agree much better to be believed
+        trials = [_solve(used[:k] + used[k + 1:], board, calib) for k in range(len(used))]
+        best = min((t for t in trials if t is not None), key=lambda t: t[1], default=None)
+        if best is not None and best[1] < found[1] / 2:
+            log.debug("board marker left out: RMS %.2f px without it, %.2f px with it",
+                      best[1], found[1])
+            found = best
+    return found
+
+
+def _solve(used: list[Detection], board: MarkerBoard, calib: CameraCalibration
+           ) -> tuple[np.ndarray, float, int] | None:
     try:
         if len(used) == 1:
             det = used[0]

@@ -176,3 +176,15 @@ def synthetic_calibration(width: int, height: int, *, hfov_deg: float = 60.0) ->
     f = (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
     K = np.array([[f, 0.0, (width - 1) / 2.0], [0.0, f, (height - 1) / 2.0], [0.0, 0.0, 1.0]])
     return CameraCalibration(K=K, dist=np.zeros(5), width=width, height=height)
+
+
+def scaled_calibration(calib: CameraCalibration, width: int, height: int) -> CameraCalibration:
+    """``calib`` for frames of the same camera and field of view at another resolution
+    (the same aspect ratio): focal lengths scale with the size, the principal point about
+    the image's edge (pixel centres at integers: x' = (x + 0.5)·s − 0.5); distortion,
+    being in normalised coordinates, is unchanged."""
+    sx, sy = width / calib.width, height / calib.height
+    K = np.array(calib.K, dtype=np.float64)
+    K[0, 0], K[0, 1], K[1, 1] = K[0, 0] * sx, K[0, 1] * sx, K[1, 1] * sy
+    K[0, 2], K[1, 2] = (K[0, 2] + 0.5) * sx - 0.5, (K[1, 2] + 0.5) * sy - 0.5
+    return CameraCalibration(K=K, dist=np.array(calib.dist), width=width, height=height)

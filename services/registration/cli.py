@@ -17,7 +17,11 @@ from slamlens.common.config import settings_from_args
 from slamlens.common.errors import ConfigError
 from slamlens.common.session import open_bus
 from slamlens.common.status import Report, announce
-from slamlens.services.registration.settings import CalibrateSettings, RegistrationSettings
+from slamlens.services.registration.settings import (
+    CalibrateSettings,
+    DetectSettings,
+    RegistrationSettings,
+)
 
 log = logging.getLogger("slamlens")
 
@@ -26,6 +30,8 @@ def run(command: str, args: argparse.Namespace) -> int:
     setup_logging(args, command)
     if command == "calibrate":
         return _run_calibrate(args)
+    if command == "detect":
+        return _run_detect(args)
     return _run_registration(args)
 
 
@@ -75,6 +81,12 @@ def check_inputs(settings: RegistrationSettings) -> None:
     from slamlens.services.registration.calibration import load_calibration
     from slamlens.services.registration.sources import open_capture
 
+    if settings.browser:
+        if settings.calibration and not Path(settings.calibration).exists():
+            raise ConfigError(f"--calibration {settings.calibration}: no such file or folder")
+        if settings.calibration and Path(settings.calibration).is_file():
+            load_calibration(settings.calibration)
+        return
     if not settings.synthetic:
         open_capture(settings.source)  # a missing path fails here; a device is not opened
         if not settings.calibration:
@@ -106,4 +118,31 @@ def _run_calibrate(args: argparse.Namespace) -> int:
     print(f"RMS reprojection error {rms:.4f} px from {len(images)} images; "
           f"fx {calib.fx:.2f} fy {calib.fy:.2f} cx {calib.cx:.2f} cy {calib.cy:.2f}; "
           f"written to {output}", flush=True)
+    return 0
+
+
+def _run_detect(args: argparse.Namespace) -> int:
+    """``slamlens detect IMAGE…``: per image, the markers found (text, or one JSON object
+    per line with ``--json``)."""
+    import cv2
+
+    from slamlens.services.registration.apriltag3 import make_detector
+
+    s = settings_from_args(DetectSettings, args)
+    detector = make_detector(s.detector, s.dictionary)
+    for name in s.images:
+        image = cv2.imread(name, cv2.IMREAD_COLOR) if Path(name).is_file() else None
+        if image is None:
+            raise ConfigError(f"detect: cannot read image {name}")
+        found = detector.detect(image)
+        if s.json:
+            print(json.dumps({"image": name, "detections": [
+                {"id": d.marker_id, "corners": [[round(float(x), 3), round(float(y), 3)]
+                                                for x, y in d.corners_px]} for d in found]}),
+                  flush=True)
+            continue
+        print(f"{name}: {len(found)} marker{'s' if len(found) != 1 else ''}", flush=True)
+        for d in found:
+            corners = " ".join(f"({x:.2f}, {y:.2f})" for x, y in d.corners_px)
+            print(f"  id {d.marker_id}: {corners}", flush=True)
     return 0

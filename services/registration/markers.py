@@ -17,7 +17,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from functools import lru_cache
 from pathlib import Path
-from typing import Any
+from typing import Protocol
 
 import cv2
 import numpy as np
@@ -326,6 +326,8 @@ class MarkerDetector:
             self.dictionary_name = dictionary
             self.dictionary = get_dictionary(dictionary)
         self._detector = cv2.aruco.ArucoDetector(self.dictionary, self._cv_parameters())
+        self._window_detector: cv2.aruco.ArucoDetector | None = None
+        self._window_rate = -1.0
 
     def _cv_parameters(self) -> cv2.aruco.DetectorParameters:
         t = self.tuning
@@ -362,13 +364,56 @@ class MarkerDetector:
     def finish(self, gray: np.ndarray, found: np.ndarray, ids: np.ndarray) -> list[Detection]:
         """OpenCV's corners ``found`` (k, 4, 2, image pixels) of markers ``ids`` refined
         (the "edges" refinement) and sorted by id then x then y."""
-        if self.tuning.corner_refinement == "edges":
-            found = refine_corners_edges(gray, found, search_px=self.tuning.edge_search_px,
-                                         max_iterations=self.tuning.edge_max_iterations,
-                                         tolerance_px=self.tuning.edge_tolerance_px)
-        detections = [Detection(int(i), c) for i, c in zip(np.ravel(ids), found, strict=True)]
-        detections.sort(key=lambda d: (d.marker_id, *d.center_px))
-        return detections
+        return finish_detections(gray, found, ids, self.tuning)
+
+    def detect_window(self, gray: np.ndarray, box: tuple[int, int, int, int]
+                      ) -> tuple[np.ndarray, np.ndarray] | None:
+        """Unrefined corners (k, 4, 2, in the box's pixels) and ids of the markers in
+        ``box`` (x0, y0, x1, y1) of ``gray``, accepting exactly the marker sizes the whole
+        image would (:class:`WindowedDetector`); None if there are none."""
+        x0, y0, x1, y1 = box
+        crop = gray[y0:y1, x0:x1]
+        # OpenCV's minimum perimeter is a rate of the input's larger side: scaled, the
+        # window accepts the marker sizes the whole image does
+        rate = self.tuning.min_marker_perimeter_rate * max(gray.shape) / max(crop.shape)
+        if self._window_detector is None or rate != self._window_rate:
+            params = self._cv_parameters()
+            params.minMarkerPerimeterRate = rate
+            params.maxMarkerPerimeterRate = max(params.maxMarkerPerimeterRate, rate)
+            self._window_detector = cv2.aruco.ArucoDetector(self.dictionary, params)
+            self._window_rate = rate
+        corners, ids, _ = self._window_detector.detectMarkers(np.ascontiguousarray(crop))
+        if ids is None or len(ids) == 0:
+            return None
+        return np.asarray(corners, np.float64).reshape(-1, 4, 2), np.ravel(ids)
+
+
+def finish_detections(gray: np.ndarray, found: np.ndarray, ids: np.ndarray,
+                      tuning: DetectorTuning) -> list[Detection]:
+    """Corners ``found`` (k, 4, 2, OpenCV's order and pixels) of markers ``ids`` refined as
+    ``tuning`` says (the "edges" refinement, or as they are) and sorted by id, x, y."""
+    if tuning.corner_refinement == "edges":
+        found = refine_corners_edges(gray, found, search_px=tuning.edge_search_px,
+                                     max_iterations=tuning.edge_max_iterations,
+                                     tolerance_px=tuning.edge_tolerance_px)
+    detections = [Detection(int(i), c) for i, c in zip(np.ravel(ids), found, strict=True)]
+    detections.sort(key=lambda d: (d.marker_id, *d.center_px))
+    return detections
+
+
+class AnyDetector(Protocol):
+    """What :class:`WindowedDetector` needs of a detector (OpenCV's, or AprilTag's own in
+    :mod:`~slamlens.services.registration.apriltag3`)."""
+
+    tuning: DetectorTuning
+
+    def detect(self, image: np.ndarray) -> list[Detection]: ...
+
+    def finish(self, gray: np.ndarray, found: np.ndarray,
+               ids: np.ndarray) -> list[Detection]: ...
+
+    def detect_window(self, gray: np.ndarray, box: tuple[int, int, int, int]
+                      ) -> tuple[np.ndarray, np.ndarray] | None: ...
 
 
 class WindowedDetector:
@@ -388,7 +433,7 @@ class WindowedDetector:
     most ``full_every`` frames later. docs/registration.md, "Detection windows".
     """
 
-    def __init__(self, detector: MarkerDetector, *, full_every: int = 15,
+    def __init__(self, detector: AnyDetector, *, full_every: int = 15,
                  margin: float = 1.0) -> None:
         if full_every < 1:
             raise ConfigError(f"full_every {full_every}: at least 1 (1 = every frame whole)")
@@ -405,8 +450,6 @@ class WindowedDetector:
         #: window detection at most every full_every-th frame)
         self._backoff = 0
         self._skip = 0
-        self._window_detector: cv2.aruco.ArucoDetector | None = None
-        self._window_rate = -1.0
 
     def _windows(self, shape: tuple[int, ...]) -> list[tuple[int, int, int, int]]:
         """(x0, y0, x1, y1) around the last frame's markers, overlapping ones merged."""
@@ -433,23 +476,6 @@ class WindowedDetector:
             merged.append(box)
         return [(a, b, c, d) for a, b, c, d in merged]
 
-    def _detect_window(self, gray: np.ndarray, box: tuple[int, int, int, int]
-                       ) -> tuple[Any, Any, Any]:
-        """OpenCV's (corners, ids, rejected) in ``box`` of ``gray``, in the box's pixels."""
-        x0, y0, x1, y1 = box
-        crop = gray[y0:y1, x0:x1]
-        # OpenCV's minimum perimeter is a rate of the input's larger side: scaled, the
-        # window accepts the marker sizes the whole image does
-        rate = self.detector.tuning.min_marker_perimeter_rate * max(gray.shape) / max(
-            crop.shape)
-        if self._window_detector is None or rate != self._window_rate:
-            params = self.detector._cv_parameters()
-            params.minMarkerPerimeterRate = rate
-            params.maxMarkerPerimeterRate = max(params.maxMarkerPerimeterRate, rate)
-            self._window_detector = cv2.aruco.ArucoDetector(self.detector.dictionary, params)
-            self._window_rate = rate
-        return self._window_detector.detectMarkers(np.ascontiguousarray(crop))
-
     def detect(self, image: np.ndarray) -> list[Detection]:
         """As :meth:`MarkerDetector.detect`: markers sorted by id then x then y."""
         tuning = self.detector.tuning
@@ -460,11 +486,10 @@ class WindowedDetector:
         gray = to_gray(image)
         corners_all, ids_all = [], []
         for box in self._windows(gray.shape):
-            corners, ids, _ = self._detect_window(gray, box)
-            if ids is not None and len(ids):
-                corners_all.append(np.asarray(corners, np.float64).reshape(-1, 4, 2)
-                                   + np.array([box[0], box[1]], np.float64))
-                ids_all.append(np.ravel(ids))
+            found = self.detector.detect_window(gray, box)
+            if found is not None:
+                corners_all.append(found[0] + np.array([box[0], box[1]], np.float64))
+                ids_all.append(found[1])
         found_ids = sorted(int(i) for i in np.concatenate(ids_all)) if ids_all else []
         if found_ids != sorted(d.marker_id for d in self._last):
             self.fallbacks += 1  # a marker lost (or one more): the whole image decides
@@ -472,8 +497,8 @@ class WindowedDetector:
             self._skip = self._backoff
             return self._full(image, gray)
         self._backoff = 0
-        found = np.concatenate(corners_all)
-        detections = self.detector.finish(gray, found, np.concatenate(ids_all))
+        detections = self.detector.finish(gray, np.concatenate(corners_all),
+                                          np.concatenate(ids_all))
         self._last = detections
         self._since_full += 1
         self.window_frames += 1

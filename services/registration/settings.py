@@ -14,11 +14,13 @@ from slamlens.common.errors import ConfigError
 from slamlens.common.keys import check_name
 
 MODES = ("overhead", "head-mounted")
+DETECTORS = ("opencv", "apriltag3")
 POSE_SOURCES = ("board", "tracker")
 
 _CAMERA = "camera and marker"
 _REGISTER = "registration"
 _SYNTHETIC = "synthetic camera"
+_BROWSER = "browser cameras"
 
 
 @dataclass(frozen=True)
@@ -29,13 +31,23 @@ class RegistrationSettings:
                                           "-right", group=_CAMERA)
     robot: str = setting("robot1", doc="robot whose marker registers the map frame",
                          group=_CAMERA)
-    source: str = setting("synthetic", doc="a device index (\"0\"), a video file, a stream URL, "
-                                           "a folder of images, or synthetic", group=_CAMERA)
+    source: str = setting("synthetic", doc="a device index (\"0\"), a video file, a stream URL "
+                                           "(http://…, rtsp://…), a folder of images, "
+                                           "synthetic, or browser: every camera C or C-… whose "
+                                           "frames a viewer's /ar page sends "
+                                           "(slamlens/camera/C/capture)", group=_CAMERA)
     calibration: str = setting("", doc="OpenCV calibration YAML; empty = the synthetic "
-                                       "camera's own (synthetic source only)",
+                                       "camera's own (synthetic source only). Browser "
+                                       "cameras: a file for all, or a folder of CAMERA.yml; "
+                                       "without one, the default phone model",
                                metavar="FILE.yml", group=_CAMERA)
     dictionary: str = setting("apriltag_36h11", doc="robot (and board) marker dictionary",
                               group=_CAMERA)
+    detector: str = setting(
+        "opencv", doc="marker detector: opencv (ArUco, every dictionary) or apriltag3 (the "
+                      "AprilTag 3 C library, pupil-apriltags: apriltag_16h5, _25h9, _36h11; "
+                      "finds more small tags, ~6x the CPU; docs/registration_vision.md)",
+        choices=DETECTORS, group=_CAMERA)
     marker_id: int = setting(0, doc="the robot's marker id", min=0, group=_CAMERA)
     marker_size: float = setting(0.2, doc="marker black square side", unit="m", min=1e-3,
                                  group=_CAMERA)
@@ -63,6 +75,15 @@ class RegistrationSettings:
                 "between, only around the markers of the last frame (the same detections: "
                 "docs/registration.md, \"Detection windows\"); 1 = every frame whole; a "
                 "head-mounted camera always looks over the whole image", min=1, group=_CAMERA)
+    fourcc: str = setting("", doc="a USB camera's pixel format, four characters (MJPG: most "
+                                  "give 1280x720 at 30 Hz only compressed); empty = its "
+                                  "default", metavar="CODE", group=_CAMERA)
+    buffer_size: int = setting(0, doc="frames a USB camera's driver queues (1: always the "
+                                      "newest frame); 0 = its default", min=0,
+                               group=_CAMERA)
+    stall_s: float = setting(5.0, doc="a camera or stream that delivers no frame this long "
+                                      "has stalled: it is reopened (with back-off)",
+                             unit="s", min=0.1, group=_CAMERA)
     loop: bool = setting(False, doc="replay a video file / image folder from the start when "
                                     "it ends", group=_CAMERA)
     register_frames: int = setting(5, doc="frames averaged for a registration (the robot "
@@ -91,9 +112,24 @@ class RegistrationSettings:
     reconnect_max_s: float = setting(5.0, doc="longest wait between reconnection attempts of "
                                               "a lost camera", unit="s", min=0.1,
                                      group=_REGISTER)
+    # -- browser cameras (--source browser) -------------------------------------------
+    browser_hfov: float = setting(
+        67.0, doc="horizontal field of view of the default camera model of a browser "
+                  "camera without a calibration (a phone's main camera in 16:9)", unit="deg",
+        min=1.0, group=_BROWSER)
+    browser_idle_s: float = setting(3.0, doc="a browser camera that sent no frame this long "
+                                             "has left: its pipeline is released", unit="s",
+                                    min=0.1, group=_BROWSER)
+    max_browser_cameras: int = setting(8, doc="browser cameras served at once (more are "
+                                              "refused)", min=1, group=_BROWSER)
+    max_browser_frame_pixels: int = setting(
+        8_294_400, doc="browser frames whose JPEG claims more pixels are refused before "
+                       "decoding (3840x2160)", min=1, group=_BROWSER)
     # -- the synthetic camera ----------------------------------------------------------
-    width: int = setting(1280, doc="image width", unit="px", min=16, group=_SYNTHETIC)
-    height: int = setting(720, doc="image height", unit="px", min=16, group=_SYNTHETIC)
+    width: int = setting(1280, doc="image width (a USB camera is asked for it too)", unit="px",
+                         min=16, group=_SYNTHETIC)
+    height: int = setting(720, doc="image height (a USB camera is asked for it too)",
+                          unit="px", min=16, group=_SYNTHETIC)
     hfov: float = setting(0.0, doc="horizontal field of view; 0 = fit the arena (head-mounted: "
                                    "75°)", unit="deg", min=0.0, group=_SYNTHETIC)
     camera_height: float = setting(3.0, doc="overhead camera height above the arena centre",
@@ -133,11 +169,15 @@ class RegistrationSettings:
                 or self.arena[1] >= self.arena[3]:
             raise ConfigError(f"setting 'arena': expected xmin,ymin,xmax,ymax, got "
                               f"{list(self.arena)}")
-        if self.hfov >= 180.0:
-            raise ConfigError(f"setting 'hfov': {self.hfov} must be below 180 degrees")
+        if self.hfov >= 180.0 or self.browser_hfov >= 180.0:
+            raise ConfigError(f"setting 'hfov' / 'browser_hfov': {self.hfov} / "
+                              f"{self.browser_hfov} must be below 180 degrees")
         if not self.source:
             raise ConfigError("setting 'source': empty; give a device index, a file, a "
-                              "folder, a URL or 'synthetic'")
+                              "folder, a URL, 'synthetic' or 'browser'")
+        if self.fourcc and (len(self.fourcc) != 4 or not self.fourcc.isascii()):
+            raise ConfigError(f"setting 'fourcc': {self.fourcc!r} is not four characters "
+                              "(e.g. MJPG, YUYV)")
         if self.stereo_baseline > 0 and self.source != "synthetic":
             raise ConfigError("setting 'stereo_baseline': stereo needs --source synthetic; "
                               "run one service per real camera (names C-left, C-right)")
@@ -145,6 +185,11 @@ class RegistrationSettings:
     @property
     def synthetic(self) -> bool:
         return self.source == "synthetic"
+
+    @property
+    def browser(self) -> bool:
+        """Frames from browsers through the bus (``--source browser``)."""
+        return self.source == "browser"
 
     def camera_names(self) -> tuple[str, ...]:
         """The camera names this service publishes (one, or a left/right stereo pair)."""
@@ -172,3 +217,20 @@ class CalibrateSettings:
     def __post_init__(self) -> None:
         if not (self.square > 0 and self.marker > 0):
             raise ConfigError("calibrate: --square and --marker must be positive")
+
+
+@dataclass(frozen=True)
+class DetectSettings:
+    """``slamlens detect``: the fiducial markers in images."""
+
+    images: tuple[str, ...] = setting((), doc="images to look at", positional=True,
+                                      required=True, metavar="IMAGE")
+    dictionary: str = setting("apriltag_36h11", doc="marker dictionary (a name, or a custom "
+                                                    "FILE.yml)")
+    detector: str = setting("opencv", doc="opencv or apriltag3 (the AprilTag 3 C library)",
+                            choices=DETECTORS)
+    json: bool = setting(False, doc="one JSON object per image: {\"image\": PATH, "
+                                    "\"detections\": [{\"id\": ID, \"corners\": [[x, y] x4]}]} "
+                                    "(pixels, OpenCV's convention: pixel centres at integers; "
+                                    "corners top-left, top-right, bottom-right, bottom-left of "
+                                    "the marker)")

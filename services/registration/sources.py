@@ -20,6 +20,7 @@ import logging
 import threading
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Protocol
 
@@ -29,13 +30,15 @@ import numpy as np
 from slamlens.common.backoff import Backoff
 from slamlens.common.errors import ConfigError, SourceError
 from slamlens.common.messages import Truth
+from slamlens.services.registration.mjpeg import MjpegSource, redacted
 from slamlens.services.registration.synthetic import SyntheticCamera
 
 log = logging.getLogger(__name__)
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp", ".pgm", ".ppm")
 
-Frame = tuple[float, np.ndarray]
+#: (stamp s, BGR image) or, from a source that received it encoded, (…, its JPEG)
+Frame = tuple[float, np.ndarray] | tuple[float, np.ndarray, bytes]
 
 
 class SourceEnded(SourceError):
@@ -68,27 +71,62 @@ def _as_bgr(image: np.ndarray) -> np.ndarray:
     return image
 
 
-class CaptureSource:
-    """``cv2.VideoCapture`` on a device index, a video file or a stream URL."""
+@dataclass(frozen=True)
+class DeviceOptions:
+    """What a USB camera (a device index) is asked for; 0 / "" = its own choice."""
 
-    def __init__(self, target: int | str, *, loop: bool = False, width: int | None = None,
-                 height: int | None = None, fps: float | None = None,
+    width: int = 0
+    height: int = 0
+    fps: float = 0.0
+    fourcc: str = ""  #: e.g. "MJPG": most USB cameras give 1280x720 at 30 Hz only as MJPEG
+    buffer_size: int = 0  #: frames the driver queues (1: always the newest)
+
+
+class CaptureSource:
+    """``cv2.VideoCapture`` on a device index, a video file or a stream URL (RTSP …).
+
+    A device is asked for ``options`` (the four-character code first: a camera's sizes
+    and rates depend on it); a stream URL is opened through FFmpeg with open and read
+    timeouts of ``timeout_s``, so a stalled stream fails a read instead of blocking it.
+    """
+
+    def __init__(self, target: int | str, *, loop: bool = False,
+                 options: DeviceOptions = DeviceOptions(), timeout_s: float = 5.0,
                  clock: Callable[[], float] = time.time) -> None:
         self.target = target
-        self.name = f"device {target}" if isinstance(target, int) else str(target)
+        self.name = f"device {target}" if isinstance(target, int) else redacted(str(target))
         self.is_file = isinstance(target, str) and "://" not in target
         self.live = not self.is_file
         self.loop = loop
         self._clock = clock
-        self._cap = cv2.VideoCapture(target)
+        if isinstance(target, str) and not self.is_file:
+            ms = int(timeout_s * 1000)
+            self._cap = cv2.VideoCapture(target, cv2.CAP_FFMPEG, [
+                cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, ms, cv2.CAP_PROP_READ_TIMEOUT_MSEC, ms])
+        else:
+            self._cap = cv2.VideoCapture(target)
         if not self._cap.isOpened():
             self._cap.release()
             raise SourceError(f"cannot open {self.name}")
-        if self.live:  # a file has its own size; a device may honour a request
-            for prop, value in ((cv2.CAP_PROP_FRAME_WIDTH, width),
-                                (cv2.CAP_PROP_FRAME_HEIGHT, height), (cv2.CAP_PROP_FPS, fps)):
-                if value:
-                    self._cap.set(prop, float(value))
+        if isinstance(target, int):  # a file or a stream has its own size
+            self._ask(options)
+
+    def _ask(self, options: DeviceOptions) -> None:
+        if options.fourcc:
+            self._cap.set(cv2.CAP_PROP_FOURCC, float(cv2.VideoWriter.fourcc(*options.fourcc)))
+        for prop, value in ((cv2.CAP_PROP_FRAME_WIDTH, options.width),
+                            (cv2.CAP_PROP_FRAME_HEIGHT, options.height),
+                            (cv2.CAP_PROP_FPS, options.fps),
+                            (cv2.CAP_PROP_BUFFERSIZE, options.buffer_size)):
+            if value:
+                self._cap.set(prop, float(value))
+        got = (int(self._cap.get(cv2.CAP_PROP_FRAME_WIDTH)),
+               int(self._cap.get(cv2.CAP_PROP_FRAME_HEIGHT)), self._cap.get(cv2.CAP_PROP_FPS))
+        if (options.width and got[0] != options.width) or (
+                options.height and got[1] != options.height):
+            log.warning("%s gives %dx%d at %.3g Hz, not the %dx%d asked for (another "
+                        "--fourcc, e.g. MJPG, may have it)", self.name, got[0], got[1],
+                        got[2], options.width, options.height)
 
     def read(self) -> Frame | None:
         ok, image = self._cap.read()
@@ -199,8 +237,11 @@ class ReconnectingSource:
         self._open = open_source
         self.name = name
         self._source = initial
+        self._clock = clock
         self.backoff = Backoff(name, logger=log, initial_s=backoff_initial_s,
                                max_s=backoff_max_s, clock=clock)
+        self.reason = ""  #: why the source was lost (the newest failure)
+        self._lost_at: float | None = None
 
     @property
     def live(self) -> bool:
@@ -214,6 +255,14 @@ class ReconnectingSource:
     def failures(self) -> int:
         """Failed reads and reopen attempts."""
         return self.backoff.failures
+
+    def outage(self) -> str:
+        """What is wrong, for the page and ``slamlens status`` ("" while it delivers)."""
+        if not self.backoff.in_outage:
+            return ""
+        since = 0.0 if self._lost_at is None else self._clock() - self._lost_at
+        return (f"source lost {since:.0f} s ago: {self.reason}; retrying "
+                f"(attempt {self.backoff.failures}, next in {self.backoff.wait_s():.1f} s)")
 
     @property
     def outages(self) -> int:
@@ -232,17 +281,26 @@ class ReconnectingSource:
             try:
                 self._source = self._open()
             except SourceError as exc:
-                self.backoff.failed(exc)
+                self._failed(exc)
                 return None
-            self.backoff.succeeded()
         try:
-            return self._source.read()
+            frame = self._source.read()
         except SourceEnded:
             raise
         except (SourceError, cv2.error) as exc:
             self._close_inner()
-            self.backoff.failed(exc)
+            self._failed(exc)
             return None
+        if frame is not None and self.backoff.in_outage:
+            self.backoff.succeeded()  # frames flow again (opening alone is not enough)
+            self._lost_at = None
+        return frame
+
+    def _failed(self, exc: Exception) -> None:
+        if not self.backoff.in_outage:
+            self._lost_at = self._clock()
+        self.reason = str(exc)
+        self.backoff.failed(exc)
 
     def _close_inner(self) -> None:
         if self._source is not None:
@@ -265,9 +323,12 @@ def parse_source(spec: str) -> int | Path | str:
     return Path(spec)
 
 
-def open_capture(spec: str, *, loop: bool = False, width: int | None = None,
-                 height: int | None = None, fps: float | None = None) -> Callable[[], FrameSource]:
-    """A factory opening ``spec`` (device index, video file, URL or folder).
+def open_capture(spec: str, *, loop: bool = False, options: DeviceOptions = DeviceOptions(),
+                 timeout_s: float = 5.0) -> Callable[[], FrameSource]:
+    """A factory opening ``spec`` (device index, video file, URL or folder): an ``http://``
+    or ``https://`` URL is an MJPEG stream (:class:`~slamlens.services.registration.mjpeg.
+    MjpegSource`), any other URL (``rtsp://`` …) goes to OpenCV's FFmpeg; a stream that
+    sends nothing for ``timeout_s`` has stalled.
 
     A path that does not exist when the service starts is a :class:`ConfigError` (a typo
     should fail at once); later disappearances are retried by :class:`ReconnectingSource`.
@@ -283,5 +344,10 @@ def open_capture(spec: str, *, loop: bool = False, width: int | None = None,
             return lambda: FolderSource(folder, loop=loop)
         path = str(target)
         return lambda: CaptureSource(path, loop=loop)
+    if isinstance(target, str):
+        url = target
+        if url.lower().startswith(("http://", "https://")):
+            return lambda: MjpegSource(url, timeout_s=timeout_s)
+        return lambda: CaptureSource(url, timeout_s=timeout_s)
     device = target
-    return lambda: CaptureSource(device, width=width, height=height, fps=fps)
+    return lambda: CaptureSource(device, options=options, timeout_s=timeout_s)

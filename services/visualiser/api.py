@@ -16,7 +16,9 @@ import numpy as np
 
 from slamlens.common.drops import DropCounter
 from slamlens.common.errors import ConfigError
+from slamlens.common.messages import Registration
 from slamlens.common.verdict import WORDS, summary_text, violation_text
+from slamlens.services.visualiser.camera_model import CameraModel
 from slamlens.services.visualiser.clients import ClientRegistry
 from slamlens.services.visualiser.compose import registration_status
 from slamlens.services.visualiser.intake import Intake, RobotInputs
@@ -254,6 +256,36 @@ class ViewerApi:
         if self._reregister is None:
             raise ConfigError("this viewer cannot ask for a re-registration")
         return self._reregister(None if robot in (None, "") else self._robot(robot))
+
+    # -- the /ar page: a browser's own camera ------------------------------------
+    def robot_names(self) -> tuple[str, ...]:
+        """The robots this viewer shows (so far, with ``--robot all``)."""
+        return self._intake.robot_names
+
+    def draw_over(self, image: np.ndarray, registration: Registration, received: float,
+                  robot: str | None, settings: ViewSettings) -> tuple[np.ndarray | None, str]:
+        """``robot``'s newest state drawn over ``image`` through ``registration`` (received
+        at ``received``, monotonic s) under ``settings``, as the main view draws it over a
+        camera; (None, why) if it cannot be: no state yet, or the registration places
+        another map (an older epoch)."""
+        name = robot or self._intake.robot
+        inputs = self._intake.snapshot().robot(name)
+        if inputs is None or inputs.state is None:  # (a robot not discovered yet, too)
+            return None, f"waiting for the state of robot {name}"
+        if not inputs.registration_usable(registration, received):
+            return None, (f"map restarted: waiting for camera {registration.camera} to "
+                          f"register the new map of robot {name}")
+        history = self._histories.get(name)
+        reference, estimate = history.tracked.reference()
+        picture = history.renderer.render(
+            image, state=inputs.state, camera=CameraModel.from_registration(registration),
+            settings=settings, health=inputs.health, reference_pose=reference,
+            reference_estimate=estimate)
+        return picture, ""
+
+    def state_seq(self, robot: str | None) -> int | None:
+        inputs = self._intake.snapshot().robot(robot or self._intake.robot)
+        return None if inputs is None or inputs.state is None else inputs.state.seq
 
     # -- recordings ---------------------------------------------------------------
     def record_start(self, client: str) -> dict[str, Any]:

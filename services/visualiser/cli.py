@@ -21,9 +21,16 @@ log = logging.getLogger("slamlens.viewer")
 
 def run(command: str, args: argparse.Namespace) -> int:
     # imported here so that `slamlens viewer --help` does not load the web stack
+    from slamlens.services.visualiser.ar import ArHub, ArLimits
+    from slamlens.services.visualiser.camera_sources import SourceWatch
     from slamlens.services.visualiser.service import ViewerService
     from slamlens.services.visualiser.web import WebServer, parse_http
-    from slamlens.services.visualiser.web_access import is_loopback, new_token, read_token
+    from slamlens.services.visualiser.web_access import (
+        is_loopback,
+        new_token,
+        read_token,
+        tls_context,
+    )
 
     setup_logging(args, "viewer")
     config = settings_from_args(ViewerConfig, args)
@@ -34,13 +41,24 @@ def run(command: str, args: argparse.Namespace) -> int:
     if host in ("0.0.0.0", "::", ""):
         log.warning("the web viewer listens on every interface (%s): bind it to the one "
                     "interface its users reach (docs/security.md)", config.http)
+    ssl_context = (None if config.tls_cert is None or config.tls_key is None
+                   else tls_context(config.tls_cert, config.tls_key))
     stop = stop_event()
     bus = open_bus(bus_settings(args))
-    service = ViewerService(bus, keys=keys_from(args), config=config)
+    keys = keys_from(args)
+    service = ViewerService(bus, keys=keys, config=config)
+    ar = None if config.max_ar_cameras == 0 else ArHub(
+        bus, keys, service.api, base_camera=config.ar_camera, limits=ArLimits(
+            max_cameras=config.max_ar_cameras, max_frame_bytes=config.max_ar_frame_bytes,
+            max_frame_pixels=config.max_frame_pixels, max_fps=config.max_ar_fps,
+            wait_s=config.ar_wait_s, jpeg_quality=config.jpeg_quality))
+    sources = SourceWatch(bus, keys, config.cameras)
     web = WebServer(service, host=host, port=port, token=token,
-                    allowed_hosts=config.allowed_hosts, allowed_origins=config.allowed_origins)
+                    allowed_hosts=config.allowed_hosts, allowed_origins=config.allowed_origins,
+                    ar=ar, ssl_context=ssl_context, sources=sources)
     try:
         service.start()
+        sources.start()
         url = web.start()
 
         def status() -> Report:
@@ -68,6 +86,7 @@ def run(command: str, args: argparse.Namespace) -> int:
         print(f"viewer stopped: {json.dumps(_final(service.api.status()))}", flush=True)
     finally:
         web.stop()
+        sources.stop()
         service.stop()
         bus.close()
     return 0

@@ -219,6 +219,26 @@ class ViewerConfig:
         (), doc="more web origins allowed to call the viewer (Origin header), e.g. "
                 "https://dashboard.lab, besides its own page (repeatable)",
         flag="--allow-origin", action="append", metavar="ORIGIN")
+    tls_cert: str | None = setting(
+        None, doc="serve HTTPS with this certificate (PEM; slamlens certs DIR --name "
+                  "viewer-… --host ADDRESS makes one): a phone's browser opens its camera "
+                  "only for a secure page (docs/viewer.md, \"AR on a phone\")",
+        metavar="FILE.pem")
+    tls_key: str | None = setting(None, doc="the private key of --tls-cert (PEM)",
+                                  metavar="FILE.key")
+    # -- the AR page (docs/viewer.md "AR on a phone") --------------------------------
+    ar_camera: str = setting(
+        "phone", doc="camera name of the /ar page's browsers: each page is camera NAME-… "
+                     "(its own), registered by slamlens registration --source browser "
+                     "--camera NAME", metavar="NAME")
+    max_ar_cameras: int = setting(4, doc="AR pages (browser cameras) served at once", min=0)
+    max_ar_frame_bytes: int = setting(2 << 20, doc="an AR page's frame (a JPEG) larger than "
+                                                   "this is refused", unit="bytes", min=1024)
+    max_ar_fps: float = setting(30.0, doc="frames a second one AR page may send; faster ones "
+                                          "are refused", unit="Hz", min=1.0)
+    ar_wait_s: float = setting(0.5, doc="an AR frame whose registration has not come this "
+                                        "long after it is shown without the overlay",
+                               unit="s", min=0.01)
     # -- bounded resources (docs/viewer.md "Limits") -------------------------------
     max_views: int = setting(64, doc="distinct view settings kept at once besides the "
                                      "default view (oldest idle evicted; beyond: refused)",
@@ -248,6 +268,10 @@ class ViewerConfig:
                 raise ConfigError(f"setting 'robot': {self.robot!r} names a robot twice")
         if self.camera is not None:
             check_name("camera", self.camera)
+        check_name("camera", self.ar_camera)
+        if (self.tls_cert is None) != (self.tls_key is None):
+            raise ConfigError("settings 'tls_cert' and 'tls_key': give both (HTTPS) or "
+                              "neither")
         if self.view == "camera" and self.camera is None:
             raise ConfigError("setting 'view': 'camera' needs a camera (--camera C)")
         for host in self.allowed_hosts:

@@ -12,7 +12,12 @@ Endpoints (every ``client`` is a browser tab's random id; without one, the defau
 * ``GET/POST /api/settings?client=ID``, ``GET /api/status``, ``GET /api/features``,
   ``GET /api/health``, ``GET /api/series[?pairs=1-2,3-4]``,
   ``POST /api/record/start|stop?client=ID``, ``GET /recordings/NAME``,
-  ``POST /api/reregister[?robot=R]`` (asks the camera(s) to register the robot again).
+  ``POST /api/reregister[?robot=R]`` (asks the camera(s) to register the robot again);
+* ``GET /ar``, ``/ar/ws``, ``/api/ar/settings`` the AR page: a browser's own camera with the
+  overlay (:mod:`~slamlens.services.visualiser.ar_web`).
+
+With ``ssl_context`` it serves HTTPS (a phone's browser opens its camera only for a secure
+page; docs/viewer.md, "AR on a phone").
 
 User input never causes a 500: bad values answer 400 with ``{"error": "..."}``, a body
 over ``MAX_BODY_BYTES`` 413, a view or recording beyond the viewer's limits 503; each
@@ -26,31 +31,34 @@ import asyncio
 import json
 import logging
 import re
+import ssl
 import threading
 from collections.abc import Awaitable, Callable
 from pathlib import Path
 from typing import Any
 
-from aiohttp import WSMsgType, web
+from aiohttp import web
 
 from slamlens.common.drops import DropCounter
 from slamlens.common.errors import ConfigError, SlamlensError
 from slamlens.services.visualiser.api import ViewerApi
+from slamlens.services.visualiser.ar import ArHub
+from slamlens.services.visualiser.ar_web import ArRoutes
+from slamlens.services.visualiser.camera_sources import SourceWatch
 from slamlens.services.visualiser.clients import TooManyViews
 from slamlens.services.visualiser.recording import NAME_PATTERN, RecordingRefused, encode_png
 from slamlens.services.visualiser.service import ViewerService
 from slamlens.services.visualiser.settings import ViewSettings
 from slamlens.services.visualiser.web_access import AccessGuard, QuietServerLog
+from slamlens.services.visualiser.web_streams import Streams
 
 log = logging.getLogger("slamlens.viewer.web")
 
 STATIC_DIR = Path(__file__).resolve().parent / "static"
 CLIENT_PATTERN = re.compile(r"^[A-Za-z0-9_-]{1,64}$")
-BOUNDARY = "slamlensframe"
 SNAPSHOT_WAIT_S = 3.0  # how long a snapshot waits for a picture of the newest inputs
 NO_STORE = {"Cache-Control": "no-store"}
 MAX_BODY_BYTES = 64 * 1024  # a settings change is a few hundred bytes
-MAX_WS_MESSAGE = 1024  # the page only ever sends "next"
 UNAVAILABLE = (TooManyViews, RecordingRefused)  # answered 503: the viewer is at a limit
 
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
@@ -109,37 +117,6 @@ def _errors(refusals: DropCounter) -> Callable[..., Awaitable[web.StreamResponse
     return errors
 
 
-class _Watch:
-    """The view one stream shows, watched while the stream lasts (so it is kept), and
-    followed when the client changes its settings."""
-
-    def __init__(self, api: ViewerApi, client: str | None) -> None:
-        self._api, self._client = api, client
-        self.settings: ViewSettings | None = None
-
-    def current(self) -> ViewSettings:
-        """The client's settings now (TooManyViews if the first has no room)."""
-        settings = self._api.settings_for(self._client)
-        if settings == self.settings:
-            self._api.touch(settings)
-            return settings
-        try:
-            self._api.watch(settings, self._client)
-        except TooManyViews:
-            if self.settings is None:
-                raise
-            return self.settings  # no room for the new settings: keep showing the old
-        if self.settings is not None:
-            self._api.unwatch(self.settings, self._client)
-        self.settings = settings
-        return settings
-
-    def close(self) -> None:
-        if self.settings is not None:
-            self._api.unwatch(self.settings, self._client)
-            self.settings = None
-
-
 class WebServer:
     """Serves a :class:`ViewerService` (through its :class:`ViewerApi`) over HTTP on a
     background thread. With a ``token`` every request must carry it; Host and Origin are
@@ -148,13 +125,19 @@ class WebServer:
     def __init__(self, service: ViewerService, *, host: str = "127.0.0.1",
                  port: int = 8080, token: str | None = None,
                  allowed_hosts: tuple[str, ...] = (),
-                 allowed_origins: tuple[str, ...] = ()) -> None:
+                 allowed_origins: tuple[str, ...] = (), ar: ArHub | None = None,
+                 ssl_context: ssl.SSLContext | None = None,
+                 sources: SourceWatch | None = None) -> None:
         self.api: ViewerApi = service.api
         self.host = host
         self.port = port
+        self.ar = ar
+        self.ssl_context = ssl_context
+        self.sources = sources
         self.refusals = DropCounter(log)  #: refused requests, by kind ("web host", …)
         self.guard = AccessGuard(token=token, bound_host=host, allowed_hosts=allowed_hosts,
-                                 allowed_origins=allowed_origins, refusals=self.refusals)
+                                 allowed_origins=allowed_origins, refusals=self.refusals,
+                                 https=ssl_context is not None)
         self._loop: asyncio.AbstractEventLoop | None = None
         self._runner: web.AppRunner | None = None
         self._thread: threading.Thread | None = None
@@ -165,7 +148,8 @@ class WebServer:
     @property
     def url(self) -> str:
         host = f"[{self.host}]" if ":" in self.host else self.host
-        return f"http://{host}:{self.port}"
+        scheme = "https" if self.ssl_context is not None else "http"
+        return f"{scheme}://{host}:{self.port}"
 
     @property
     def url_with_token(self) -> str:
@@ -212,7 +196,7 @@ class WebServer:
         self._runner = web.AppRunner(app, access_log=None, shutdown_timeout=2.0,
                                      logger=QuietServerLog(log, self.refusals))
         await self._runner.setup()
-        site = web.TCPSite(self._runner, self.host, self.port)
+        site = web.TCPSite(self._runner, self.host, self.port, ssl_context=self.ssl_context)
         await site.start()
         server = getattr(site, "_server", None)
         if server is not None and server.sockets:
@@ -260,8 +244,10 @@ class WebServer:
         r = app.router
         r.add_get("/", self.index)
         r.add_static("/static", STATIC_DIR)
-        r.add_get("/ws", self.websocket)
-        r.add_get("/stream.mjpg", self.mjpeg)
+        streams = Streams(self.api, refusals=self.refusals, client=self._client,
+                          next_frames=self._next_frames, closing=lambda: self._closing)
+        r.add_get("/ws", streams.websocket)
+        r.add_get("/stream.mjpg", streams.mjpeg)
         r.add_get("/snapshot.png", self.snapshot)
         r.add_get("/api/settings", self.get_settings)
         r.add_post("/api/settings", self.post_settings)
@@ -273,6 +259,9 @@ class WebServer:
         r.add_post("/api/record/start", self.record_start)
         r.add_post("/api/record/stop", self.record_stop)
         r.add_get("/recordings/{name}", self.recording)
+        if self.ar is not None:
+            ArRoutes(self.ar, refusals=self.refusals, client=self._client,
+                     closing=lambda: self._closing).add_to(r)
         return app
 
     # -- helpers --------------------------------------------------------------------
@@ -293,86 +282,6 @@ class WebServer:
     # -- pages and pictures -----------------------------------------------------------
     async def index(self, request: web.Request) -> web.StreamResponse:
         return web.FileResponse(STATIC_DIR / "index.html", headers=NO_STORE)
-
-    async def mjpeg(self, request: web.Request) -> web.StreamResponse:
-        watch = _Watch(self.api, self._client(request))
-        watch.current()  # no room for its view: 503 before the stream starts
-        response = web.StreamResponse(headers={
-            "Content-Type": f"multipart/x-mixed-replace; boundary={BOUNDARY}",
-            "Cache-Control": "no-cache, no-store, must-revalidate", "Pragma": "no-cache"})
-        last = None
-        try:
-            await response.prepare(request)
-            while not self._closing:
-                transport = request.transport
-                if transport is None or transport.is_closing():
-                    break  # the client went away while no picture was written
-                rendered = self.api.latest(watch.current())
-                if rendered is None or rendered is last:
-                    await self._next_frames(1.0)
-                    continue
-                last = rendered
-                head = (f"--{BOUNDARY}\r\nContent-Type: image/jpeg\r\n"
-                        f"Content-Length: {len(rendered.jpeg)}\r\n"
-                        f"X-State-Seq: {'' if rendered.seq is None else rendered.seq}\r\n"
-                        f"X-State-Stamp: {'' if rendered.stamp is None else rendered.stamp!r}"
-                        f"\r\nX-Frame-Version: {rendered.version}\r\n\r\n")
-                await response.write(head.encode() + rendered.jpeg + b"\r\n")
-        except (ConnectionResetError, asyncio.CancelledError):
-            pass  # the viewer went away
-        finally:
-            watch.close()
-        return response
-
-    async def websocket(self, request: web.Request) -> web.StreamResponse:
-        watch = _Watch(self.api, self._client(request))
-        watch.current()  # no room for its view: 503 instead of the upgrade
-        ws = web.WebSocketResponse(heartbeat=20.0, max_msg_size=MAX_WS_MESSAGE)
-        try:
-            await ws.prepare(request)
-        except BaseException:
-            watch.close()
-            raise
-        wanted = asyncio.Event()
-        wanted.set()
-
-        async def read() -> None:
-            async for msg in ws:
-                if msg.type == WSMsgType.TEXT and msg.data == "next":
-                    wanted.set()
-                elif msg.type == WSMsgType.ERROR:  # e.g. a message over MAX_WS_MESSAGE
-                    self.refusals.drop("web websocket", f"closed the websocket of "
-                                       f"{request.remote}: {ws.exception()}")
-                    break
-
-        reader = asyncio.create_task(read())
-        last = None
-        try:
-            while not self._closing and not ws.closed and not reader.done():
-                rendered = self.api.latest(watch.current())
-                if not wanted.is_set():  # the page has not drawn the previous frame yet
-                    try:
-                        await asyncio.wait_for(wanted.wait(), 1.0)
-                    except TimeoutError:
-                        pass
-                    continue
-                if rendered is None or rendered is last:
-                    await self._next_frames(1.0)
-                    continue
-                last = rendered
-                wanted.clear()
-                height, width = rendered.image.shape[:2]
-                await ws.send_json({"seq": rendered.seq, "stamp": rendered.stamp,
-                                    "version": rendered.version, "width": width,
-                                    "height": height})
-                await ws.send_bytes(rendered.jpeg)
-        except (ConnectionResetError, asyncio.CancelledError):
-            pass
-        finally:
-            watch.close()
-            reader.cancel()
-            await ws.close()
-        return ws
 
     async def snapshot(self, request: web.Request) -> web.StreamResponse:
         settings = self._settings(request)
@@ -427,7 +336,10 @@ class WebServer:
         return _json({"client": client, "settings": settings.to_dict()})
 
     async def status(self, request: web.Request) -> web.StreamResponse:
-        return _json({**self.api.status(), "refused": dict(self.refusals.counts)})
+        ar = None if self.ar is None else self.ar.status()
+        sources = {} if self.sources is None else self.sources.notes()
+        return _json({**self.api.status(), "refused": dict(self.refusals.counts), "ar": ar,
+                      "sources": sources})
 
     async def features(self, request: web.Request) -> web.StreamResponse:
         return _json(self.api.features(self._settings(request)))

@@ -27,6 +27,7 @@ import logging
 import os
 import secrets
 import socket
+import ssl
 import stat
 import sys
 from collections.abc import Awaitable, Callable
@@ -44,6 +45,7 @@ log = logging.getLogger("slamlens.viewer.web")
 
 Handler = Callable[[web.Request], Awaitable[web.StreamResponse]]
 NO_STORE = {"Cache-Control": "no-store"}
+PAGES = ("/", "/ar")  #: opened from a URL with the token: redirected without it
 
 
 # -- addresses ------------------------------------------------------------------------
@@ -107,6 +109,23 @@ def read_token(path: str | Path) -> str:
     return token
 
 
+# -- HTTPS --------------------------------------------------------------------------
+def tls_context(cert: str | Path, key: str | Path) -> ssl.SSLContext:
+    """A server TLS context from a PEM certificate (its chain after it, if any) and key;
+    ConfigError naming the file that is missing or wrong."""
+    for what, path in (("--tls-cert", cert), ("--tls-key", key)):
+        if not Path(path).is_file():
+            raise ConfigError(f"{what} {path}: no such file")
+    context = ssl.create_default_context(ssl.Purpose.CLIENT_AUTH)
+    context.minimum_version = ssl.TLSVersion.TLSv1_2
+    try:
+        context.load_cert_chain(str(cert), str(key))
+    except (ssl.SSLError, ValueError) as exc:
+        raise ConfigError(f"--tls-cert {cert} / --tls-key {key}: not a PEM certificate "
+                          f"and its key ({exc})") from None
+    return context
+
+
 # -- the guard ------------------------------------------------------------------------
 class AccessGuard:
     """Checks Host, Origin and the token of every request (see the module docstring)."""
@@ -115,8 +134,9 @@ class AccessGuard:
 
     def __init__(self, *, token: str | None, bound_host: str,
                  allowed_hosts: tuple[str, ...] = (), allowed_origins: tuple[str, ...] = (),
-                 refusals: DropCounter) -> None:
+                 refusals: DropCounter, https: bool = False) -> None:
         self.token = token
+        self.https = https  #: served over TLS: the cookie is Secure, Host's default port 443
         self.port = 0  #: the bound port, set once the server is bound
         self.refusals = refusals
         self._bound_host = bound_host.lower().strip("[]")
@@ -150,7 +170,7 @@ class AccessGuard:
         host, port = parsed
         if (host, port) in self._hosts or (host, None) in self._hosts:
             return ""
-        if (port or 80) == self.port:
+        if (port or (443 if self.https else 80)) == self.port:
             own = {self._bound_host}
             sockname = request.transport.get_extra_info("sockname") if request.transport \
                 else None
@@ -208,16 +228,17 @@ class AccessGuard:
             return self._refuse(request, 401, "token", f"{why}: open the URL the viewer "
                                 "printed at start (…/?token=…), or send Authorization: "
                                 "Bearer TOKEN")
-        if how == "query" and request.method == "GET" and request.path == "/":
-            # the page: keep the token in a cookie and out of the address bar
+        if how == "query" and request.method == "GET" and request.path in PAGES:
+            # a page: keep the token in a cookie and out of the address bar
             rest = {k: v for k, v in request.query.items() if k != "token"}
             response: web.StreamResponse = web.Response(status=303, headers={
-                **NO_STORE, "Location": "/" + (f"?{urlencode(rest)}" if rest else "")})
+                **NO_STORE,
+                "Location": request.path + (f"?{urlencode(rest)}" if rest else "")})
         else:
             response = await handler(request)
         if how == "query" and not response.prepared:
             response.set_cookie(self.cookie_name, self.token, httponly=True,
-                                samesite="Strict", path="/")
+                                samesite="Strict", path="/", secure=self.https)
         return response
 
 

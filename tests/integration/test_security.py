@@ -179,6 +179,23 @@ def test_a_viewer_cannot_publish_a_state(connect, secure_router) -> None:
     secure_router.wait_log(f"refused: viewer-lab may not Put (ingress) on {STATE}")
 
 
+def test_a_viewer_puts_its_ar_pages_frames_and_no_camera_output(connect,
+                                                                secure_router) -> None:
+    camera, viewer, robot = connect("camera-overhead"), connect("viewer-lab"), connect("robot-r1")
+    robot.serve_latest(STATE, lambda: b"latest")  # what _settle's round trip asks
+    frames, outputs = Inbox(), Inbox()
+    camera.session.declare_subscriber("slamlens/camera/*/capture", frames)
+    camera.session.declare_subscriber("slamlens/camera/phone-1/frame", outputs)
+    pub = viewer.session.declare_publisher("slamlens/camera/phone-1/capture")
+    _deliver(pub, frames, b"a browser's frame")  # the AR page's frames reach registration
+    for _ in range(3):  # but the viewer cannot speak for the camera
+        viewer.session.put("slamlens/camera/phone-1/frame", b"forged frame")
+        _settle(viewer)
+    secure_router.wait_log("refused: viewer-lab may not Put (ingress) on "
+                           "slamlens/camera/phone-1/frame")
+    assert outputs.items == []
+
+
 def test_another_robot_cannot_feed_r1_odometry(connect, secure_router) -> None:
     driver, estimator, spoofer = connect("robot-r1"), connect("robot-r1"), connect("robot-r2")
     driver.serve_latest(STATE, lambda: b"latest")

@@ -29,7 +29,11 @@ from slamlens.services.commands.settings import (
 )
 from slamlens.services.harness.procs import REPO
 from slamlens.services.recorder.settings import PlaySettings, RecordSettings
-from slamlens.services.registration.settings import CalibrateSettings, RegistrationSettings
+from slamlens.services.registration.settings import (
+    CalibrateSettings,
+    DetectSettings,
+    RegistrationSettings,
+)
 from slamlens.services.slam.settings import (
     EstimatorSettings,
     MonitorSettings,
@@ -65,6 +69,7 @@ LEGACY_FLAGS = {
                      "--prefix", "--quiet", "--register-frames", "--robot", "--seed",
                      "--source", "--stereo-baseline", "--verbose", "--width",
                      "--zenoh-config"],
+    "detect": ["--config", "--detector", "--dictionary", "--json", "--quiet", "--verbose"],
     "calibrate": ["--dictionary", "--legacy-pattern", "--marker", "--quiet", "--square",
                   "--squares-x", "--squares-y", "--verbose", "-o", "--output"],
     "viewer": ["--camera", "--config", "--connect", "--fps", "--http", "--jpeg-quality",
@@ -196,13 +201,14 @@ def test_legacy_flags_set_the_same_settings(command: str, argv: list[str], expec
 @pytest.mark.parametrize("command", sorted(c for c in COMMANDS if COMMANDS[c].settings))
 def test_no_flags_give_the_documented_defaults(command: str) -> None:
     cls = COMMANDS[command].settings_class()
-    required = {"replay": ["p"], "calibrate": ["a.jpg", "-o", "c.yml"],
+    required = {"replay": ["p"], "calibrate": ["a.jpg", "-o", "c.yml"], "detect": ["a.jpg"],
                 "serial": ["--port", "loop://"], "certs": ["pki", "--name", "robot-r1"],
                 "tune": ["p"], "record": ["a.mcap"], "play": ["a.mcap"],
                 "launch": ["robot.toml"], "register": ["--camera", "c"]}.get(command, [])
     given = settings_from_args(cls, _parse(command, *required))
     expected = {"replay": ReplaySettings(path="p"),
                 "calibrate": CalibrateSettings(images=("a.jpg",), output="c.yml"),
+                "detect": DetectSettings(images=("a.jpg",)),
                 "serial": SerialSettings(port="loop://"),
                 "certs": CertsSettings(directory="pki", names=("robot-r1",)),
                 "tune": TuneSettings(path="p"),

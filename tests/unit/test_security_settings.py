@@ -54,8 +54,13 @@ def test_generated_roles(pki) -> None:
     assert _rule(acl, "say router-ws")["key_exprs"] == ["lab/slamlens/**",
                                                         "lab/slamlens/**/@adv/**"]
     assert len(_rule(acl, "say router-ws")["messages"]) == 9
-    # a viewer says nothing but its own status; everyone may announce only their own
-    assert [r["id"] for r in acl["rules"] if "viewer" in r["id"]] == ["status viewer-lab"]
+    # a viewer says nothing but its AR pages' camera frames (puts on camera/*/capture) and
+    # its own status; everyone may announce only their own
+    assert [r["id"] for r in acl["rules"] if "viewer" in r["id"]] == [
+        "frames viewer-lab", "status viewer-lab"]
+    assert _rule(acl, "frames viewer-lab") == {
+        "id": "frames viewer-lab", "permission": "allow", "flows": ["ingress"],
+        "messages": ["put"], "key_exprs": ["lab/slamlens/camera/*/capture"]}
     assert _rule(acl, "status viewer-lab") == {
         "id": "status viewer-lab", "permission": "allow", "flows": ["ingress"],
         "messages": ["liveliness_token", "declare_queryable", "reply"],
@@ -78,7 +83,8 @@ def test_generated_roles(pki) -> None:
                                               "status robot-r1"],
                                     "subjects": ["robot-r1"]}
     assert _rule(acl, "given robot-r1")["key_exprs"] == ["*/r1/**"]
-    assert policies["viewer-lab"] == {"id": "viewer-lab", "rules": ["status viewer-lab"],
+    assert policies["viewer-lab"] == {"id": "viewer-lab",
+                                      "rules": ["frames viewer-lab", "status viewer-lab"],
                                       "subjects": ["viewer-lab"]}
     assert policies["router-ws"]["rules"] == ["say router-ws"]
 

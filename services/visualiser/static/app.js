@@ -286,6 +286,7 @@ function showRobots(s) {
                                       `of robot ${r.name}`);
     }
   }
+  for (const note of Object.values(s.sources || {})) if (note) notes.push(note);
   $("notes").textContent = notes.join(" · ");
   $("reregister").hidden = !s.cameras.length;
 }
