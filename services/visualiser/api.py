@@ -20,8 +20,8 @@ from slamlens.common.verdict import WORDS, summary_text, violation_text
 from slamlens.services.visualiser.clients import ClientRegistry
 from slamlens.services.visualiser.compose import registration_status
 from slamlens.services.visualiser.intake import Intake, RobotInputs
+from slamlens.services.visualiser.legend import ROBOT_COLOURS
 from slamlens.services.visualiser.pipeline import RenderPipeline
-from slamlens.services.visualiser.render import ROBOT_COLOURS
 from slamlens.services.visualiser.robots import RobotHistories
 from slamlens.services.visualiser.series import SeriesStore
 from slamlens.services.visualiser.settings import ViewSettings

@@ -22,14 +22,14 @@ import numpy as np
 from slamlens.common.drops import DropCounter
 from slamlens.common.messages import Health, SlamState
 from slamlens.services.visualiser.intake import CameraInputs, Inputs, Intake, RobotInputs
-from slamlens.services.visualiser.render import (
+from slamlens.services.visualiser.legend import (
     LegendRow,
     RobotLegend,
     draw_robots_legend,
     rejected_legend,
     robot_settings,
-    side_by_side,
 )
+from slamlens.services.visualiser.render import side_by_side
 from slamlens.services.visualiser.robots import RobotHistories
 from slamlens.services.visualiser.settings import ViewSettings
 from slamlens.services.visualiser.views import CameraView, Eye, EyeChooser, placeholder

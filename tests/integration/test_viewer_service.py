@@ -583,7 +583,7 @@ def colour_pixels(image: np.ndarray, uv: tuple[int, int], bgr: tuple[int, int, i
 
 def test_one_viewer_shows_several_robots_each_through_its_own_registration(
         start_viewer, publisher) -> None:
-    from slamlens.services.visualiser.render import ROBOT_COLOURS
+    from slamlens.services.visualiser.legend import ROBOT_COLOURS
 
     _, url = start_viewer(camera=CAMERA, robot=f"{ROBOT},r2")
     publisher(KEYS.registration(CAMERA, ROBOT), make_registration().to_bytes())

@@ -22,7 +22,8 @@ from slamlens.common.keys import Keys
 from slamlens.common.messages import Health, SlamState, Violation
 from slamlens.services.visualiser import draw
 from slamlens.services.visualiser.intake import Intake
-from slamlens.services.visualiser.render import Renderer, _draw_legend, rejected_legend
+from slamlens.services.visualiser.legend import draw_legend, rejected_legend
+from slamlens.services.visualiser.render import Renderer
 from slamlens.services.visualiser.settings import ViewSettings
 from tests.routes import put_until_seen
 from tests.unit.test_render import paper_state, top_down
@@ -45,7 +46,7 @@ def drawn_straight(frame: np.ndarray, state: SlamState, settings: ViewSettings, 
     drawn = renderer.draw(img, state=state, camera=top_down(), settings=settings,
                             health=health, reference_pose=reference)
     if settings.legend:
-        _draw_legend(drawn.canvas, health=health, glyphs_shown=drawn.glyphs_shown,
+        draw_legend(drawn.canvas, health=health, glyphs_shown=drawn.glyphs_shown,
                      notes=[*rejected_legend(state, settings), *(notes or [])])
     return img
 
