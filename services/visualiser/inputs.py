@@ -106,6 +106,11 @@ class RawCamera:
     registration_slots: Mapping[str, Latest[Raw]]  #: by robot
 
 
+#: a robot's newest state through the pipeline's stages, for the render thread: (its
+#: receipt time, time.monotonic() s; the decoded state, or None if it was bad)
+Prepared = tuple[float, SlamState | None]
+
+
 class RawSource(Protocol):
     """Where the raw slots are (the intake): the robots and cameras subscribed so far."""
 

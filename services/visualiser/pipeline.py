@@ -139,7 +139,7 @@ class RenderPipeline:
             self.composer.prepare_layers(frame, robot, state, view.settings, health)
 
     # -- the render thread's take-in step ---------------------------------------------
-    def _take_in(self) -> None:
+    def _take_in_and_remember(self) -> None:
         """Take in what arrived; hand it to the parts that keep a history."""
         now = time.monotonic()
         if self._intake.source == "summary":
@@ -175,7 +175,7 @@ class RenderPipeline:
                 tokens, refilled = min(burst, tokens + (now - refilled) * rate), now
             self._wake.clear()
             try:
-                self._take_in()
+                self._take_in_and_remember()
                 if self._render_active():
                     tokens -= 1.0
             except Exception:  # a rendering bug must not kill the viewer

@@ -30,15 +30,13 @@ from slamlens.common.drops import DropCounter
 from slamlens.common.latest import Latest
 from slamlens.common.messages import SlamState
 from slamlens.services.visualiser.decoding import decode_frame, decode_state
-from slamlens.services.visualiser.inputs import LazyRaw, RawSource, Wakeups
+from slamlens.services.visualiser.inputs import LazyRaw, Prepared, RawSource, Wakeups
 from slamlens.services.visualiser.store import InputStore
 
 log = logging.getLogger("slamlens.viewer")
 
 #: a state stage's work on one robot's decoded state
 StateWork = Callable[[str, SlamState], None]
-#: a decoded state for the render thread: (receipt time, the state, or None if bad)
-Prepared = tuple[float, SlamState | None]
 
 
 class StateStages:

@@ -84,18 +84,20 @@ class _Robot:
 class InputStore:
     """The newest decoded inputs (module docstring); thread-safe.
 
-    ``robots`` are the robots named in the settings (the first of them is the first robot
-    until one is added); robots are added as the intake subscribes to them.
+    ``robots``, the robots named in the settings, are shown from the start, in their
+    order (the intake subscribes to them in the same order at its start); robots it
+    discovers later are added as the pipeline takes them in (:meth:`add_robot`).
     """
 
     def __init__(self, *, robots: tuple[str, ...], cameras: tuple[str, ...]) -> None:
-        self._named = tuple(robots)
         self._lock = threading.Lock()
         self._robots: dict[str, _Robot] = {}
         self._cameras = {c: _Camera(c) for c in cameras}
         #: every registration made (start, new map, requested, refused), newest last
         self._reg_events: deque[dict[str, Any]] = deque(maxlen=REGISTRATION_EVENTS)
         self._reg_last: dict[tuple[str, str], tuple[Any, ...]] = {}
+        for name in robots:
+            self.add_robot(name, len(self._robots))
 
     # -- the robots and cameras shown ---------------------------------------------
     def add_robot(self, name: str, index: int) -> bool:
@@ -112,8 +114,7 @@ class InputStore:
     def robot(self) -> str:
         """The first robot (named first, or discovered first; "" before any)."""
         with self._lock:
-            names = list(self._robots)
-        return names[0] if names else (self._named[0] if self._named else "")
+            return next(iter(self._robots), "")
 
     @property
     def robot_names(self) -> tuple[str, ...]:

@@ -16,7 +16,13 @@ from collections.abc import Callable, Sequence
 from slamlens.common.drops import DropCounter
 from slamlens.common.messages import Health, Registration, SlamState, Truth
 from slamlens.services.visualiser.decoding import decode, decode_health, drawable_registration
-from slamlens.services.visualiser.inputs import Arrivals, RawRobot, RawSource, RobotArrivals
+from slamlens.services.visualiser.inputs import (
+    Arrivals,
+    Prepared,
+    RawRobot,
+    RawSource,
+    RobotArrivals,
+)
 from slamlens.services.visualiser.robots import RobotHistories
 from slamlens.services.visualiser.series import DENSE_PAIRS, PlotSampler
 from slamlens.services.visualiser.settings import ViewSettings
@@ -24,15 +30,13 @@ from slamlens.services.visualiser.store import InputStore
 from slamlens.services.visualiser.summary_view import SummarisedState
 from slamlens.services.visualiser.views import EyeChooser
 
-#: a robot's newest state through the stages: (receipt time, the state or None if bad)
-Prepared = Callable[[str], tuple[float, SlamState | None] | None]
-
 
 class TakeIn:
     """What arrived since the last call, decoded into ``store`` (module docstring)."""
 
-    def __init__(self, raw: RawSource, store: InputStore, *, prepared: Prepared,
-                 drops: DropCounter, max_frame_pixels: int) -> None:
+    def __init__(self, raw: RawSource, store: InputStore, *,
+                 prepared: Callable[[str], Prepared | None], drops: DropCounter,
+                 max_frame_pixels: int) -> None:
         self._raw = raw
         self._store = store
         self._prepared = prepared
