@@ -417,7 +417,8 @@ def profile_viewer(repeats: int = 9) -> None:
     from slamlens.services.slam.sim import Simulator
     from slamlens.services.slam.world import load_world
     from slamlens.services.visualiser.camera_model import CameraModel
-    from slamlens.services.visualiser.render import Renderer, _draw_legend, rejected_legend
+    from slamlens.services.visualiser.legend import draw_legend, rejected_legend
+    from slamlens.services.visualiser.render import Renderer
     from slamlens.services.visualiser.series import SeriesStore
     from slamlens.services.visualiser.settings import ViewSettings
 
@@ -464,14 +465,14 @@ def profile_viewer(repeats: int = 9) -> None:
     settings = ViewSettings()
     r = Renderer()
     r.scene(states[-1], settings)
-    layers = cpu_ms(lambda k: (r._layers.clear(), r.layers(states[-1], camera, settings)))
+    layers = cpu_ms(lambda k: (r.layer_cache.clear(), r.layers(states[-1], camera, settings)))
     over = cpu_ms(lambda k: r.render(frames[k], state=states[-1], camera=camera,
                                      settings=settings))
 
     def straight(k: int) -> None:
         img = frames[k].copy()
         drawn = r.draw(img, state=states[-1], camera=camera, settings=settings)
-        _draw_legend(drawn.canvas, health=None, glyphs_shown=drawn.glyphs_shown,
+        draw_legend(drawn.canvas, health=None, glyphs_shown=drawn.glyphs_shown,
                      notes=rejected_legend(states[-1], settings))
 
     direct = cpu_ms(straight)
@@ -502,7 +503,7 @@ def profile_viewer(repeats: int = 9) -> None:
         "clusters (cluster_labels + tracker)": "cluster_ids",
         "glyphs and cones (_draw_objects)": "_draw_objects",
         "floor layer (outlines, lines, path)": "_draw_floor_layer",
-        "legend": "_draw_legend",
+        "legend": "draw_legend",
         "layers put over the frame (Overlay.put_over)": "put_over",
         "JPEG (imencode)": "imencode",
     }

@@ -21,12 +21,13 @@ from slamlens.common.verdict import WORDS, summary_text, violation_text
 from slamlens.services.visualiser.camera_model import CameraModel
 from slamlens.services.visualiser.clients import ClientRegistry
 from slamlens.services.visualiser.compose import registration_status
-from slamlens.services.visualiser.intake import Intake, RobotInputs
+from slamlens.services.visualiser.inputs import RobotInputs
+from slamlens.services.visualiser.legend import ROBOT_COLOURS
 from slamlens.services.visualiser.pipeline import RenderPipeline
-from slamlens.services.visualiser.render import ROBOT_COLOURS
 from slamlens.services.visualiser.robots import RobotHistories
 from slamlens.services.visualiser.series import SeriesStore
 from slamlens.services.visualiser.settings import ViewSettings
+from slamlens.services.visualiser.store import InputStore
 from slamlens.services.visualiser.views import EyeChooser, Rendered, project_features
 
 
@@ -37,11 +38,14 @@ def _css(bgr: tuple[int, int, int]) -> str:
 class ViewerApi:
     """Status, health, plots, features, settings, recordings and pictures of one viewer."""
 
-    def __init__(self, *, intake: Intake, eyes: EyeChooser, clients: ClientRegistry,
-                 pipeline: RenderPipeline, histories: RobotHistories, failures: DropCounter,
-                 camera: str | None, recordings_dir: str, restart_note_s: float = 10.0,
+    def __init__(self, *, store: InputStore, eyes: EyeChooser, clients: ClientRegistry,
+                 pipeline: RenderPipeline, histories: RobotHistories, bad: DropCounter,
+                 failures: DropCounter, camera: str | None, recordings_dir: str,
+                 discovering: bool = False, restart_note_s: float = 10.0,
                  reregister: Callable[[str | None], dict[str, Any]] | None = None) -> None:
-        self._intake = intake
+        self._store = store
+        self._bad = bad
+        self._discovering = discovering
         self._eyes = eyes
         self._clients = clients
         self._pipeline = pipeline
@@ -54,7 +58,7 @@ class ViewerApi:
 
     @property
     def robot(self) -> str:
-        return self._intake.robot
+        return self._store.robot
 
     @property
     def default_settings(self) -> ViewSettings:
@@ -100,10 +104,10 @@ class ViewerApi:
     def _robot(self, robot: str | None) -> str:
         """``robot``, checked to be shown (default: the first robot)."""
         if robot is None or robot == "":
-            return self._intake.robot
-        if robot not in self._intake.robot_names:
+            return self._store.robot
+        if robot not in self._store.robot_names:
             raise ConfigError(f"robot: {robot!r} is not shown by this viewer; shown: "
-                              f"{', '.join(self._intake.robot_names) or 'none yet'}")
+                              f"{', '.join(self._store.robot_names) or 'none yet'}")
         return robot
 
     def colour_of(self, robot: RobotInputs) -> str:
@@ -115,7 +119,7 @@ class ViewerApi:
     def features(self, settings: ViewSettings) -> dict[str, Any]:
         """Feature ids, map positions and pixel positions in this view (click to select),
         of every robot shown (``robot`` names the map of each)."""
-        inputs, eyes = self._intake.snapshot(), self._eyes.current
+        inputs, eyes = self._store.snapshot(), self._eyes.current
         several = len(inputs.robots) > 1
         out: dict[str, Any] = {"seq": None, "ids": [], "xy": [], "uv": [], "robot": [],
                                "selected": settings.selected_feature,
@@ -150,9 +154,9 @@ class ViewerApi:
     def health(self, robot: str | None = None) -> dict[str, Any]:
         """The latest verdict and the recent violations of ``robot``, newest first."""
         name = self._robot(robot)
-        inputs = self._intake.snapshot().robot(name)
+        inputs = self._store.snapshot().robot(name)
         health = None if inputs is None else inputs.health
-        recent = self._intake.recent_violations(name)
+        recent = self._store.recent_violations(name)
         latest = None
         if health is not None:
             latest = {"seq": health.seq, "stamp": health.stamp, "ok": health.ok,
@@ -176,7 +180,7 @@ class ViewerApi:
         if history is None:
             return {"robot": name, **SeriesStore().to_json([])}
         if not pairs:
-            inputs = self._intake.snapshot().robot(name)
+            inputs = self._store.snapshot().robot(name)
             health = None if inputs is None else inputs.health
             flagged = [] if health is None else [
                 (v.ids[0], v.ids[1]) for v in health.violations
@@ -188,7 +192,7 @@ class ViewerApi:
 
     def status(self) -> dict[str, Any]:
         now = time.monotonic()
-        inputs = self._intake.snapshot()
+        inputs = self._store.snapshot()
         active = self._clients.looked_at(now)
         render_ms = list(self._pipeline.render_ms)
 
@@ -223,7 +227,7 @@ class ViewerApi:
                 "map_restarted": restarted,
                 "registration": {c.name: registration_status(c, r) for c in inputs.cameras}})
         return {
-            "robot": self.robot, "robots": robots, "discover": self._intake.discovering,
+            "robot": self.robot, "robots": robots, "discover": self._discovering,
             "view": self._eyes.view, "camera": self._camera,
             "state": state_of(first),
             "cameras": [{
@@ -239,13 +243,13 @@ class ViewerApi:
                     "reason": c.registration.reason, "moved_m": c.registration.moved_m,
                     "moved_deg": c.registration.moved_deg},
             } for c in inputs.cameras],
-            "registrations": self._intake.registration_events(),
+            "registrations": self._store.registration_events(),
             "health": health_of(first),
             "fps": max((v.rate.rate(now) for v in active), default=0.0),
             "render_ms_median": float(np.median(render_ms)) if render_ms else None,
             "views_active": len(active), "clients": self._clients.client_count,
             "views": self._clients.memory(),
-            "bad_messages": dict(self._intake.bad.counts),
+            "bad_messages": dict(self._bad.counts),
             "failures": dict(self._failures.counts),
             "recording": self._clients.recording(),
         }

@@ -26,7 +26,7 @@ import numpy as np
 
 from slamlens.common.errors import SlamlensError
 from slamlens.common.memory import release_freed_memory
-from slamlens.services.visualiser.intake import RateMeter
+from slamlens.services.visualiser.inputs import RateMeter
 from slamlens.services.visualiser.recording import Recorder, RecordingRefused
 from slamlens.services.visualiser.settings import ViewSettings
 from slamlens.services.visualiser.views import Rendered

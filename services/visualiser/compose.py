@@ -21,17 +21,18 @@ import numpy as np
 
 from slamlens.common.drops import DropCounter
 from slamlens.common.messages import Health, SlamState
-from slamlens.services.visualiser.intake import CameraInputs, Inputs, Intake, RobotInputs
-from slamlens.services.visualiser.render import (
+from slamlens.services.visualiser.inputs import CameraInputs, Inputs, RobotInputs
+from slamlens.services.visualiser.legend import (
     LegendRow,
     RobotLegend,
     draw_robots_legend,
     rejected_legend,
     robot_settings,
-    side_by_side,
 )
+from slamlens.services.visualiser.render import side_by_side
 from slamlens.services.visualiser.robots import RobotHistories
 from slamlens.services.visualiser.settings import ViewSettings
+from slamlens.services.visualiser.store import InputStore
 from slamlens.services.visualiser.views import CameraView, Eye, EyeChooser, placeholder
 
 RESTART_COLOUR = (0, 165, 255)  # BGR orange: news, not a fault
@@ -88,9 +89,9 @@ def registration_status(cam: CameraInputs, robot: RobotInputs) -> str | None:
 class Composer:
     """Turns the newest inputs into one picture per view settings."""
 
-    def __init__(self, intake: Intake, *, eyes: EyeChooser, histories: RobotHistories,
+    def __init__(self, store: InputStore, *, eyes: EyeChooser, histories: RobotHistories,
                  failures: DropCounter, restart_note_s: float = 10.0) -> None:
-        self.intake = intake
+        self.store = store
         self.eyes = eyes
         self.histories = histories
         self.failures = failures  #: states that could not be drawn
@@ -102,13 +103,13 @@ class Composer:
 
     def inputs(self) -> tuple[Any, ...]:
         """Signature of everything a picture depends on (besides its settings)."""
-        snap = self.intake.snapshot()
+        snap = self.store.snapshot()
         return (*snap.versions, self.eyes.bounds,
                 self._restarted(snap.robots, time.monotonic()))
 
     def frame(self) -> Frame:
         """One consistent snapshot of the inputs and the eyes to see them through."""
-        snap = self.intake.snapshot()
+        snap = self.store.snapshot()
         states = [r.state for r in snap.robots if r.state is not None]
         eyes = self.eyes.choose(states, camera_views(snap))
         restarted = self._restarted(snap.robots, time.monotonic())
@@ -136,8 +137,9 @@ class Composer:
             else:
                 drawable.append((robot, model))
         if not frame.robots:
-            notes.append(f"waiting for the state of robot {self.intake.robot}"
-                         if self.intake.robot else "waiting for a robot's estimator")
+            first = self.store.robot
+            notes.append(f"waiting for the state of robot {first}"
+                         if first else "waiting for a robot's estimator")
         if not drawable:
             text = eye.note if eye.note and not frame.robots else "; ".join(notes)
             return placeholder(eye, text or eye.note, settings)

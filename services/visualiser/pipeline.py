@@ -1,9 +1,19 @@
-"""When pictures are made: the render thread and the encode thread of the viewer.
+"""A state's way through the viewer, and every thread it takes on the way.
 
-* ``viewer-render`` wakes on new inputs (or a new view), takes them in (``ingest``), and
-  renders every active view whose inputs changed, at most ``fps`` times a second;
+The intake (:mod:`intake`) only fills raw slots; from there the pipeline owns each step
+and each hand-off:
+
+* ``viewer-decode``, ``viewer-prepare``, ``viewer-layers`` (:mod:`stages`): camera frames
+  decoded into the store; each robot's newest state decoded, its scenes computed for the
+  views looked at (:meth:`RenderPipeline._prepare`) and, over a camera, drawn onto its
+  layers (:meth:`RenderPipeline._finish`), the two stages overlapping;
+* ``viewer-render`` wakes on new inputs (or a new view), takes them in (:mod:`takein`:
+  into the store, then into the robots' histories) and renders every active view whose
+  inputs changed (:mod:`compose`), at most ``fps`` times a second;
 * ``viewer-encode`` JPEG-encodes each picture, overlapping the next render, makes it the
-  view's picture and tells the listeners (the web layer).
+  view's picture and tells the listeners (the web layer);
+* ``viewer-plots`` (:class:`~slamlens.services.visualiser.series.PlotSampler`) samples a
+  large map for the plots, off the render thread.
 """
 
 from __future__ import annotations
@@ -19,33 +29,53 @@ from typing import Any
 import cv2
 import numpy as np
 
+from slamlens.common.drops import DropCounter
+from slamlens.common.messages import SlamState
 from slamlens.services.visualiser.clients import ClientRegistry, RenderBudget, View
 from slamlens.services.visualiser.compose import Composer, Frame
+from slamlens.services.visualiser.intake import Intake
+from slamlens.services.visualiser.series import PlotSampler
 from slamlens.services.visualiser.settings import ViewSettings
+from slamlens.services.visualiser.stages import StateStages
+from slamlens.services.visualiser.takein import SummaryChoice, TakeIn, remember, summary_choice
 from slamlens.services.visualiser.views import Rendered
 
 log = logging.getLogger("slamlens.viewer")
 
 
 class RenderPipeline:
-    """Renders the active views of ``clients`` with ``composer`` on two threads."""
+    """Takes the inputs ``intake`` receives through to the pictures of the active views
+    of ``clients``, drawn by ``composer`` (whose store, eyes and histories it fills); the
+    module docstring names its threads."""
 
     BURST = 2.0  # render cycles the fps cap lets through back to back after a pause
 
-    def __init__(self, composer: Composer, clients: ClientRegistry, *,
-                 ingest: Callable[[], None], fps: float, jpeg_quality: int,
-                 other_views_share: float = 1.0) -> None:
+    def __init__(self, intake: Intake, composer: Composer, clients: ClientRegistry, *,
+                 drops: DropCounter, fps: float, jpeg_quality: int,
+                 other_views_share: float = 1.0, max_frame_pixels: int = 16_777_216) -> None:
+        self._intake = intake
         self.composer = composer
         self.clients = clients
-        self._ingest = ingest
         self.fps = fps
         self.jpeg_quality = jpeg_quality
+        self._wake = intake.wakeups.input
+        store = composer.store
+        self.stages = StateStages(intake, store, intake.wakeups, fps=fps, drops=drops,
+                                  max_frame_pixels=max_frame_pixels,
+                                  summary=intake.source == "summary",
+                                  prepare=self._prepare, finish=self._finish)
+        self.take_in = TakeIn(intake, store, prepared=self.stages.take_prepared, drops=drops,
+                              max_frame_pixels=max_frame_pixels)
+        #: a large map's plot samples are taken off the render thread (series.py)
+        self.plots = PlotSampler(lambda state, exc: composer.failures.drop(
+            "plots", f"state seq {state.seq}: {exc!r}"))
+        #: --source summary: the selection whose pairs the summary queries ask for
+        self._summary_choice: SummaryChoice | None = None
         # the views other than the default take at most this share of the render thread
         # while the default view is looked at (banked for two frame periods)
         self.budget = RenderBudget(other_views_share, bank_s=other_views_share * 2.0 / fps)
         self._deferred_s = 0.0  # > 0: views wait for the budget; render again this soon
         self._stop = threading.Event()
-        self._wake = threading.Event()
         self._encode_queue: queue.Queue[tuple[Any, ...] | None] = queue.Queue(maxsize=2)
         self._listeners: list[Callable[[], None]] = []
         self._threads: list[threading.Thread] = []
@@ -68,6 +98,8 @@ class RenderPipeline:
 
     # -- life cycle ---------------------------------------------------------------
     def start(self) -> None:
+        self.stages.start()
+        self.plots.start()
         for name, target in (("viewer-render", self._render_loop),
                              ("viewer-encode", self._encode_loop)):
             thread = threading.Thread(target=target, name=name, daemon=True)
@@ -75,6 +107,7 @@ class RenderPipeline:
             self._threads.append(thread)
 
     def stop(self) -> None:
+        self.stages.stop()
         self._stop.set()
         self._wake.set()
         try:  # wakes ``viewer-encode`` waiting for a picture (a full queue wakes it anyway)
@@ -83,6 +116,49 @@ class RenderPipeline:
             pass
         for thread in self._threads:
             thread.join(timeout=5.0)
+        self.plots.stop()
+
+    # -- the state stages' work -----------------------------------------------------
+    def _prepare(self, robot: str, state: SlamState) -> None:
+        """On ``viewer-prepare``, the first stage of a new state: the scenes of the views
+        looked at (clusters, the overview, glyphs: the heavier half of a picture at
+        n = 1000). One robot only (several draw under per-robot settings)."""
+        if len(self._intake.robots()) != 1:
+            return
+        health = self.composer.store.health(robot)
+        for view in self.clients.looked_at():
+            self.composer.prepare_scene(robot, state, view.settings, health)
+
+    def _finish(self, robot: str, state: SlamState) -> None:
+        """On ``viewer-layers``, the second stage, while ``viewer-prepare`` decodes the
+        next state: over a camera, the state drawn on layers
+        (:meth:`Composer.prepare_layers`) for the eyes of the last render cycle, so the
+        render thread only puts them over camera frames — of the previous state,
+        meanwhile."""
+        if len(self._intake.robots()) != 1:
+            return
+        health = self.composer.store.health(robot)
+        frame = self.last_frame
+        for view in self.clients.looked_at():
+            self.composer.prepare_layers(frame, robot, state, view.settings, health)
+
+    # -- the render thread's take-in step ---------------------------------------------
+    def _take_in_and_remember(self) -> None:
+        """Take in what arrived; hand it to the parts that keep a history."""
+        now = time.monotonic()
+        if self._intake.source == "summary":
+            self._select_summary()
+        c = self.composer
+        remember(self.take_in(), histories=c.histories, eyes=c.eyes, plots=self.plots,
+                 failures=c.failures, now=now)
+
+    def _select_summary(self) -> None:
+        """``--source summary``: the summary queries ask for the pairs of the selection
+        of the open view touched last that has one, else for the clusters."""
+        choice = summary_choice([(v.touched, v.settings) for v in self.clients.looked_at()])
+        if choice != self._summary_choice:
+            self._summary_choice = choice
+            self._intake.summary_selection(choice[0], feature=choice[1], cluster=choice[2])
 
     # -- rendering ------------------------------------------------------------------
     def _render_loop(self) -> None:
@@ -103,7 +179,7 @@ class RenderPipeline:
                 tokens, refilled = min(burst, tokens + (now - refilled) * rate), now
             self._wake.clear()
             try:
-                self._ingest()
+                self._take_in_and_remember()
                 if self._render_active():
                     tokens -= 1.0
             except Exception:  # a rendering bug must not kill the viewer

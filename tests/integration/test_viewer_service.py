@@ -133,17 +133,17 @@ def received_by(service: ViewerService, key: str) -> int | None:
     subscribe to it), read from its intake's slots: what a test waits on to know that a
     route from its publisher to the viewer carries samples."""
     intake = service.intake
-    for robot in intake._robots.values():
+    for robot in intake.robots():
         if key == KEYS.state(robot.name):
             return robot.state_slot.count
         if key == KEYS.health(robot.name):
             return robot.health_queue.received_count
-    for camera in intake._cameras.values():
+    for camera in intake.cameras():
         if key == KEYS.frame(camera.name):
             return camera.frame_slot.count
-        for robot_name, registration in camera.registrations.items():
+        for robot_name, slot in camera.registration_slots.items():
             if key == KEYS.registration(camera.name, robot_name):
-                return registration.slot.count
+                return slot.count
     return None
 
 
@@ -583,7 +583,7 @@ def colour_pixels(image: np.ndarray, uv: tuple[int, int], bgr: tuple[int, int, i
 
 def test_one_viewer_shows_several_robots_each_through_its_own_registration(
         start_viewer, publisher) -> None:
-    from slamlens.services.visualiser.render import ROBOT_COLOURS
+    from slamlens.services.visualiser.legend import ROBOT_COLOURS
 
     _, url = start_viewer(camera=CAMERA, robot=f"{ROBOT},r2")
     publisher(KEYS.registration(CAMERA, ROBOT), make_registration().to_bytes())

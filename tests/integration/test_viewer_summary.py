@@ -133,7 +133,7 @@ def test_a_selection_pulls_its_pairs_from_the_summary(start_viewer, publisher,  
                    timeout=30.0)
         query = puller.query
         assert (query.what, query.feature, query.cluster) == ("pairs", 10, None)
-        state = service.intake.snapshot().robots[0].state
+        state = service.store.snapshot().robots[0].state
         assert state is not None and state.summary is not None
         assert state.summary.what == "pairs" and state.summary.selected_feature == 10
         assert len(state.summary.pairs) == 5

@@ -367,7 +367,7 @@ def test_rejected_observations_are_grey_crosses_where_they_were_seen() -> None:
     off = Renderer().render(None, state=gated, camera=camera,
                             settings=quiet.replace(rejected=False))
     assert np.array_equal(off, plain)
-    from slamlens.services.visualiser.render import rejected_legend
+    from slamlens.services.visualiser.legend import rejected_legend
     assert rejected_legend(gated, ViewSettings()) == [[(
         "rejected observations (gate): 2 in this update, 17 in all", (170, 170, 170))]]
     assert rejected_legend(state, ViewSettings()) == []  # a state without the gate
@@ -382,14 +382,14 @@ def test_cluster_outlines_are_the_hull_of_every_member_grown_by_the_ring() -> No
 
     from slamlens.common.clusters import cluster_colour
     from slamlens.services.visualiser import draw
-    from slamlens.services.visualiser.render import Canvas, _draw_cluster_outlines
+    from slamlens.services.visualiser.render_steps import Canvas, draw_cluster_outlines
 
     state = paper_state()
     ids = np.array([4, 4, 4, 4, 4, 9, 9, -1, 2, 2, 2, 2, 2, 7, -1])  # 5, 2, 5, 1, unoutlined
     camera, settings = top_down(), ViewSettings()
     scene = Renderer().scene(state, settings, frozenset())
     img = np.zeros((camera.height, camera.width, 3), np.uint8)
-    _draw_cluster_outlines(Canvas(img, camera, state, scene, settings, px=1), ids)
+    draw_cluster_outlines(Canvas(img, camera, state, scene, settings, px=1), ids)
 
     pad = 2.5 * settings.cone_radius_m
     t = 2 * np.pi * np.arange(16) / 16

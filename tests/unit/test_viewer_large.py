@@ -15,7 +15,8 @@ from slamlens.common import overview
 from slamlens.common.geometry import all_relative_covariances, pd_size_m
 from slamlens.common.messages import SlamState
 from slamlens.services.visualiser.camera_model import CameraModel
-from slamlens.services.visualiser.render import OVERVIEW_COLOUR, Renderer
+from slamlens.services.visualiser.legend import OVERVIEW_COLOUR
+from slamlens.services.visualiser.render import Renderer
 from slamlens.services.visualiser.scene import ROLE_PAIR
 from slamlens.services.visualiser.series import (
     DENSE_PAIRS,

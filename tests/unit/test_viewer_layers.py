@@ -1,11 +1,11 @@
-"""A state drawn once onto layers and put over every camera frame (issue 13), and states
-copied out of Zenoh only when the viewer decodes them (``Bus.subscribe_lazy``).
+"""A state drawn once onto layers and put over every camera frame, and states copied out
+of Zenoh only when the viewer decodes them (``Bus.subscribe_lazy``).
 
 The layered picture must be the picture drawn straight onto the frame: the same pixels
 where nothing was drawn or something opaque was, the same to OpenCV's rounding on
 anti-aliased edges, over any frame; the camera-tracked pose is drawn per frame between the
-two layers. The intake decodes the newest state only, copies out no state it skips, and
-decodes it to the state the estimator sent."""
+two layers. The pipeline's state stages take the newest state only from the intake's
+slot, copy out no state they skip, and decode it to the state the estimator sent."""
 
 from __future__ import annotations
 
@@ -21,9 +21,14 @@ from slamlens.common.drops import DropCounter
 from slamlens.common.keys import Keys
 from slamlens.common.messages import Health, SlamState, Violation
 from slamlens.services.visualiser import draw
+from slamlens.services.visualiser.inputs import Wakeups
 from slamlens.services.visualiser.intake import Intake
-from slamlens.services.visualiser.render import Renderer, _draw_legend, rejected_legend
+from slamlens.services.visualiser.legend import draw_legend, rejected_legend
+from slamlens.services.visualiser.render import Renderer
 from slamlens.services.visualiser.settings import ViewSettings
+from slamlens.services.visualiser.stages import StateStages, StateWork
+from slamlens.services.visualiser.store import InputStore
+from slamlens.services.visualiser.takein import TakeIn
 from tests.routes import put_until_seen
 from tests.unit.test_render import paper_state, top_down
 
@@ -45,7 +50,7 @@ def drawn_straight(frame: np.ndarray, state: SlamState, settings: ViewSettings, 
     drawn = renderer.draw(img, state=state, camera=top_down(), settings=settings,
                             health=health, reference_pose=reference)
     if settings.legend:
-        _draw_legend(drawn.canvas, health=health, glyphs_shown=drawn.glyphs_shown,
+        draw_legend(drawn.canvas, health=health, glyphs_shown=drawn.glyphs_shown,
                      notes=[*rejected_legend(state, settings), *(notes or [])])
     return img
 
@@ -168,7 +173,47 @@ def test_text_on_a_layer_is_the_text_drawn_on_the_picture() -> None:
     assert (np.abs(straight.astype(int) - frame.astype(int)) > 30).sum() > 500
 
 
-# -- the intake: newest-only, lazily copied states ------------------------------------
+# -- the state stages: newest-only, lazily copied states -------------------------------
+class Viewer:
+    """The intake and the pipeline's state stages of a viewer of robot r1 over ``bus``
+    (no camera), with ``prepare`` and ``finish`` as the stages' work."""
+
+    def __init__(self, bus, keys: Keys, *, prepare: StateWork,
+                 finish: StateWork | None = None) -> None:
+        self.wakeups = wakeups = Wakeups()
+        drops = DropCounter(logging.getLogger("test"))
+        self.intake = Intake(bus, keys=keys, wakeups=wakeups, robots=("r1",), cameras=(),
+                             late_join_timeout_s=0.0)
+        self.store = InputStore(robots=("r1",), cameras=())
+        self.stages = StateStages(self.intake, self.store, wakeups, fps=30.0, drops=drops,
+                                  max_frame_pixels=16_777_216, prepare=prepare,
+                                  finish=finish)
+        self.take_in = TakeIn(self.intake, self.store, prepared=self.stages.take_prepared,
+                              drops=drops, max_frame_pixels=16_777_216)
+
+    def start(self) -> None:
+        self.intake.start()
+        self.stages.start()
+
+    def stop(self) -> None:
+        self.intake.stop()
+        self.stages.stop()
+
+    def taken_in(self, seq: int, timeout_s: float = 10.0) -> SlamState | None:
+        """State ``seq`` as the render thread takes it in from the stages: taken in each
+        time the stages hand a state on (their put wakes ``wakeups.input``) until it is
+        there; None if the stages hand nothing on for ``timeout_s``."""
+        wake = self.wakeups.input
+        while True:
+            wake.clear()
+            self.take_in()
+            state = self.store.snapshot().state
+            if state is not None and state.seq == seq:
+                return state
+            if not wake.wait(timeout_s):
+                return None
+
+
 class CountingBus:
     """A real Zenoh bus whose lazy subscriptions count the payloads copied out."""
 
@@ -214,10 +259,8 @@ def test_the_viewer_copies_out_and_decodes_only_the_newest_state(make_client) ->
         else:
             second.set()
 
-    intake = Intake(viewer, keys=keys, robots=("r1",), cameras=(), fps=30.0,
-                    late_join_timeout_s=0.0, on_input=lambda: None,
-                    drops=DropCounter(logging.getLogger("test")), prepare=prepare)
-    intake.start()
+    pipeline = Viewer(viewer, keys, prepare=prepare)
+    pipeline.start()
     try:
         assert estimator.wait_for_subscriber(keys.state("r1"), timeout=10.0)
         payloads = {seq: paper_state(seq=seq, seed=seq).to_bytes() for seq in range(1, 7)}
@@ -234,8 +277,7 @@ def test_the_viewer_copies_out_and_decodes_only_the_newest_state(make_client) ->
         assert second.wait(10.0)
         assert prepared == [1, 6]
         assert viewer.copied == [payloads[1], payloads[6]]  # 2–5 never copied out
-        intake.ingest()
-        state = intake.snapshot().state
+        state = pipeline.taken_in(6)
         assert state is not None and state.seq == 6
         eager = SlamState.from_bytes(payloads[6], check_symmetry=False)
         for name in ("pose", "landmark_ids", "landmarks", "covariance"):
@@ -244,7 +286,7 @@ def test_the_viewer_copies_out_and_decodes_only_the_newest_state(make_client) ->
                                                           eager.step)
     finally:
         hold.set()
-        intake.stop()
+        pipeline.stop()
 
 
 def test_the_next_state_is_prepared_while_the_last_is_drawn_and_it_is_the_newest(
@@ -272,11 +314,8 @@ def test_the_next_state_is_prepared_while_the_last_is_drawn_and_it_is_the_newest
         if state.seq == 6:
             done.set()
 
-    intake = Intake(viewer, keys=keys, robots=("r1",), cameras=(), fps=30.0,
-                    late_join_timeout_s=0.0, on_input=lambda: None,
-                    drops=DropCounter(logging.getLogger("test")), prepare=prepare,
-                    finish=finish)
-    intake.start()
+    pipeline = Viewer(viewer, keys, prepare=prepare, finish=finish)
+    pipeline.start()
     try:
         assert estimator.wait_for_subscriber(keys.state("r1"), timeout=10.0)
         payloads = {seq: paper_state(seq=seq, seed=seq).to_bytes() for seq in range(1, 7)}
@@ -295,9 +334,8 @@ def test_the_next_state_is_prepared_while_the_last_is_drawn_and_it_is_the_newest
         assert overlapped == [True]
         assert prepared == [1, 2, 6] and finished == [1, 2, 6]
         assert viewer.copied == [payloads[1], payloads[2], payloads[6]]  # 3–5 never
-        intake.ingest()
-        state = intake.snapshot().state
+        state = pipeline.taken_in(6)
         assert state is not None and state.seq == 6
     finally:
         release_1.set()
-        intake.stop()
+        pipeline.stop()

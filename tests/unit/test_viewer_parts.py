@@ -16,7 +16,7 @@ from slamlens.common.messages import Health, Registration, SlamState, Truth
 from slamlens.services.visualiser.camera_model import CameraModel
 from slamlens.services.visualiser.clients import ClientRegistry, RenderBudget, TooManyViews
 from slamlens.services.visualiser.compose import camera_views
-from slamlens.services.visualiser.intake import (
+from slamlens.services.visualiser.inputs import (
     CameraInputs,
     Inputs,
     Queue,
@@ -585,12 +585,17 @@ def test_a_registration_no_camera_has_is_a_bad_message_not_a_failed_render() -> 
     from slamlens.common.drops import DropCounter
     from slamlens.common.inprocess_bus import InProcessBus
     from slamlens.common.keys import Keys
+    from slamlens.services.visualiser.inputs import Wakeups
     from slamlens.services.visualiser.intake import Intake
+    from slamlens.services.visualiser.store import InputStore
+    from slamlens.services.visualiser.takein import TakeIn
 
     keys, bus = Keys(), InProcessBus()
     drops = DropCounter(logging.getLogger("test"))
-    intake = Intake(bus, keys=keys, robots=("r1",), cameras=("cam",), fps=30.0,
-                    late_join_timeout_s=0.0, on_input=lambda: None, drops=drops,
+    intake = Intake(bus, keys=keys, wakeups=Wakeups(), robots=("r1",), cameras=("cam",),
+                    late_join_timeout_s=0.0)
+    store = InputStore(robots=("r1",), cameras=("cam",))
+    ingest = TakeIn(intake, store, prepared=lambda _robot: None, drops=drops,
                     max_frame_pixels=4096 * 4096)
     intake.start()
     try:
@@ -605,12 +610,12 @@ def test_a_registration_no_camera_has_is_a_bad_message_not_a_failed_render() -> 
                dataclasses.replace(good, width=0)]
         for n, registration in enumerate(bad, start=1):
             bus.put(keys.registration("cam", "r1"), registration.to_bytes())
-            intake.ingest()
+            ingest()
             assert drops.counts == {"registration cam": n}
-            assert intake.snapshot().cameras[0].registration is None
+            assert store.snapshot().cameras[0].registration is None
         bus.put(keys.registration("cam", "r1"), good.to_bytes())
-        intake.ingest()
-        assert intake.snapshot().cameras[0].registration is not None
+        ingest()
+        assert store.snapshot().cameras[0].registration is not None
         assert drops.total == len(bad)
     finally:
         intake.stop()
