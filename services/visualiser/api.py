@@ -264,7 +264,7 @@ class ViewerApi:
     # -- the /ar page: a browser's own camera ------------------------------------
     def robot_names(self) -> tuple[str, ...]:
         """The robots this viewer shows (so far, with ``--robot all``)."""
-        return self._intake.robot_names
+        return self._store.robot_names
 
     def draw_over(self, image: np.ndarray, registration: Registration, received: float,
                   robot: str | None, settings: ViewSettings) -> tuple[np.ndarray | None, str]:
@@ -272,8 +272,8 @@ class ViewerApi:
         at ``received``, monotonic s) under ``settings``, as the main view draws it over a
         camera; (None, why) if it cannot be: no state yet, or the registration places
         another map (an older epoch)."""
-        name = robot or self._intake.robot
-        inputs = self._intake.snapshot().robot(name)
+        name = robot or self._store.robot
+        inputs = self._store.snapshot().robot(name)
         if inputs is None or inputs.state is None:  # (a robot not discovered yet, too)
             return None, f"waiting for the state of robot {name}"
         if not inputs.registration_usable(registration, received):
@@ -288,7 +288,7 @@ class ViewerApi:
         return picture, ""
 
     def state_seq(self, robot: str | None) -> int | None:
-        inputs = self._intake.snapshot().robot(robot or self._intake.robot)
+        inputs = self._store.snapshot().robot(robot or self._store.robot)
         return None if inputs is None or inputs.state is None else inputs.state.seq
 
     # -- recordings ---------------------------------------------------------------
