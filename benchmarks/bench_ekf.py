@@ -27,7 +27,7 @@ from collections.abc import Callable
 import numpy as np
 import scipy
 
-from slamlens.services.slam import ekf
+from slamlens.services.slam import ekf, ekf_storage
 from slamlens.services.slam.estimator import Estimator
 from slamlens.services.slam.settings import EstimatorSettings
 
@@ -228,9 +228,10 @@ def main(argv: list[str] | None = None) -> int:
     if not args.rows_only:
         env = {k: os.environ[k] for k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS",
                                           "MKL_NUM_THREADS") if k in os.environ}
+        fast = "on" if ekf_storage._dsyrk() is not None else "OFF (numpy fallback)"
         print(f"python {platform.python_version()}, numpy {np.__version__}, scipy "
               f"{scipy.__version__}, {os.cpu_count()} CPUs, BLAS env {env or 'unset'}, "
-              f"dsyrk fast path {'on' if ekf._dsyrk() is not None else 'OFF (numpy fallback)'}, "
+              f"dsyrk fast path {fast}, "
               f"load average {os.getloadavg()[0]:.2f}")
         print("medians in µs; predict/update = the kernels unguarded, guarded = with the "
               "poisoning guard (O(N) checks); pred+upd = the kernels, Estimator = the class "

@@ -16,6 +16,9 @@ from slamlens.common.errors import ConfigError
 #: planted fault kinds (services/slam/faults.py says what each does)
 NONE, MAP_UPDATE, CROSS_COVARIANCE = "none", "map-update", "cross-covariance"
 FAULT_KINDS = (NONE, MAP_UPDATE, CROSS_COVARIANCE)
+#: where the estimator's Jacobians are evaluated (services/slam/linearisation.py)
+STANDARD, FEJ = "standard", "fej"
+LINEARISATIONS = (STANDARD, FEJ)
 
 
 def _robot() -> str:
@@ -195,6 +198,12 @@ class EstimatorSettings:
                                           "start)", unit="s")
     publish_innovations: bool = setting(
         True, doc="put each update's innovations and S into the state (the monitor's NIS)")
+    linearisation: str = setting(
+        STANDARD, doc="where the Jacobians are evaluated: standard = at the latest estimates "
+                      "(SPEC §4); fej = First-Estimates Jacobians (the robot's propagated "
+                      "estimate, each landmark's first estimate), so global translation and "
+                      "rotation stay unobservable and the filter does not grow overconfident "
+                      "in the map's heading (docs/estimator.md)", choices=LINEARISATIONS)
     # -- opt-in motion noise (not SPEC §4; all 0 = the SPEC §4 model exactly) ------------
     sigma_distance: float = setting(
         0.0, doc="opt-in, not SPEC §4: along-track noise growing with the distance driven, "
