@@ -58,7 +58,7 @@ _PROVEN_FINITE: contextvars.ContextVar[object] = contextvars.ContextVar(
     "slamlens_proven_finite", default=None)
 STEPS = ("init", "predict", "update")
 VIOLATION_KINDS = ("pair", "feature", "symmetry", "psd", "correlation", "nees", "nis",
-                   "prediction")
+                   "prediction", "unobservable")
 
 _INT64 = (-(2 ** 63), 2 ** 63 - 1)
 _UINT64 = (0, 2 ** 64 - 1)

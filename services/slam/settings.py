@@ -351,6 +351,17 @@ class MonitorSettings:
     rtol_prediction: float = setting(1e-9, doc="prediction residual tolerance, relative to "
                                                "sqrt(P_aa·P_bb) of the entry checked",
                                      min=0.0, group=_THEOREMS)
+    check_unobservable: str = setting(
+        "auto", doc="the information in the unobservable directions (global x, y, rotation) "
+                    "must never grow: auto = a violation for an estimator that says it keeps "
+                    "them unobservable (FEJ), the growth in the statistics for any other (a "
+                    "standard EKF grows it by construction); always = a violation for any; "
+                    "off = not computed (docs/monitor.md)", choices=("auto", "always", "off"),
+        group=_THEOREMS)
+    rtol_unobservable: float = setting(
+        1e-6, doc="growth of that information allowed, relative (in the direction it grew "
+                  "most): rounding stays below 2e-12 on MRCLAM, a standard EKF's updates add "
+                  "1e-3 to 5", min=0.0, group=_THEOREMS)
 
     # -- statistical tests -------------------------------------------------------------
     significance: float = setting(1e-6, doc="two-sided α of each windowed test (one test per "
