@@ -12,7 +12,6 @@ and turns its state into a :class:`~slamlens.common.messages.SlamState`. No I/O 
 from __future__ import annotations
 
 import logging
-import math
 from collections import Counter
 from typing import Any
 
@@ -22,9 +21,15 @@ from slamlens.common.arrays import RecycledBuffers
 from slamlens.common.errors import EstimationError
 from slamlens.common.messages import SlamState, finite_by_construction
 from slamlens.services.slam import association, ekf, faults
-from slamlens.services.slam.linearisation import FEJ, FirstEstimates
+from slamlens.services.slam.linearisation import FEJ, FirstEstimates, fused
 from slamlens.services.slam.observe_report import BatchRecord, ObserveReport, Refusal
-from slamlens.services.slam.plausibility import Bounds, ImplausibleInputError, InputGates
+from slamlens.services.slam.plausibility import (
+    Bounds,
+    ImplausibleInputError,
+    InputGates,
+    checked_batch,
+    describe_batch,
+)
 from slamlens.services.slam.settings import EstimatorSettings
 
 log = logging.getLogger("slamlens.estimator")
@@ -185,13 +190,13 @@ class Estimator:
         observation of the batch, :class:`ekf.RefusedStepError` is raised (nothing changed).
         """
         self._map_dirty = True  # an update touches the whole matrix
-        id_list, range_list, bearing_list = self._check_batch(ids, ranges, bearings, stamp)
+        id_list, range_list, bearing_list = checked_batch(ids, ranges, bearings, stamp)
         try:
             self.gates.check_batch(
                 ranges=range_list, bearings=bearing_list, landmarks=self._n, stamp=stamp,
                 new_ids=len({i for i in id_list if i >= 0 and i not in self._index}))
         except ImplausibleInputError as exc:
-            self._refuse(exc.reason, str(exc), stamp, self._describe_batch(
+            self._refuse(exc.reason, str(exc), stamp, describe_batch(
                 id_list, range_list, bearing_list))
             raise
         batch = BatchRecord()
@@ -266,19 +271,12 @@ class Estimator:
 
     def _map_unmapped(self, batch: BatchRecord, stamp: float) -> None:
         """FEJ: the batch's new landmarks, mapped after its updates (so that no update of
-        the batch moves them: the estimate a state publishes for a new landmark is its first
-        estimate, which a monitor takes as its linearisation point). Sightings of one new
-        landmark in one batch are fused into one: the mean range and bearing (about the
-        first) with their variances over k."""
+        the batch moves them: a state publishes a new landmark at its first estimate, which
+        a monitor takes as its linearisation point); sightings of one landmark fused."""
         for lid, sightings in batch.unmapped.items():
-            k = len(sightings)
-            b0 = sightings[0][1]
-            z_r = sum(s[0] for s in sightings) / k
-            z_b = float(ekf.wrap_angle(b0 + sum(float(ekf.wrap_angle(s[1] - b0))
-                                                for s in sightings) / k))
-            var_r = sum(s[2] for s in sightings) / (k * k)
+            z_r, z_b, var_r, var_b = fused(sightings, self._var_b)
             try:
-                self._initialise(lid, z_r, z_b, var_r, self._var_b / k)
+                self._initialise(lid, z_r, z_b, var_r, var_b)
             except ekf.RefusedStepError as exc:
                 self._refuse(exc.reason, str(exc), stamp,
                              f"observation id={lid} range={z_r!r} bearing={z_b!r}")
@@ -423,33 +421,6 @@ class Estimator:
                                  if k.startswith("refused.")})
 
     # -- internals ---------------------------------------------------------------------
-    @staticmethod
-    def _check_batch(ids: Any, ranges: Any, bearings: Any,
-                     stamp: float) -> tuple[list[int], list[float], list[float]]:
-        """Validated plain lists (the loop runs on Python scalars; builtins over small
-        lists are cheaper than a numpy call per check)."""
-        ekf.check_finite_inputs(stamp=stamp)
-        ids_a = np.asarray(ids)
-        if ids_a.ndim != 1 or (ids_a.size and ids_a.dtype.kind not in "iu"):
-            raise EstimationError(f"ids must be a 1-D integer array, got dtype {ids_a.dtype} "
-                             f"shape {ids_a.shape}")
-        ranges_a = np.asarray(ranges, dtype=np.float64)
-        bearings_a = np.asarray(bearings, dtype=np.float64)
-        if ranges_a.shape != ids_a.shape or bearings_a.shape != ids_a.shape:
-            raise EstimationError(f"ids, ranges and bearings must have the same length, got "
-                             f"{ids_a.shape}, {ranges_a.shape}, {bearings_a.shape}")
-        id_list: list[int] = ids_a.tolist()
-        range_list: list[float] = ranges_a.tolist()
-        bearing_list: list[float] = bearings_a.tolist()
-        if not (all(map(math.isfinite, range_list)) and all(map(math.isfinite, bearing_list))):
-            raise EstimationError("ranges and bearings must be finite (NaN or infinity received)")
-        if id_list:
-            if min(range_list) < 0:
-                raise EstimationError("ranges must be ≥ 0")
-            if min(id_list) < -1:
-                raise EstimationError(f"ids must be ≥ −1, got {min(id_list)}")
-        return id_list, range_list, bearing_list
-
     def _range_variance(self, z_range: float, z_bearing: float) -> float:
         """σr² (SPEC §4), plus the opt-in terms (k·r)² and (k·r·φ²)² when configured."""
         var = self._var_r
@@ -463,13 +434,6 @@ class Estimator:
     def _refuse(self, reason: str, detail: str, stamp: float, what: str) -> None:
         self.refusals[reason] += 1
         self.last_refusal = Refusal(reason=reason, detail=detail, stamp=stamp, input=what)
-
-    @staticmethod
-    def _describe_batch(ids: list[int], ranges: list[float], bearings: list[float]) -> str:
-        head = ", ".join(f"{i}:({r:.6g} m, {b:.6g} rad)"
-                         for i, r, b in zip(ids[:3], ranges[:3], bearings[:3], strict=True))
-        more = f" … ({len(ids)} in all)" if len(ids) > 3 else ""
-        return f"observations [{head}{more}]"
 
     def _log_refused(self, lid: int, exc: Exception) -> None:
         self.refused_updates += 1

@@ -29,7 +29,7 @@ from typing import Any
 from slamlens.common.errors import EstimationError
 from slamlens.services.slam.settings import FEJ, LINEARISATIONS, STANDARD
 
-__all__ = ["FEJ", "LINEARISATIONS", "STANDARD", "FirstEstimates"]
+__all__ = ["FEJ", "LINEARISATIONS", "STANDARD", "FirstEstimates", "fused"]
 
 
 class FirstEstimates:
@@ -85,6 +85,22 @@ class FirstEstimates:
         for lid, estimate in zip(ids, landmarks, strict=True):
             out.mapped(*_pair(kept.get(int(lid), estimate), f"landmark {lid}"))
         return out
+
+
+def fused(sightings: Sequence[tuple[float, float, float]],
+          var_bearing: float) -> tuple[float, float, float, float]:
+    """k sightings (range, bearing, range variance) of one new landmark in one batch as one:
+    the mean range and bearing (about the first, wrapped) with the variances over k — what
+    FEJ maps when a batch sees a new landmark more than once (docs/estimator.md)."""
+    k = len(sightings)
+    b0 = sightings[0][1]
+    z_r = sum(s[0] for s in sightings) / k
+    z_b = _wrap(b0 + sum(_wrap(s[1] - b0) for s in sightings) / k)
+    return z_r, z_b, sum(s[2] for s in sightings) / (k * k), var_bearing / k
+
+
+def _wrap(angle: float) -> float:
+    return (angle + math.pi) % (2.0 * math.pi) - math.pi
 
 
 def _pair(value: Any, what: str) -> tuple[float, float]:

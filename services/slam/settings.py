@@ -136,9 +136,23 @@ class TuneSettings:
         choices=("spec", "distance"))
     gate_chi2: float = setting(13.82, doc="innovation gate written into the profile (χ²₂ "
                                           "99.9 %); 0 = none", min=0.0)
+    linearisation: str = setting(
+        "both", doc="the estimator's linearisation to fit for: standard, fej, or both = fit "
+                    "each and choose by the robots left out (by the fit itself with one "
+                    "robot or --no-cross-validate)", choices=(STANDARD, FEJ, "both"))
+    cross_validate: bool = setting(
+        True, doc="leave each robot out in turn: fit on the others, score it (NEES, landmark "
+                  "RMSE after a rigid fit), report, and choose the linearisation by that; "
+                  "needs two robots or more (docs/estimator.md)", flag="--no-cross-validate")
+    jobs: int = setting(2, doc="processes scoring the robots of a pass at once (1 = this "
+                               "process only)", min=1)
+    folds: str = setting("", doc="also write each leave-one-robot-out profile here, as "
+                                 "without-robotK.toml (to run a robot left out through the "
+                                 "real processes); empty = none", metavar="DIR")
     output: str = setting("", doc="settings TOML to write; empty = print it", short="-o",
                           metavar="FILE.toml")
     progress: str = _progress()
+
 
 
 
