@@ -351,7 +351,8 @@ def _run_tune(args: argparse.Namespace) -> int:
         if s.cross_validate and len(runs) >= 2:
             results = [crossval.cross_validate(
                 runs, crossval.Candidate(lin, s.motion_model), gate_chi2=s.gate_chi2,
-                progress=fold_progress, executor=pool) for lin in linearisations]
+                scaled=s.scale, progress=fold_progress, executor=pool)
+                for lin in linearisations]
             cv = crossval.choose(results)
             notes = crossval.report(results, cv)
             for line in notes:
@@ -362,8 +363,8 @@ def _run_tune(args: argparse.Namespace) -> int:
             return lambda n, c: bar(f"tune ({lin}) pass {n} (σ × {c:.3f})", events)
 
         fits = [tuning.tune(runs, motion_model=s.motion_model, gate_chi2=s.gate_chi2,
-                            base=EstimatorSettings(linearisation=lin), progress=passes(lin),
-                            executor=pool)
+                            base=EstimatorSettings(linearisation=lin), scaled=s.scale,
+                            progress=passes(lin), executor=pool)
                 for lin in linearisations]
     finally:
         for old in bars:
@@ -378,7 +379,7 @@ def _run_tune(args: argparse.Namespace) -> int:
     robots = ",".join(str(k) for k in s.robot_index)
     header = [f"slamlens estimator settings fitted by: slamlens tune {s.path} --robot-index "
               f"{robots} --motion-model {s.motion_model} --gate-chi2 {s.gate_chi2:g} "
-              f"--linearisation {s.linearisation}"
+              f"--linearisation {s.linearisation} --scale {s.scale}"
               + ("" if s.cross_validate else " --no-cross-validate"),
               "use: slamlens estimator --config THIS_FILE --robot R (docs/estimator.md)"]
     text = tuning.profile_toml(result, header=header, notes=notes)

@@ -99,7 +99,7 @@ class CrossValidation:
 
 def cross_validate(runs: Sequence[MrclamRun], candidate: Candidate, *,
                    gate_chi2: float = 13.82, base: EstimatorSettings | None = None,
-                   progress: FoldProgress | None = None,
+                   scaled: str = "motion", progress: FoldProgress | None = None,
                    executor: Executor | None = None) -> CrossValidation:
     """Leave each robot out in turn (module docstring); at least two robots."""
     if len(runs) < 2:
@@ -117,7 +117,7 @@ def cross_validate(runs: Sequence[MrclamRun], candidate: Candidate, *,
             return None if progress is None else progress(what, number, scale, total)
 
         result = tune(train, motion_model=candidate.motion_model, gate_chi2=gate_chi2,
-                      base=settings, progress=tick, executor=executor)
+                      base=settings, scaled=scaled, progress=tick, executor=executor)
         test = evaluate_all([held], settings_with(settings, result.values), executor=executor,
                             progress=None if progress is None else progress(
                                 what, 0, result.scale, events[k]))[0]

@@ -276,13 +276,16 @@ class Monitor:
         self._screens = {}
         prev = self._prev
         start = 0
+        # where each state's prediction linearised, followed through the whole burst
+        before = predict_points(self._unobservable.robot, [prev, *states[:-1]], list(states))
         for k in range(1, len(states) + 1):  # runs of one covariance size
             if k == len(states) or states[k].covariance.shape != states[start].covariance.shape:
-                self._screen_run(prev, states[start:k])
+                self._screen_run(prev, states[start:k], before[start:k])
                 prev = states[k - 1]
                 start = k
 
-    def _screen_run(self, prev: SlamState | None, run: Sequence[SlamState]) -> None:
+    def _screen_run(self, prev: SlamState | None, run: Sequence[SlamState],
+                    before: list[np.ndarray | None] | None = None) -> None:
         s = self.settings
         P = np.stack([x.covariance for x in run])
         K, N = len(run), P.shape[1]
@@ -296,7 +299,8 @@ class Monitor:
                                         rtol_correlation=s.rtol_correlation,
                                         rtol_psd=s.rtol_psd, atol=s.atol_growth)
             prevs = [prev, *run[:-1]]
-            before = predict_points(self._unobservable.robot, prevs, list(run))
+            if before is None:  # one state, after the last one checked
+                before = predict_points(self._unobservable.robot, prevs, list(run))
             # the same landmarks in the same order (int64 ids: equal iff their bytes are)
             same = np.array([p is not None and p.landmark_ids.shape == x.landmark_ids.shape
                              and p.landmark_ids.tobytes() == x.landmark_ids.tobytes()

@@ -144,6 +144,10 @@ class TuneSettings:
         True, doc="leave each robot out in turn: fit on the others, score it (NEES, landmark "
                   "RMSE after a rigid fit), report, and choose the linearisation by that; "
                   "needs two robots or more (docs/estimator.md)", flag="--no-cross-validate")
+    scale: str = setting(
+        "motion", doc="what the NEES scale multiplies: motion = the odometry σ only (the "
+                      "sensor σ stay as measured against the truth); all = every σ",
+        choices=("motion", "all"))
     jobs: int = setting(2, doc="processes scoring the robots of a pass at once (1 = this "
                                "process only)", min=1)
     folds: str = setting("", doc="also write each leave-one-robot-out profile here, as "

@@ -19,12 +19,14 @@ How a profile is made (docs/estimator.md, "Tuning on real data"):
    k_d²·distance and k_t²·turn + k_hd²·distance (the opt-in terms,
    ``motion_model = "distance"``), fitted the same way, each window length weighted equally.
 3. **Check and scale.** The estimator runs over every run with the fitted settings and its
-   time-averaged pose NEES is measured against the truth. Scaling every σ by c leaves the
-   estimate unchanged and scales P by c² (the gain does not change), so NEES/c²: the
-   residual fit sets the shape of the noise, and c, from the pooled runs, sets its size:
-   c ← c·sqrt(mean NEES / 3) until the pooled mean is within 2 % of 3 (the innovation gate
-   refuses other observations at another scale, so a few passes). The last pass is the
-   check: each run's NEES against the band (:meth:`TuneResult.passes`).
+   time-averaged pose NEES is measured against the truth. The sensor σ are measured
+   against the truth directly, per measurement: they stay as fitted. The odometry errors
+   are correlated in time (commanded, not measured, velocities), which a white-noise model
+   fitted on windows underestimates, so the motion σ are multiplied by a scale c until the
+   pooled mean NEES is within 2 % of 3: ln NEES is close to linear in ln c, so a secant
+   on the passes so far (``scaled = "all"`` multiplies every σ instead: then P scales by c²
+   and the slope is −2). The last pass is the check: each run's NEES against the band
+   (:meth:`TuneResult.passes`).
 
 No I/O besides reading the dataset (through :mod:`slamlens.services.slam.mrclam`).
 """
@@ -267,6 +269,11 @@ def fit_noise(runs: Sequence[MrclamRun], *, motion_model: str = "spec",
 NOISE_KEYS = ("sigma_v", "sigma_w", "sigma_range", "sigma_bearing", "sigma_distance",
               "sigma_turn", "sigma_heading_per_distance", "sigma_range_per_m",
               "sigma_range_off_axis")
+#: the largest scale tried: a profile needing more is a model that does not fit
+MAX_SCALE = 20.0
+#: the odometry σ (what the NEES scale multiplies by default)
+MOTION_KEYS = ("sigma_v", "sigma_w", "sigma_distance", "sigma_turn",
+               "sigma_heading_per_distance")
 
 
 @dataclass
@@ -281,6 +288,7 @@ class TuneResult:
     motion_model: str
     passes_run: int = 0  #: estimator passes over the runs
     linearisation: str = "standard"  #: the estimator's (EstimatorSettings.linearisation)
+    scaled: str = "motion"  #: which σ the scale multiplies: motion or all
 
     @property
     def pooled_nees(self) -> float:
@@ -291,6 +299,20 @@ class TuneResult:
         ``min_windows`` of its 100-state windows inside the 95 % band."""
         return all(e.nees_mean <= max_nees and e.window_fraction() >= min_windows
                    for e in self.after)
+
+
+def _next_scale(history: list[tuple[float, float]]) -> float:
+    """The next scale c from the passes so far, (ln c, ln pooled NEES): ln NEES is close to
+    linear in ln c — slope −2 when every σ scales (P ∝ c²), flatter when only the motion σ
+    do — so a secant through the last two passes, the slope −2 until there are two (or
+    while the secant's is not clearly negative)."""
+    lc, ln = history[-1]
+    slope = -2.0
+    if len(history) >= 2:
+        lc0, ln0 = history[-2]
+        if lc != lc0 and (ln - ln0) / (lc - lc0) < -0.25:
+            slope = (ln - ln0) / (lc - lc0)
+    return math.exp(lc + (math.log(POSE_DOF) - ln) / slope)
 
 
 def in_sample_rank(result: TuneResult) -> tuple[bool, float]:
@@ -313,24 +335,29 @@ def settings_with(base: EstimatorSettings, values: dict[str, float]) -> Estimato
 
 def tune(runs: Sequence[MrclamRun], *, motion_model: str = "spec",
          gate_chi2: float = 13.82, base: EstimatorSettings | None = None,
-         max_passes: int = 6, tolerance: float = 0.02,
+         max_passes: int = 8, tolerance: float = 0.02, scaled: str = "motion",
          progress: Callable[[int, float], Progress | None] | None = None,
          executor: Executor | None = None) -> TuneResult:
     """Fit, check and scale until consistent (module docstring).
 
-    ``progress(pass_number, scale)`` may return a callable that is told how many events
-    each pass has pushed through (for a progress bar). With an ``executor`` the runs of a
-    pass are scored on its processes.
+    ``scaled`` says which σ the NEES scale multiplies: ``motion`` (the odometry σ; the
+    sensor σ stay as measured against the truth) or ``all``. ``progress(pass_number,
+    scale)`` may return a callable that is told how many events each pass has pushed
+    through (for a progress bar). With an ``executor`` the runs of a pass are scored on
+    its processes.
     """
+    if scaled not in ("motion", "all"):
+        raise ConfigError(f"scaled {scaled!r}: motion or all")
     base = base or EstimatorSettings()
     fit = fit_noise(runs, motion_model=motion_model)
     scale = 1.0
     before: list[Evaluation] = []
     after: list[Evaluation] = []
     values: dict[str, float] = {}
+    history: list[tuple[float, float]] = []
     for number in range(1, max_passes + 1):
-        values = {**{k: v * scale for k, v in fit.values.items()},
-                  "innovation_gate_chi2": gate_chi2}
+        values = {**{k: v * (scale if scaled == "all" or k in MOTION_KEYS else 1.0)
+                     for k, v in fit.values.items()}, "innovation_gate_chi2": gate_chi2}
         tick = progress(number, scale) if progress is not None else None
         after = evaluate_all(runs, settings_with(base, values), executor=executor,
                              progress=tick)
@@ -341,9 +368,16 @@ def tune(runs: Sequence[MrclamRun], *, motion_model: str = "spec",
             break
         if abs(nees / POSE_DOF - 1) <= tolerance or number == max_passes:
             break
-        scale *= math.sqrt(nees / POSE_DOF)
+        history.append((math.log(scale), math.log(nees)))
+        if len(history) >= 2 and nees > 3 * POSE_DOF and \
+                history[-1][1] > history[-2][1] + math.log(0.9):
+            break  # the scale no longer moves the NEES: noise cannot make this consistent
+        new = min(max(_next_scale(history), scale / 10), scale * 10, MAX_SCALE)
+        if new == scale:
+            break  # at the largest scale tried
+        scale = new
     return TuneResult(fit=fit, scale=scale, values=values, before=before, after=after,
-                      motion_model=motion_model, passes_run=number,
+                      motion_model=motion_model, passes_run=number, scaled=scaled,
                       linearisation=base.linearisation)
 
 
@@ -383,8 +417,10 @@ def profile_toml(result: TuneResult, *, header: Sequence[str] = (),
         f"{result.fit.odometry_windows} odometry windows; {result.fit.range_outliers:.1%} of "
         "ranges off by > 0.5 m" + (f"; barcodes read as another landmark's: {wrong}"
                                    if wrong else ""),
-        f"# NEES scale c = {result.scale:.3f} (pooled pose NEES before: "
-        f"{_pooled_nees(result.before):.2f}, after: {result.pooled_nees:.2f})",
+        f"# NEES scale c = {result.scale:.3f} on "
+        + ("the motion σ (the sensor σ as measured)" if result.scaled == "motion"
+           else "every σ") + f" (pooled pose NEES before: {_pooled_nees(result.before):.2f},"
+        f" after: {result.pooled_nees:.2f})",
     ]
     for e in result.after:
         lines.append(f"# {e.robot} (fitted on): pose NEES {e.nees_mean:.2f}, "

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from scipy import linalg
 
-from slamlens.common.messages import SlamState
+from slamlens.common.messages import Health, SlamState
 from slamlens.common.verdict import violation_text
 from slamlens.services.slam import consistency
 from slamlens.services.slam.monitor import Monitor
@@ -149,3 +149,24 @@ def test_fej_prediction_steps_and_a_planted_cross_covariance_fault() -> None:
     named = {i for h in healths for v in h.violations if v.kind == "prediction" for i in v.ids}
     assert named == {3}
     assert any(3 in h.suspects.tolist() for h in healths)
+
+
+@pytest.mark.parametrize("fault", [{}, {"fault": "cross-covariance", "faulty_features": (3,),
+                                        "fault_onset": 20.0}])
+def test_fej_states_in_bursts_give_the_healths_of_one_by_one(fault: dict) -> None:
+    """The screen follows FEJ's linearisation points through a burst (landmarks appear
+    mid-burst, so a burst is screened as several runs of one size): bursts = one by one."""
+    states = states_of("fej", seed=4, **fault)[:700]
+    single = [h.to_bytes() for h in check_all(states)]
+    rng = np.random.default_rng(3)
+    mon = Monitor(MonitorSettings())
+    bursts: list[bytes] = []
+    k = 0
+    while k < len(states):
+        burst = states[k:k + int(rng.integers(1, 80))]
+        k += len(burst)
+        mon.prepare(burst)
+        bursts += [mon.check(s).to_bytes() for s in burst]
+    assert bursts == single
+    if not fault:
+        assert all(not Health.from_bytes(b).violations for b in single)

@@ -214,3 +214,25 @@ def test_tune_cli_leaves_each_robot_out_and_writes_the_choice(tmp_path: Path) ->
     settings = load_settings(EstimatorSettings, out, {"robot": "robot2"})
     assert settings.linearisation == "fej" and tomllib.loads(text)["linearisation"] == "fej"
     assert "# m/s: error of the commanded speed" in text  # what each term means
+
+
+def test_the_scale_search_is_a_secant_in_log_log() -> None:
+    # NEES = 40·c^s: from two passes the secant lands on 3 whatever the slope s
+    for s in (-2.0, -1.3, -0.7):
+        history = [(math.log(c), math.log(40.0 * c ** s)) for c in (1.0, 2.0)]
+        c = tuning._next_scale(history)
+        assert 40.0 * c ** s == pytest.approx(3.0, rel=1e-9)
+    # one pass: the every-σ rule c·sqrt(NEES/3)
+    assert tuning._next_scale([(0.0, math.log(12.0))]) == pytest.approx(2.0)
+
+
+def test_the_scale_multiplies_the_motion_sigma_only() -> None:
+    """The sensor σ stay as measured against the truth; the NEES scale is the odometry's."""
+    run = load_mrclam(SMALL, 1)
+    fit = tuning.fit_noise([run]).values
+    result = tuning.tune([run], max_passes=2)
+    assert result.scaled == "motion" and result.scale != 1.0
+    for key in ("sigma_range", "sigma_bearing", "sigma_range_per_m", "sigma_range_off_axis"):
+        assert result.values[key] == fit[key]
+    for key in ("sigma_v", "sigma_w"):
+        assert result.values[key] == pytest.approx(fit[key] * result.scale, rel=1e-12)
