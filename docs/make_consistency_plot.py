@@ -17,7 +17,7 @@ import argparse
 import math
 import os
 import sys
-from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 import matplotlib
@@ -59,19 +59,30 @@ def one(args: tuple[str, int, int, str]) -> tuple[np.ndarray, np.ndarray]:
 
 def runs_of(world: str, loops: int, linearisation: str, seeds: int, processes: int,
             cache: Path | None) -> MonteCarlo:
-    path = None if cache is None else cache / f"{world}-{loops}-{linearisation}-{seeds}.npz"
-    if path is not None and path.exists():
-        data = np.load(path)
-        runs = [(data["stamps"], row) for row in data["nees"]]
-    else:
-        jobs = [(world, loops, s, linearisation) for s in range(seeds)]
-        with ProcessPoolExecutor(processes) as pool:
-            runs = list(pool.map(one, jobs))
-        if path is not None:
-            length = min(len(n) for _, n in runs)
-            np.savez(path, stamps=runs[0][0][:length],
-                     nees=np.stack([n[:length] for _, n in runs]))
-    return combine(runs)
+    """The runs of seeds 0 … seeds−1, each kept in ``cache`` as it finishes (a second call,
+    or one cut short and started again, computes only the seeds it lacks)."""
+    def path(seed: int) -> Path | None:
+        return None if cache is None else cache / f"{world}-{loops}-{linearisation}-{seed}.npz"
+
+    runs: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+    todo = []
+    for seed in range(seeds):
+        p = path(seed)
+        if p is not None and p.exists():
+            data = np.load(p)
+            runs[seed] = (data["stamps"], data["nees"])
+        else:
+            todo.append(seed)
+    with ProcessPoolExecutor(processes) as pool:
+        futures = {pool.submit(one, (world, loops, seed, linearisation)): seed
+                   for seed in todo}
+        for future in as_completed(futures):
+            seed = futures[future]
+            runs[seed] = future.result()
+            p = path(seed)
+            if p is not None:
+                np.savez(p, stamps=runs[seed][0], nees=runs[seed][1])
+    return combine([runs[s] for s in range(seeds)])
 
 
 def first_out(mc: MonteCarlo, run_length: int = OUT_RUN) -> float | None:
