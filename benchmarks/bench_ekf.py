@@ -3,6 +3,7 @@ dense textbook EKF measured in the same run.
 
     .venv/bin/python benchmarks/bench_ekf.py           # full run (about a minute)
     .venv/bin/python benchmarks/bench_ekf.py --quick   # smoke run (a few seconds)
+    .venv/bin/python benchmarks/bench_ekf.py --fej-only   # FEJ / standard at n = 15, 100, 1000
 
 Targets (docs/estimator.md): update at n = 1000 ≤ 1.3× the streaming floor (one read + one
 write of an N×N float64 matrix, timed as ``np.add(A, 0.0, out=A)`` on a contiguous array);
@@ -27,7 +28,7 @@ from collections.abc import Callable
 import numpy as np
 import scipy
 
-from slamlens.services.slam import ekf
+from slamlens.services.slam import ekf, ekf_storage
 from slamlens.services.slam.estimator import Estimator
 from slamlens.services.slam.settings import EstimatorSettings
 
@@ -36,20 +37,22 @@ VAR_V, VAR_W = SIG.sigma_v ** 2, SIG.sigma_w ** 2
 VAR_R, VAR_B = SIG.sigma_range ** 2, SIG.sigma_bearing ** 2
 
 
-def median_us(fn: Callable[[], object], reps: int, *, warmup: int = 3) -> float:
+def median_us(fn: Callable[[], object], reps: int, *, warmup: int = 3,
+              clock: Callable[[], int] = time.perf_counter_ns) -> float:
     for _ in range(warmup):
         fn()
     times = []
     for _ in range(reps):
-        t0 = time.perf_counter_ns()
+        t0 = clock()
         fn()
-        times.append(time.perf_counter_ns() - t0)
+        times.append(clock() - t0)
     return statistics.median(times) / 1e3
 
 
-def mapped_estimator(n: int, rng: np.random.Generator) -> Estimator:
+def mapped_estimator(n: int, rng: np.random.Generator, *,
+                     settings: EstimatorSettings = SIG) -> Estimator:
     """A realistic state: n landmarks initialised from a moving robot, then a few updates."""
-    est = Estimator(SIG)
+    est = Estimator(settings)
     side = math.ceil(math.sqrt(n))
     truth = {i: np.array([(i % side) - side / 2, (i // side) - side / 2]) * 0.7 + [0.3, 0.2]
              for i in range(n)}
@@ -186,6 +189,38 @@ def batch_text(n: int, rng: np.random.Generator, *, reps: int, batch: int = 4) -
             f"back and applied at once {held:.0f} µs (ratio {each / held:.2f}×)")
 
 
+def fej_text(n: int, *, reps: int, rounds: int = 7) -> str:
+    """FEJ against the standard linearisation (docs/estimator.md, "Linearisation"): the
+    same map built by both, then one ``Estimator.predict`` + ``observe`` of one landmark
+    (the whole path: bookkeeping, input checks, guard) timed for each, interleaved in
+    rounds so that load from other work hits both alike. Medians of the rounds' medians,
+    in CPU time of this thread (a descheduled thread's wait is not the kernel's cost)."""
+    ests = {lin: mapped_estimator(n, np.random.default_rng(n), settings=EstimatorSettings(
+        linearisation=lin)) for lin in ("standard", "fej")}
+    ids = np.array([0], dtype=np.int64)
+
+    def step(est: Estimator) -> Callable[[], None]:
+        x = est._x
+
+        def go() -> None:
+            est.predict(v=0.2, w=0.1, dt=0.01, stamp=1.0)
+            z = ekf.observe(x[:3], x[3:5])
+            est.observe(ids=ids, ranges=[float(z[0]) + 1e-3], bearings=[float(z[1])],
+                        stamp=1.0)
+        return go
+
+    times: dict[str, list[float]] = {"standard": [], "fej": []}
+    for _ in range(rounds):
+        for lin, est in ests.items():
+            times[lin].append(median_us(step(est), max(3, reps // rounds),
+                                        clock=time.thread_time_ns))
+    std, fej = (statistics.median(times[k]) for k in ("standard", "fej"))
+    ratios = [f / s for s, f in zip(times["standard"], times["fej"], strict=True)]
+    return (f"FEJ vs standard at n = {n}: Estimator predict+update {std:.1f} µs standard, "
+            f"{fej:.1f} µs fej (thread CPU), ratio {fej / std:.3f} (per round "
+            f"{min(ratios):.3f}–{max(ratios):.3f})")
+
+
 def row_text(r: dict[str, float]) -> str:
     return (f"{r['n']:>5.0f} {r['N']:>5.0f} {r['predict_us']:>9.1f} "
             f"{r['predict_guard_us']:>9.1f} {r['update_us']:>9.1f} {r['update_guard_us']:>9.1f} "
@@ -221,16 +256,26 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true", help="few repetitions (smoke run)")
     parser.add_argument("--sizes", default="15,100,500,1000", help="landmark counts n")
     parser.add_argument("--rows-only", action="store_true", help=argparse.SUPPRESS)
+    parser.add_argument("--fej-only", action="store_true",
+                        help="only the FEJ / standard cost ratio (at n = 15, 100, 1000)")
     args = parser.parse_args(argv)
     sizes = [int(v) for v in args.sizes.split(",")]
     rng = np.random.default_rng(0)
+    if args.fej_only:
+        print(f"load average {os.getloadavg()[0]:.2f}, BLAS env "
+              f"{os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}")
+        for n in (15, 100, 1000):
+            print(fej_text(n, reps=(300 if n <= 100 else 30) if args.quick
+                           else (7000 if n <= 100 else 350)), flush=True)
+        return 0
 
     if not args.rows_only:
         env = {k: os.environ[k] for k in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS",
                                           "MKL_NUM_THREADS") if k in os.environ}
+        fast = "on" if ekf_storage._dsyrk() is not None else "OFF (numpy fallback)"
         print(f"python {platform.python_version()}, numpy {np.__version__}, scipy "
               f"{scipy.__version__}, {os.cpu_count()} CPUs, BLAS env {env or 'unset'}, "
-              f"dsyrk fast path {'on' if ekf._dsyrk() is not None else 'OFF (numpy fallback)'}, "
+              f"dsyrk fast path {fast}, "
               f"load average {os.getloadavg()[0]:.2f}")
         print("medians in µs; predict/update = the kernels unguarded, guarded = with the "
               "poisoning guard (O(N) checks); pred+upd = the kernels, Estimator = the class "
@@ -258,6 +303,9 @@ def main(argv: list[str] | None = None) -> int:
     for n in sizes:
         print(batch_text(n, rng, reps=(200 if n <= 100 else 20) if args.quick
                          else (2000 if n <= 100 else 100)), flush=True)
+    for n in sizes:
+        print(fej_text(n, reps=(300 if n <= 100 else 30) if args.quick
+                       else (7000 if n <= 100 else 350)), flush=True)
 
     by_n = {int(r["n"]): r for r in rows}
     checks = []

@@ -336,7 +336,7 @@ def profile_estimator(events: int = 300) -> None:
     wall = time.perf_counter() - t0
     stats = pstats.Stats(profiler).stats  # type: ignore[attr-defined]
     groups = {
-        "EKF update (downdate, gains)": ("downdate_lower", "_robot_columns", "_check_update",
+        "EKF update (downdate, gains)": ("downdate_lower", "robot_columns", "_check_update",
                                          "mahalanobis", "initialise"),
         "EKF predict": ("predict",),
         "materialise P after an update (symmetric)": ("symmetric",),

@@ -10,7 +10,7 @@ numpy.linalg.eigvalsh of the difference; the ratio is naive / ours for that chec
 machine is shared: run it a few times, quote medians; set OPENBLAS_NUM_THREADS=1 (as the
 monitor service should run) or see the latency of a multi-threaded Cholesky under load.
 
-    .venv/bin/python benchmarks/bench_monitor.py [--states 200] [--quick]
+    .venv/bin/python benchmarks/bench_monitor.py [--states 200] [--quick] [--unobservable]
 """
 
 from __future__ import annotations
@@ -21,6 +21,7 @@ import os
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import numpy as np
@@ -36,14 +37,15 @@ from slamlens.services.slam.monitor import Monitor  # noqa: E402
 from slamlens.services.slam.settings import EstimatorSettings, MonitorSettings  # noqa: E402
 
 
-def make_run(n: int, count: int, seed: int = 0) -> tuple[list[SlamState], list[Truth]]:
+def make_run(n: int, count: int, seed: int = 0, *,
+             settings: EstimatorSettings | None = None) -> tuple[list[SlamState], list[Truth]]:
     """``count`` states (after init) of the estimator among n landmarks on a ring."""
     rng = np.random.default_rng(seed)
     angles = np.linspace(-0.45 * math.pi, 0.45 * math.pi, n)
     radii = rng.uniform(2.0, 4.0, n)
     ids = np.arange(1, n + 1)
     xy = np.stack([radii * np.cos(angles), radii * np.sin(angles)], axis=1)
-    est = Estimator(EstimatorSettings())
+    est = Estimator(settings or EstimatorSettings(max_batch=0))
     pose = np.zeros(3)
 
     def measure(which: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -71,18 +73,20 @@ def make_run(n: int, count: int, seed: int = 0) -> tuple[list[SlamState], list[T
     return states, truths
 
 
-def time_monitor(states: list[SlamState], truths: list[Truth] | None) -> list[float]:
+def time_monitor(states: list[SlamState], truths: list[Truth] | None,
+                 settings: MonitorSettings | None = None, *,
+                 clock: Callable[[], int] = time.perf_counter_ns) -> list[float]:
     """Microseconds of check() (and add_truth() of the state's truth) per state."""
-    monitor = Monitor(MonitorSettings())
+    monitor = Monitor(settings or MonitorSettings())
     by_stamp = {} if truths is None else {t.stamp: t for t in truths}
     out = []
     for s in states:
-        t0 = time.perf_counter_ns()
+        t0 = clock()
         truth = by_stamp.pop(s.stamp, None)
         if truth is not None:
             monitor.add_truth(truth)
         health = monitor.check(s)
-        out.append((time.perf_counter_ns() - t0) / 1e3)
+        out.append((clock() - t0) / 1e3)
         assert health.ok, health.violations  # the benchmark run must be a correct run
     return out[1:]  # the first state has nothing to compare with
 
@@ -116,11 +120,39 @@ def pct(values: list[float], q: float) -> float:
     return float(np.percentile(values, q))
 
 
+def unobservable_cost(sizes: tuple[int, ...], rounds: int) -> None:
+    """What the unobservable-directions check adds to ``check`` (docs/monitor.md): the
+    same FEJ states checked with it off and on (auto: FEJ says so, so it is a theorem),
+    whole runs alternated ``rounds`` times; medians of the per-state times over all."""
+    print("unobservable-directions check: check() per state, off against on (FEJ states; "
+          "CPU time of the checking thread, so that other work on the machine counts less)")
+    for n in sizes:
+        count = 200 if n <= 100 else 12
+        states, _ = make_run(n, count, settings=EstimatorSettings(max_batch=0,
+                                                                  linearisation="fej"))
+        times: dict[str, list[float]] = {"off": [], "auto": []}
+        for _ in range(rounds):
+            for mode in times:
+                times[mode] += time_monitor(states, None,
+                                            MonitorSettings(check_unobservable=mode),
+                                            clock=time.thread_time_ns)
+        off, on = (statistics.median(times[m]) for m in ("off", "auto"))
+        print(f"  n = {n:>4}: off {off:>10.0f} µs, on {on:>10.0f} µs, added {on - off:>8.0f} µs "
+              f"({100 * (on - off) / off:+.1f} %)", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--states", type=int, default=200, help="states per size")
     parser.add_argument("--quick", action="store_true", help="fewer states, n = 15, 100")
+    parser.add_argument("--unobservable", action="store_true",
+                        help="only the cost of the unobservable-directions check "
+                             "(n = 15, 100, 1000)")
     args = parser.parse_args()
+    if args.unobservable:
+        unobservable_cost((15, 100) if args.quick else (15, 100, 1000),
+                          rounds=2 if args.quick else 5)
+        return
     sizes = (15, 100) if args.quick else (15, 50, 100)
     count = 40 if args.quick else args.states
     threads = os.environ.get("OPENBLAS_NUM_THREADS", "unset")

@@ -22,20 +22,20 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from slamlens.common.arrays import bytes_backed_array  # noqa: E402
-from slamlens.services.slam import ekf  # noqa: E402
+from slamlens.services.slam import ekf, ekf_storage  # noqa: E402
 
 
 def copy_then_mirror(L: np.ndarray, N: int, out: np.ndarray) -> np.ndarray:
     """``ekf.symmetric`` before 2026-12-02 (the baseline)."""
     out[...] = L[:N, :N]
-    B = ekf._SYM_BLOCK
+    B = ekf_storage._SYM_BLOCK
     for s in range(0, N, B):
         e = min(N, s + B)
         for c in range(e, N, B):
             f = min(N, c + B)
             out[s:e, c:f] = out[c:f, s:e].T
         tile = out[s:e, s:e]
-        tile[...] = np.where(ekf._lower_mask(e - s), tile, tile.T)
+        tile[...] = np.where(ekf_storage._lower_mask(e - s), tile, tile.T)
     return out
 
 

@@ -37,7 +37,7 @@ __all__ = [
 
 STEPS = ("init", "predict", "update")
 VIOLATION_KINDS = ("pair", "feature", "symmetry", "psd", "correlation", "nees", "nis",
-                   "prediction")
+                   "prediction", "unobservable")
 
 
 @dataclass(frozen=True, eq=False)

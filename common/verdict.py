@@ -22,7 +22,8 @@ WORDS = {"ok": "ok", "fault": "estimator fault",
 #: what each kind of violation is, as a reader names it
 KIND_NAMES = {"pair": "pair", "feature": "feature", "prediction": "prediction",
               "symmetry": "asymmetric covariance", "psd": "covariance not PSD",
-              "correlation": "correlation beyond ±1", "nees": "NEES", "nis": "NIS"}
+              "correlation": "correlation beyond ±1", "nees": "NEES", "nis": "NIS",
+              "unobservable": "spurious information in an unobservable direction"}
 
 
 def _ids(ids: Sequence[int]) -> list[int]:

@@ -20,7 +20,7 @@ from slamlens.common.messages import Health, SlamState
 from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus
 from slamlens.services.harness.procs import REPO, spawn, stop
 from slamlens.services.slam.mrclam import load_mrclam
-from slamlens.services.slam.tuning import Evaluation, Scorer, TruthTrack, dead_reckoning_track
+from slamlens.services.slam.scoring import Evaluation, Scorer, TruthTrack, dead_reckoning_track
 
 DATA = REPO.parent / "shared" / "data" / "mrclam6"
 PROFILE = REPO / "deploy" / "mrclam.toml"
@@ -32,6 +32,8 @@ class PipelineResult:
     states: int  #: states of inputs received (the init state, published at start-up, not counted)
     last_seq: int
     verdicts: dict[str, int]  #: Health verdicts received, by verdict
+    #: "tuning" Healths by the kinds standing (e.g. "nees", "nis", "nees+nis")
+    tuning_kinds: dict[str, int] = field(default_factory=dict)
     fault_healths: list[dict] = field(default_factory=list)  #: a few "fault" ones, if any
     estimator: dict = field(default_factory=dict)  #: its final line
     monitor: dict = field(default_factory=dict)  #: its final line
@@ -54,6 +56,7 @@ class _Collector:
         self.count = 0
         self.last: SlamState | None = None
         self.verdicts: dict[str, int] = {}
+        self.tuning_kinds: dict[str, int] = {}
         self.faults: list[dict] = []
         self.healths_of_inputs = 0
         self.errors: list[str] = []
@@ -85,6 +88,9 @@ class _Collector:
                 continue
             health = Health.from_bytes(sample.payload)
             self.verdicts[health.verdict] = self.verdicts.get(health.verdict, 0) + 1
+            if health.verdict == "tuning":
+                kinds = "+".join(sorted({v.kind for v in health.standing}))
+                self.tuning_kinds[kinds] = self.tuning_kinds.get(kinds, 0) + 1
             self.healths_of_inputs += health.seq > 0
             if health.verdict == "fault" and len(self.faults) < 5:
                 self.faults.append({"seq": health.seq, "standing": [
@@ -162,7 +168,8 @@ def run_pipeline(robot_index: int, *, profile: Path = PROFILE, data: Path = DATA
                                              dict(last.diagnostics or {}))
         return PipelineResult(
             evaluation=evaluation, states=collector.count, last_seq=last.seq,
-            verdicts=dict(collector.verdicts), fault_healths=collector.faults,
+            verdicts=dict(collector.verdicts), tuning_kinds=dict(collector.tuning_kinds),
+            fault_healths=collector.faults,
             estimator=estimator, monitor=monitor, replay_line=replay_line.strip(),
             monitor_log=mon_err, monitor_out=mon_out, wall_s=wall)
     finally:

@@ -42,12 +42,18 @@ class Checkpoint:
     positions: dict[str, dict[str, Any]]  #: InputOrder.positions()
     next_anonymous_id: int
     noise: dict[str, float]  #: σ settings the map was built with
+    #: the FEJ linearisation points (``Estimator.linearisation_points``), None for the
+    #: standard filter (and then not written: such a file is what it always was)
+    linearisation: dict[str, Any] | None = None
 
     def to_bytes(self) -> bytes:
-        return msgpack.packb({"format": FORMAT, "robot": self.robot, "state": self.state,
-                              "positions": self.positions,
-                              "next_anonymous_id": self.next_anonymous_id,
-                              "noise": self.noise}, use_bin_type=True)
+        fields: dict[str, Any] = {"format": FORMAT, "robot": self.robot, "state": self.state,
+                                  "positions": self.positions,
+                                  "next_anonymous_id": self.next_anonymous_id,
+                                  "noise": self.noise}
+        if self.linearisation is not None:
+            fields["linearisation"] = self.linearisation
+        return msgpack.packb(fields, use_bin_type=True)
 
     @classmethod
     def from_bytes(cls, payload: bytes, *, path: Path) -> Checkpoint:
@@ -63,10 +69,21 @@ class Checkpoint:
             return cls(robot=str(raw["robot"]), state=bytes(raw["state"]),
                        positions={str(k): dict(v) for k, v in raw["positions"].items()},
                        next_anonymous_id=int(raw["next_anonymous_id"]),
-                       noise={str(k): float(v) for k, v in raw["noise"].items()})
+                       noise={str(k): float(v) for k, v in raw["noise"].items()},
+                       linearisation=_linearisation(raw.get("linearisation"), path))
         except Exception as exc:
             raise CheckpointError(f"checkpoint {path} is unreadable ({exc}); move it away "
                                   "to start a new map") from None
+
+
+def _linearisation(raw: Any, path: Path) -> dict[str, Any] | None:
+    """The FEJ points as saved (checked when the estimator takes them), or None."""
+    if raw is None:
+        return None
+    if not isinstance(raw, dict):
+        raise CheckpointError(f"checkpoint {path}: its linearisation points are not a map; "
+                              "move it away to start a new map")
+    return dict(raw)
 
 
 def checkpoint_path(directory: str | Path, robot: str) -> Path:

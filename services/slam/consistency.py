@@ -12,7 +12,7 @@ Also used by the tests of the covariance theorem: :func:`run` can collect every 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -35,14 +35,23 @@ class Run:
     nees: np.ndarray  #: float64[T]
     states: tuple[SlamState, ...]  #: every state, when collected (else empty)
 
+    def nees_run(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.stamps, self.nees
+
+
+def world_settings(world: World, *, linearisation: str = "standard") -> EstimatorSettings:
+    """The estimator settings whose noise is exactly the world's (a consistent filter)."""
+    return EstimatorSettings(
+        sigma_v=world.noise.sigma_v, sigma_w=world.noise.sigma_w,
+        sigma_range=world.noise.sigma_range, sigma_bearing=world.noise.sigma_bearing,
+        linearisation=linearisation)
+
 
 def run(world: World, *, seed: int, settings: EstimatorSettings | None = None,
         loops: int | None = None, anonymous: bool = False,
         collect_states: bool = False) -> Run:
     """Apply one seeded simulation to a fresh estimator; score the pose after each event."""
-    settings = settings or EstimatorSettings(
-        sigma_v=world.noise.sigma_v, sigma_w=world.noise.sigma_w,
-        sigma_range=world.noise.sigma_range, sigma_bearing=world.noise.sigma_bearing)
+    settings = settings or world_settings(world)
     sim = Simulator(world, seed=seed, loops=loops, anonymous=anonymous)
     est = Estimator(settings)
     truth_pose: dict[float, np.ndarray] = {}
@@ -120,13 +129,21 @@ class MonteCarlo:
 
 
 def monte_carlo(world: World, seeds: Iterable[int], *, loops: int | None = None,
-                confidence: float = 0.95) -> MonteCarlo:
+                confidence: float = 0.95, linearisation: str = "standard") -> MonteCarlo:
     """Average NEES over ``seeds``; the band is the two-sided ``confidence`` χ²(3M)/M band."""
-    runs = [run(world, seed=s, loops=loops) for s in seeds]
+    settings = world_settings(world, linearisation=linearisation)
+    return combine([run(world, seed=s, loops=loops, settings=settings).nees_run()
+                    for s in seeds], confidence=confidence)
+
+
+def combine(runs: Sequence[tuple[np.ndarray, np.ndarray]], *,
+            confidence: float = 0.95) -> MonteCarlo:
+    """The Monte-Carlo mean of runs given as (stamps, NEES) of the same world and length
+    (the shortest decides), with its χ²(3M)/M band."""
     M = len(runs)
-    length = min(len(r.nees) for r in runs)
-    mean = np.mean(np.stack([r.nees[:length] for r in runs]), axis=0)
+    length = min(len(nees) for _, nees in runs)
+    mean = np.mean(np.stack([nees[:length] for _, nees in runs]), axis=0)
     alpha = 1.0 - confidence
     lower = float(stats.chi2.ppf(alpha / 2, 3 * M) / M)
     upper = float(stats.chi2.ppf(1 - alpha / 2, 3 * M) / M)
-    return MonteCarlo(runs[0].stamps[:length], mean, lower, upper, M)
+    return MonteCarlo(runs[0][0][:length], mean, lower, upper, M)

@@ -1,36 +1,42 @@
 """EKF-SLAM numerical core: the SPEC §4 models, their Jacobians, and in-place kernels.
 
-The state is ``x = [x, y, θ, m1x, m1y, …]`` (N = 3 + 2n). Its covariance lives in a
-preallocated square buffer ``L`` of which only the **lower triangle** of the leading N×N
-block is meaningful (``L[i, j]`` for ``j ≤ i``); the strict upper triangle is scratch and is
-never read. Why:
-
-* the update's rank-2 downdate ``P −= W S⁻¹ Wᵀ`` then costs half a pass over the matrix
-  (BLAS ``dsyrk`` on one triangle) instead of a full one, and
-* P is symmetric by construction: one number per pair (i, j), so no symmetrising pass and
-  no drift between the two triangles.
-
-:func:`symmetric` materialises the full matrix when someone needs it (publishing a state).
+The state is ``x = [x, y, θ, m1x, m1y, …]`` (N = 3 + 2n). Its covariance lives in the
+lower triangle of a preallocated buffer ``L`` (:mod:`slamlens.services.slam.ekf_storage`:
+the storage, :func:`symmetric` to materialise P, the BLAS ``dsyrk`` downdate).
 
 The kernels (:func:`predict`, :func:`update`, :func:`initialise`) mutate ``x`` and ``L`` in
 place: the covariance *is* the estimator's memory and a copy would cost a full pass. They
 validate everything that can fail (a degenerate innovation covariance, a landmark on top of
 the robot) before writing anything, so a refused call leaves the state as it was.
 Dense (3+2n)² Jacobians are never built (SPEC §4 "Cost").
+
+**Where the Jacobians are evaluated.** By default at the latest estimates (SPEC §4, the
+standard EKF). Each kernel also takes ``at``, the point of a First-Estimates-Jacobian EKF
+(Huang, Mourikis & Roumeliotis 2010; docs/estimator.md): the robot's *propagated* position
+p̂(k|k−1) and, for an update, the landmark's *first* estimate. The mean is always moved by
+the models at the latest estimates; only F, H and the initialisation Jacobian change, in
+the same closed forms, at the same cost.
 """
 
 from __future__ import annotations
 
-import ctypes
-import functools
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from slamlens.common.errors import EstimationError
 from slamlens.common.geometry import wrap_angle
+from slamlens.services.slam.ekf_storage import (
+    SyrkArgs,
+    downdate_lower,
+    landmark_columns,
+    lower_from_symmetric,
+    robot_columns,
+    robot_rows_into,
+    symmetric,
+    symmetric_after_predict,
+)
 
 _TWO_PI = 2.0 * math.pi
 
@@ -160,170 +166,6 @@ def inverse_observation_jacobians(pose: np.ndarray, *, range_m: float,
     return Gv, Gz
 
 
-# ---------------------------------------------------------------------------------------
-# lower-triangle storage
-# ---------------------------------------------------------------------------------------
-
-
-_SYM_BLOCK = 128  # a 128×128 tile (128 KB) stays in L2 while it is transposed
-
-
-@functools.cache
-def _lower_mask(size: int) -> np.ndarray:
-    return np.tri(size, dtype=bool)
-
-
-def symmetric(L: np.ndarray, N: int, *, out: np.ndarray | None = None) -> np.ndarray:
-    """A full symmetric N×N matrix from the lower triangle of ``L[:N, :N]`` (into ``out``
-    if given: an N×N float64 array, e.g. a view of a message buffer).
-
-    One pass over ``out``, row block by row block of :data:`_SYM_BLOCK` rows: left of the
-    diagonal tile the rows are copied, the diagonal tile is mirrored, and right of it each
-    tile is the transpose of a cache-sized tile of the lower triangle below. The lower
-    triangle is read twice and ``out`` written once (the copy-then-mirror it replaced wrote
-    every entry, then half of them again): 1.14–1.25× faster at n = 1000
-    (``benchmarks/bench_symmetric.py``).
-    """
-    if out is None:
-        out = np.empty((N, N))
-    B = _SYM_BLOCK
-    for s in range(0, N, B):
-        e = min(N, s + B)
-        out[s:e, :s] = L[s:e, :s]
-        tile = L[s:e, s:e]
-        out[s:e, s:e] = np.where(_lower_mask(e - s), tile, tile.T)
-        for c in range(e, N, B):
-            f = min(N, c + B)
-            out[s:e, c:f] = L[c:f, s:e].T
-    return out
-
-
-def symmetric_after_predict(L: np.ndarray, N: int, previous: np.ndarray, *,
-                            out: np.ndarray) -> np.ndarray:
-    """``symmetric(L, N)`` when only the robot rows/columns changed since ``previous``
-    (= symmetric(L, N) before a :func:`predict`, which leaves P_mm untouched): a copy and
-    3 rows and columns instead of a transpose of the whole matrix."""
-    out[...] = previous
-    return robot_rows_into(L, N, out)
-
-
-def robot_rows_into(L: np.ndarray, N: int, out: np.ndarray) -> np.ndarray:
-    """Write the robot's rows and columns of the symmetric P (from ``L``) into the full
-    N×N ``out``, leaving the rest as it is: after a :func:`predict`, ``symmetric(L, N)``
-    of the state before it becomes ``symmetric(L, N)`` now, in place (O(N))."""
-    out[0:N, 0:3] = L[0:N, 0:3]
-    out[0:3, 0:N] = L[0:N, 0:3].T
-    pvv = out[0:3, 0:3]
-    pvv[...] = np.where(_lower_mask(3), L[0:3, 0:3], L[0:3, 0:3].T)
-    return out
-
-
-def lower_from_symmetric(P: np.ndarray, *, capacity: int | None = None) -> np.ndarray:
-    """Storage buffer (capacity × capacity) holding the symmetric ``P`` (for tests, resets)."""
-    N = P.shape[0]
-    cap = N if capacity is None else max(capacity, N)
-    L = np.zeros((cap, cap))
-    L[:N, :N] = P
-    return L
-
-
-def _robot_columns(L: np.ndarray, N: int, out: np.ndarray) -> None:
-    """out[0:3, :N] = the robot rows of the symmetric P (= its robot columns)."""
-    out[0:3, 3:N] = L[3:N, 0:3].T  # strided gather of 3 values per row: O(N)
-    p00, p10, p11 = L[0, 0], L[1, 0], L[1, 1]
-    p20, p21, p22 = L[2, 0], L[2, 1], L[2, 2]
-    out[0, 0:3] = (p00, p10, p20)
-    out[1, 0:3] = (p10, p11, p21)
-    out[2, 0:3] = (p20, p21, p22)
-
-
-def _landmark_columns(L: np.ndarray, N: int, a: int, out: np.ndarray) -> None:
-    """out[0:2, :N] = rows a, a+1 of the symmetric P."""
-    out[:, 0:a] = L[a:a + 2, 0:a]  # contiguous row prefixes
-    out[:, a:N] = L[a:N, a:a + 2].T  # column below the diagonal, strided
-    out[1, a] = L[a + 1, a]  # the line above read L[a, a+1], in the unused upper triangle
-
-
-# ---------------------------------------------------------------------------------------
-# the rank-2 downdate: BLAS dsyrk on the lower triangle, in place
-# ---------------------------------------------------------------------------------------
-
-
-@functools.cache
-def _dsyrk() -> Callable[..., None] | None:
-    """scipy's own BLAS ``dsyrk`` as a ctypes function, or None if it cannot be found.
-
-    scipy.linalg.blas wrappers take no leading dimension and copy any non-contiguous
-    operand, which would defeat in-place work on the view ``L[:N, :N]`` of a larger buffer;
-    the raw BLAS symbol (exported by scipy.linalg.cython_blas as a PyCapsule) takes lda/ldc.
-    """
-    try:
-        from scipy.linalg import cython_blas
-
-        capsule = cython_blas.__pyx_capi__["dsyrk"]
-        get_name = ctypes.pythonapi.PyCapsule_GetName
-        get_name.restype = ctypes.c_char_p
-        get_name.argtypes = [ctypes.py_object]
-        get_pointer = ctypes.pythonapi.PyCapsule_GetPointer
-        get_pointer.restype = ctypes.c_void_p
-        get_pointer.argtypes = [ctypes.py_object, ctypes.c_char_p]
-        address = get_pointer(capsule, get_name(capsule))
-    except (ImportError, AttributeError, KeyError, ValueError):
-        return None
-    if not address:
-        return None
-    vp = ctypes.c_void_p
-    # void dsyrk(char *uplo, char *trans, int *n, int *k, double *alpha, double *a,
-    #            int *lda, double *beta, double *c, int *ldc)
-    proto = ctypes.CFUNCTYPE(None, vp, vp, vp, vp, vp, vp, vp, vp, vp, vp)
-    return proto(address)
-
-
-class SyrkArgs:
-    """Preallocated ctypes scalars for dsyrk (building them per call costs microseconds)."""
-
-    def __init__(self) -> None:
-        self.uplo = ctypes.c_char(b"U")  # L's lower triangle, seen column-major, is upper
-        self.trans = ctypes.c_char(b"N")
-        self.n = ctypes.c_int(0)
-        self.k = ctypes.c_int(2)
-        self.alpha = ctypes.c_double(-1.0)
-        self.beta = ctypes.c_double(1.0)
-        self.lda = ctypes.c_int(0)
-        self.ldc = ctypes.c_int(0)
-        self.addr = {name: ctypes.addressof(getattr(self, name))
-                     for name in ("uplo", "trans", "n", "k", "alpha", "beta", "lda", "ldc")}
-
-
-def downdate_lower(L: np.ndarray, vt: np.ndarray, N: int, *, args: SyrkArgs | None = None,
-                   use_blas: bool = True) -> None:
-    """L[:N, :N] −= V Vᵀ on (at least) the lower triangle, in place; V = vt[:, :N]ᵀ (N×k,
-    k = the rows of ``vt``: 2 for one observation, 2m for m deferred ones).
-
-    ``args`` is reusable scratch (one per thread); ``use_blas=False`` forces the numpy
-    fallback (tests compare the two).
-    """
-    k = vt.shape[0]
-    fn = _dsyrk() if use_blas else None
-    ok = (k > 0 and fn is not None and L.dtype == np.float64 and vt.dtype == np.float64
-          and L.strides[1] == 8 and vt.strides[1] == 8
-          and L.strides[0] >= 8 * N and vt.strides[0] >= 8 * N)
-    if not ok:
-        # Fallback: one full product and subtraction (3 passes, same result on the triangle).
-        block = L[:N, :N]
-        block -= vt[:, :N].T @ vt[:, :N]
-        return
-    assert fn is not None
-    a = SyrkArgs() if args is None else args
-    a.n.value = N
-    a.k.value = k
-    a.lda.value = vt.strides[0] // 8
-    a.ldc.value = L.strides[0] // 8
-    ad = a.addr
-    fn(ad["uplo"], ad["trans"], ad["n"], ad["k"], ad["alpha"], vt.ctypes.data, ad["lda"],
-       ad["beta"], L.ctypes.data, ad["ldc"])
-
-
 #: updates whose downdates :func:`update` may hold back (``defer``) before it applies them
 #: all at once: one pass over P for a whole batch instead of one per observation (a batch
 #: of 4 at n = 1000: 2.2 ms against 5.5 ms one downdate each; benchmarks/bench_ekf.py).
@@ -366,8 +208,13 @@ class Workspace:
 
 def predict(x: np.ndarray, L: np.ndarray, n: int, *, v: float, w: float, dt: float,
             var_v: float, var_w: float, extra_qv: float = 0.0, extra_qw: float = 0.0,
-            guard: Guard | None = None, ws: Workspace | None = None) -> None:
+            guard: Guard | None = None, ws: Workspace | None = None,
+            at: tuple[float, float] | None = None) -> None:
     """SPEC §4 prediction in place: O(n), only the robot rows/columns of P change.
+
+    Fx's θ column is ∂(x', y')/∂θ = J·(p' − p) with p the latest position, or ``at`` (FEJ:
+    the propagated position p̂(k|k−1), so that Fx carries the unobservable directions of
+    step k onto those of step k + 1).
 
     ``var_v``, ``var_w`` are the odometry variances σv² (m²/s²), σω² (rad²/s²). ``extra_qv``
     (m²) and ``extra_qw`` (rad²) are opt-in variances added to this step's along-heading and
@@ -381,6 +228,8 @@ def predict(x: np.ndarray, L: np.ndarray, n: int, *, v: float, w: float, dt: flo
     d = v * dt
     fa, fb = -d * s, d * c  # Fx = I + fa·e0e2ᵀ + fb·e1e2ᵀ
     x0, x1, x2 = float(x[0]) + d * c, float(x[1]) + d * s, _wrap(theta + w * dt)
+    if at is not None:
+        fa, fb = at[1] - x1, x0 - at[0]
 
     p00, p10, p11 = float(L[0, 0]), float(L[1, 0]), float(L[1, 1])
     p20, p21, p22 = float(L[2, 0]), float(L[2, 1]), float(L[2, 2])
@@ -431,12 +280,17 @@ def predict(x: np.ndarray, L: np.ndarray, n: int, *, v: float, w: float, dt: flo
 def update(x: np.ndarray, L: np.ndarray, n: int, j: int, *, z_range: float,
            z_bearing: float, var_range: float, var_bearing: float,
            ws: Workspace, gate: float = 0.0, guard: Guard | None = None,
-           defer: bool = False) -> tuple[float, float, float, float, float]:
+           defer: bool = False,
+           at: tuple[float, float, float, float] | None = None
+           ) -> tuple[float, float, float, float, float]:
     """SPEC §4 update with one observation of landmark ``j`` (0-based state order), in place.
 
     Never builds H: it touches 5 columns of P. With W = P Hᵀ (N×2) and S = L_S L_Sᵀ
     (2×2 Cholesky, closed form), V = W L_S⁻ᵀ gives K S Kᵀ = W S⁻¹ Wᵀ = V Vᵀ and
     K ν = V (L_S⁻¹ ν): the downdate is a symmetric rank-2 dsyrk on the lower triangle.
+    H is evaluated at the latest estimates, or with ``at`` = (robot x, y, landmark x, y) at
+    those points (FEJ: the robot's propagated position and the landmark's first estimate);
+    the innovation ν = z − h(x̂) is always the latest estimates'.
 
     Returns the innovation and its covariance ``(ν_r, ν_φ, S_rr, S_rφ, S_φφ)`` before the
     update. Raises :class:`SingularInnovationError` without touching the state when
@@ -454,30 +308,8 @@ def update(x: np.ndarray, L: np.ndarray, n: int, j: int, *, z_range: float,
     """
     N = 3 + 2 * n
     a = 3 + 2 * j
-    x0, x1, theta = float(x[0]), float(x[1]), float(x[2])
-    dx, dy = float(x[a]) - x0, float(x[a + 1]) - x1
-    q = dx * dx + dy * dy
-    if not q > 0.0 or not math.isfinite(q):
-        raise SingularInnovationError(f"landmark {j} is at the robot's position: h undefined")
-    r = math.sqrt(q)
-    nu_r = z_range - r
-    nu_b = _wrap(z_bearing - (math.atan2(dy, dx) - theta))
-    ux, uy, gx, gy = dx / r, dy / r, dx / q, dy / q
-
-    cols = ws.cols
-    _robot_columns(L, N, cols)
-    _landmark_columns(L, N, a, cols[3:5])
-    m = ws.deferred
-    if m:  # P = L − Σ V Vᵀ of the held-back updates: its five columns
-        held = ws.pending[:m]
-        cols[:, :N] -= held[:, [0, 1, 2, a, a + 1]].T @ held[:, :N]
-    h5 = ws.h5
-    # H = [Hv | Hm] on columns (x, y, θ, mx, my); Hm = −Hv[:, :2].
-    h5[0, 0], h5[0, 1], h5[0, 2], h5[0, 3], h5[0, 4] = -ux, -uy, 0.0, ux, uy
-    h5[1, 0], h5[1, 1], h5[1, 2], h5[1, 3], h5[1, 4] = gy, -gx, -1.0, -gy, gx
-    wt = ws.wt[:, :N]
-    np.matmul(h5, cols[:, :N], out=wt)  # Wᵀ = H P (2×N)
-
+    nu_r, nu_b, ux, uy, gx, gy = _innovation(x, a, j, z_range, z_bearing, at)
+    wt = _gain_rows(L, N, a, ws, ux, uy, gx, gy)
     w0x, w0y, w0m, w0n = float(wt[0, 0]), float(wt[0, 1]), float(wt[0, a]), float(wt[0, a + 1])
     w1x, w1y, w1t = float(wt[1, 0]), float(wt[1, 1]), float(wt[1, 2])
     w1m, w1n = float(wt[1, a]), float(wt[1, a + 1])
@@ -485,20 +317,7 @@ def update(x: np.ndarray, L: np.ndarray, n: int, j: int, *, z_range: float,
     s00 = ux * (w0m - w0x) + uy * (w0n - w0y) + var_range
     s01 = ux * (w1m - w1x) + uy * (w1n - w1y)
     s11 = gx * (w1n - w1y) - gy * (w1m - w1x) - w1t + var_bearing
-    if not (s00 > 0.0 and math.isfinite(s00) and math.isfinite(s01) and math.isfinite(s11)):
-        raise SingularInnovationError(f"innovation covariance of landmark {j} is not "
-                                      f"positive definite (S_rr = {s00!r})")
-    l00 = math.sqrt(s00)
-    l10 = s01 / l00
-    schur = s11 - l10 * l10
-    if not schur > 1e-300:
-        raise SingularInnovationError(f"innovation covariance of landmark {j} is not "
-                                      f"positive definite (det S ≤ 0)")
-    l11 = math.sqrt(schur)
-    # L_S⁻¹ = [[i00, 0], [i10, i11]] (closed form, no np.linalg on 2×2)
-    i00, i11 = 1.0 / l00, 1.0 / l11
-    i10 = -l10 * i00 * i11
-
+    i00, i10, i11 = _inverse_cholesky(s00, s01, s11, j)
     vt = ws.vt[:, :N]
     np.multiply(wt[0], i00, out=vt[0])
     np.multiply(wt[0], i10, out=vt[1])
@@ -509,6 +328,7 @@ def update(x: np.ndarray, L: np.ndarray, n: int, j: int, *, z_range: float,
         nis = u0 * u0 + u1 * u1  # νᵀ S⁻¹ ν = ‖L_S⁻¹ ν‖²
         if not nis <= gate:
             raise GatedObservationError(nis, (nu_r, nu_b, s00, s01, s11))
+    m = ws.deferred
     xs = x[:N]
     if guard is not None:
         _check_update(L, N, xs, vt, u0, u1, guard, j, ws.pending[:m])
@@ -524,6 +344,68 @@ def update(x: np.ndarray, L: np.ndarray, n: int, j: int, *, z_range: float,
     if not defer or ws.deferred >= ws.pending.shape[0]:
         flush(L, N, ws)
     return nu_r, nu_b, s00, s01, s11
+
+
+def _innovation(x: np.ndarray, a: int, j: int, z_range: float, z_bearing: float,
+                at: tuple[float, float, float, float] | None
+                ) -> tuple[float, float, float, float, float, float]:
+    """(ν_r, ν_φ) at the latest estimates and H's four numbers (ux, uy, gx, gy): H = [Hv | Hm]
+    on columns (x, y, θ, mx, my) with Hv = [[−ux, −uy, 0], [gy, −gx, −1]], Hm = −Hv[:, :2],
+    evaluated at the latest estimates or at ``at``."""
+    x0, x1, theta = float(x[0]), float(x[1]), float(x[2])
+    dx, dy = float(x[a]) - x0, float(x[a + 1]) - x1
+    q = dx * dx + dy * dy
+    if not q > 0.0 or not math.isfinite(q):
+        raise SingularInnovationError(f"landmark {j} is at the robot's position: h undefined")
+    r = math.sqrt(q)
+    nu_r = z_range - r
+    nu_b = _wrap(z_bearing - (math.atan2(dy, dx) - theta))
+    if at is not None:  # FEJ: H at the first estimate, seen from the propagated position
+        dx, dy = at[2] - at[0], at[3] - at[1]
+        q = dx * dx + dy * dy
+        if not q > 0.0 or not math.isfinite(q):
+            raise SingularInnovationError(f"landmark {j}'s first estimate is at the robot's "
+                                          "propagated position: H undefined")
+        r = math.sqrt(q)
+    return nu_r, nu_b, dx / r, dy / r, dx / q, dy / q
+
+
+def _gain_rows(L: np.ndarray, N: int, a: int, ws: Workspace, ux: float, uy: float,
+               gx: float, gy: float) -> np.ndarray:
+    """Wᵀ = H P (2×N, in ``ws.wt``) from the five columns of P that H touches (through the
+    downdates held back in ``ws``: P = L − Σ V Vᵀ)."""
+    cols = ws.cols
+    robot_columns(L, N, cols)
+    landmark_columns(L, N, a, cols[3:5])
+    m = ws.deferred
+    if m:  # P = L − Σ V Vᵀ of the held-back updates: its five columns
+        held = ws.pending[:m]
+        cols[:, :N] -= held[:, [0, 1, 2, a, a + 1]].T @ held[:, :N]
+    h5 = ws.h5
+    # H = [Hv | Hm] on columns (x, y, θ, mx, my); Hm = −Hv[:, :2].
+    h5[0, 0], h5[0, 1], h5[0, 2], h5[0, 3], h5[0, 4] = -ux, -uy, 0.0, ux, uy
+    h5[1, 0], h5[1, 1], h5[1, 2], h5[1, 3], h5[1, 4] = gy, -gx, -1.0, -gy, gx
+    wt = ws.wt[:, :N]
+    np.matmul(h5, cols[:, :N], out=wt)  # Wᵀ = H P (2×N)
+    return wt
+
+
+def _inverse_cholesky(s00: float, s01: float, s11: float,
+                      j: int) -> tuple[float, float, float]:
+    """L_S⁻¹ = [[i00, 0], [i10, i11]] of S = [[s00, s01], [s01, s11]] (closed form, no
+    np.linalg on 2×2); :class:`SingularInnovationError` if S is not positive definite."""
+    if not (s00 > 0.0 and math.isfinite(s00) and math.isfinite(s01) and math.isfinite(s11)):
+        raise SingularInnovationError(f"innovation covariance of landmark {j} is not "
+                                      f"positive definite (S_rr = {s00!r})")
+    l00 = math.sqrt(s00)
+    l10 = s01 / l00
+    schur = s11 - l10 * l10
+    if not schur > 1e-300:
+        raise SingularInnovationError(f"innovation covariance of landmark {j} is not "
+                                      f"positive definite (det S ≤ 0)")
+    l11 = math.sqrt(schur)
+    i00, i11 = 1.0 / l00, 1.0 / l11
+    return i00, -l10 * i00 * i11, i11
 
 
 def flush(L: np.ndarray, N: int, ws: Workspace) -> None:
@@ -575,11 +457,14 @@ def _check_update(L: np.ndarray, N: int, xs: np.ndarray, vt: np.ndarray, u0: flo
 
 def initialise(x: np.ndarray, L: np.ndarray, n: int, *, z_range: float, z_bearing: float,
                var_range: float, var_bearing: float, ws: Workspace,
-               guard: Guard | None = None) -> None:
+               guard: Guard | None = None, at: tuple[float, float] | None = None) -> None:
     """Append landmark n from (range, bearing) in place: rows N, N+1 of L, entries of x.
 
     The caller guarantees capacity (``L`` and ``x`` at least N + 2 long). Cross terms with
     the whole state are P_new,x = Gv P_v,x, which are row writes in lower storage: O(n).
+    Gv's θ column is J·(m − p) with p the robot's latest position, or ``at`` (FEJ: its
+    propagated position, so that the new landmark's rows of the unobservable directions
+    are Gv times the robot's: docs/estimator.md).
     With a ``guard``, :class:`RefusedStepError` when the new rows or the landmark are not
     finite or its 2×2 block is not PSD; the rows written lie outside the state (n is the
     caller's), so a refusal leaves the state as it was.
@@ -588,8 +473,11 @@ def initialise(x: np.ndarray, L: np.ndarray, n: int, *, z_range: float, z_bearin
     alpha = float(x[2]) + z_bearing
     c, s = math.cos(alpha), math.sin(alpha)
     g02, g12 = -z_range * s, z_range * c  # Gv = [[1, 0, g02], [0, 1, g12]]
+    mx, my = float(x[0]) + z_range * c, float(x[1]) + z_range * s
+    if at is not None:
+        g02, g12 = at[1] - my, mx - at[0]
     rob = ws.cols[0:3]
-    _robot_columns(L, N, rob)
+    robot_columns(L, N, rob)
     new = L[N:N + 2, 0:N]
     # a landmark far enough away overflows these products: the guard below refuses it
     # (without one the caller asked for unchecked arithmetic), so numpy need not warn
@@ -605,7 +493,6 @@ def initialise(x: np.ndarray, L: np.ndarray, n: int, *, z_range: float, z_bearin
     m00 = a0 + a2 * g02 + rr * c * c + rb * s * s
     m10 = b0 + b2 * g02 + rr * c * s - rb * s * c
     m11 = b1 + b2 * g12 + rr * s * s + rb * c * c
-    mx, my = float(x[0]) + z_range * c, float(x[1]) + z_range * s
     if guard is not None:
         if not (_bounded(new[:, :N], COVARIANCE_LIMIT)
                 and max(abs(m00), abs(m10), abs(m11)) <= COVARIANCE_LIMIT
@@ -632,6 +519,6 @@ __all__ = [
     "GatedObservationError", "Guard", "RefusedStepError", "SingularInnovationError",
     "MAX_DEFERRED", "SyrkArgs", "Workspace", "check_finite_inputs", "downdate_lower", "flush",
     "initialise", "inverse_observation", "inverse_observation_jacobians", "lower_from_symmetric",
-    "motion", "motion_jacobians", "observation_jacobians", "observe", "predict", "symmetric",
-    "update", "wrap_angle",
+    "motion", "motion_jacobians", "observation_jacobians", "observe", "predict",
+    "robot_rows_into", "symmetric", "symmetric_after_predict", "update", "wrap_angle",
 ]

@@ -12,10 +12,8 @@ and turns its state into a :class:`~slamlens.common.messages.SlamState`. No I/O 
 from __future__ import annotations
 
 import logging
-import math
 from collections import Counter
 from collections.abc import Mapping
-from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -24,54 +22,20 @@ from slamlens.common.arrays import RecycledBuffers
 from slamlens.common.errors import EstimationError
 from slamlens.common.messages import SlamState, finite_by_construction
 from slamlens.services.slam import association, ekf, faults
-from slamlens.services.slam.plausibility import Bounds, ImplausibleInputError, InputGates
+from slamlens.services.slam.linearisation import FEJ, FirstEstimates, fused
+from slamlens.services.slam.observe_report import BatchRecord, ObserveReport, Refusal
+from slamlens.services.slam.plausibility import (
+    Bounds,
+    ImplausibleInputError,
+    InputGates,
+    checked_batch,
+    describe_batch,
+)
 from slamlens.services.slam.settings import EstimatorSettings
 
 log = logging.getLogger("slamlens.estimator")
 
 _INITIAL_CAPACITY = 16  # landmarks; doubled on demand
-
-
-@dataclass(frozen=True, eq=False)
-class ObserveReport:
-    """What one observation batch did (arrays are read-only)."""
-
-    observed_ids: np.ndarray  #: int64, landmarks updated or initialised, message order, once
-    new_ids: np.ndarray  #: int64, landmarks initialised by this batch
-    innovation_ids: np.ndarray  #: int64[k], the landmark of each update, in order
-    innovations: np.ndarray  #: float64[k, 2], ν = z − h (m, rad) before each update
-    innovation_covariances: np.ndarray  #: float64[k, 2, 2], S of each update
-    assigned_ids: np.ndarray  #: int64[m], per observation: the id it was applied to, or −1
-    rejected: int  #: observations not applied (ambiguous, gated, S not PD, refused, map full)
-    ambiguous: int  #: of those, id −1 observations between the two association thresholds
-    gated_ids: np.ndarray | None = None  #: int64[g], landmarks of the gated observations
-    gated_observations: np.ndarray | None = None  #: float64[g, 2], their (range m, bearing)
-    gated_nis: np.ndarray | None = None  #: float64[g], their NIS νᵀS⁻¹ν
-    refused: int = 0  #: of the rejected, observations the guard refused (would poison P)
-
-    @property
-    def gated(self) -> int:
-        """Observations of known landmarks not applied because their NIS was above the gate."""
-        return 0 if self.gated_ids is None else int(self.gated_ids.shape[0])
-
-
-@dataclass(frozen=True)
-class Refusal:
-    """The last input (or step) the estimator refused, and why (for logs and status)."""
-
-    #: a plausibility reason (slamlens.services.slam.plausibility) or non-finite / not-psd
-    reason: str
-    detail: str  #: one sentence
-    stamp: float  #: the input's stamp
-    input: str  #: the input, abridged
-
-
-def _frozen(values: Any, dtype: Any, shape: tuple[int, ...] | None = None) -> np.ndarray:
-    a = np.array(values, dtype=dtype)
-    if shape is not None:
-        a = a.reshape(shape)
-    a.flags.writeable = False
-    return a
 
 
 class Estimator:
@@ -114,6 +78,9 @@ class Estimator:
         self._x[0:3] = [float(v) for v in settings.initial_pose]
         self._x[2] = float(ekf.wrap_angle(self._x[2]))
         self._L[0:3, 0:3] = np.diag([float(s) ** 2 for s in settings.initial_pose_sigma])
+        #: the FEJ linearisation points (None: the standard EKF, Jacobians at the estimates)
+        self._fej = (FirstEstimates(self._x[0], self._x[1])
+                     if settings.linearisation == FEJ else None)
         self._n = 0
         self._ids: list[int] = []
         self._index: dict[int, int] = {}
@@ -197,15 +164,19 @@ class Estimator:
                     self._x, self._L, self._n, indices=self._faulty_indices(),
                     fraction=fault.magnitude, v=v, w=w, dt=dt, var_v=self._var_v,
                     var_w=self._var_w, extra_qv=extra_qv, extra_qw=extra_qw,
-                    guard=self._guard, ws=self._ws)
+                    guard=self._guard, ws=self._ws,
+                    at=None if self._fej is None else self._fej.robot)
             else:
                 ekf.predict(self._x, self._L, self._n, v=v, w=w, dt=dt, var_v=self._var_v,
                             var_w=self._var_w, extra_qv=extra_qv, extra_qw=extra_qw,
-                            guard=self._guard, ws=self._ws)
+                            guard=self._guard, ws=self._ws,
+                            at=None if self._fej is None else self._fej.robot)
         except (ImplausibleInputError, ekf.RefusedStepError) as exc:
             self._refuse(exc.reason, str(exc), stamp,
                          f"odometry dt={dt!r} v={v!r} w={w!r}")
             raise
+        if self._fej is not None:
+            self._fej.propagated(float(self._x[0]), float(self._x[1]))
         self.gates.applied(stamp)
 
     def observe(self, *, ids: Any, ranges: Any, bearings: Any, stamp: float) -> ObserveReport:
@@ -220,108 +191,122 @@ class Estimator:
         observation of the batch, :class:`ekf.RefusedStepError` is raised (nothing changed).
         """
         self._map_dirty = True  # an update touches the whole matrix
-        id_list, range_list, bearing_list = self._check_batch(ids, ranges, bearings, stamp)
+        id_list, range_list, bearing_list = checked_batch(ids, ranges, bearings, stamp)
         try:
             self.gates.check_batch(
                 ranges=range_list, bearings=bearing_list, landmarks=self._n, stamp=stamp,
                 new_ids=len({i for i in id_list if i >= 0 and i not in self._index}))
         except ImplausibleInputError as exc:
-            self._refuse(exc.reason, str(exc), stamp, self._describe_batch(
+            self._refuse(exc.reason, str(exc), stamp, describe_batch(
                 id_list, range_list, bearing_list))
             raise
-        observed: list[int] = []
-        new: list[int] = []
-        innovation_ids: list[int] = []
-        innovations: list[tuple[float, float]] = []
-        covariances: list[tuple[float, float, float, float]] = []
-        assigned: list[int] = []
-        gated: list[tuple[int, float, float, float]] = []
-        rejected = ambiguous = refused = 0
+        batch = BatchRecord()
         try:
             for lid, z_r, z_b in zip(id_list, range_list, bearing_list, strict=True):
-                var_r = self._range_variance(z_r, z_b)
-                if lid == -1:
-                    self._flush()  # association reads P
-                    decision = association.decide(association.mahalanobis_all(
-                        self._x, self._L, self._n, z_range=z_r, z_bearing=z_b,
-                        var_range=var_r, var_bearing=self._var_b), self._gates)
-                    if decision.kind == association.AMBIGUOUS:
-                        log.debug("anonymous observation (%.3f m, %.3f rad) ambiguous: "
-                                  "d² = %.2f", z_r, z_b, decision.d2)
-                        rejected += 1
-                        ambiguous += 1
-                        assigned.append(-1)
-                        continue
-                    if decision.kind != association.MATCH and self.gates.map_full(self._n):
-                        self._refuse("map_size", f"the map holds {self._n} landmarks, the "
-                                                 "bound: an anonymous observation was not "
-                                                 "mapped",
-                                     stamp, f"observation range={z_r!r} bearing={z_b!r}")
-                        rejected += 1
-                        assigned.append(-1)
-                        continue
-                    lid = (self._ids[decision.index] if decision.kind == association.MATCH
-                           else self._fresh_anonymous_id())
-                j = self._index.get(lid)
-                try:
-                    if j is None:
-                        self._initialise(lid, z_r, z_b, var_r)
-                        new.append(lid)
-                    else:
-                        out = ekf.update(self._x, self._L, self._n, j, z_range=z_r,
-                                         z_bearing=z_b, var_range=var_r,
-                                         var_bearing=self._var_b, ws=self._ws,
-                                         gate=self._gate, guard=self._guard, defer=True)
-                except ekf.GatedObservationError as exc:
-                    self.gated += 1
-                    gated.append((lid, z_r, z_b, exc.nis))
-                    rejected += 1
-                    assigned.append(-1)
-                    continue
-                except ekf.RefusedStepError as exc:  # the guard: an update or a new landmark
-                    self._refuse(exc.reason, str(exc), stamp,
-                                 f"observation id={lid} range={z_r!r} bearing={z_b!r}")
-                    rejected += 1
-                    refused += 1
-                    assigned.append(-1)
-                    continue
-                except ekf.SingularInnovationError as exc:
-                    self._log_refused(lid, exc)
-                    rejected += 1
-                    assigned.append(-1)
-                    continue
-                if j is not None:
-                    nu_r, nu_b, s00, s01, s11 = out
-                    innovation_ids.append(lid)
-                    innovations.append((nu_r, nu_b))
-                    covariances.append((s00, s01, s01, s11))
-                assigned.append(lid)
-                if lid not in observed:
-                    observed.append(lid)
+                self._observe_one(batch, lid, z_r, z_b, stamp)
+            if batch.unmapped:
+                self._map_unmapped(batch, stamp)
         finally:
             self._flush()  # the batch's updates are in x; their downdates held back (ekf.py)
-        if refused and refused == len(id_list):
+        if batch.refused and batch.refused == len(id_list):
             raise ekf.RefusedStepError(
                 self.last_refusal.reason if self.last_refusal else "non-finite",
-                f"every observation of the batch ({refused}) was refused by the guard")
+                f"every observation of the batch ({batch.refused}) was refused by the guard")
         fault = self._fault
-        if (fault is not None and fault.kind == faults.MAP_UPDATE and innovation_ids
+        if (fault is not None and fault.kind == faults.MAP_UPDATE and batch.innovation_ids
                 and fault.active(stamp)):
             faults.inflate_map_covariance(self._L, self._faulty_indices(), fault.magnitude)
         self.gates.applied(stamp)
-        k = len(innovation_ids)
-        g = len(gated)
-        return ObserveReport(
-            observed_ids=_frozen(observed, np.int64), new_ids=_frozen(new, np.int64),
-            innovation_ids=_frozen(innovation_ids, np.int64),
-            innovations=_frozen(innovations, np.float64, (k, 2)),
-            innovation_covariances=_frozen(covariances, np.float64, (k, 2, 2)),
-            assigned_ids=_frozen(assigned, np.int64), rejected=rejected, ambiguous=ambiguous,
-            gated_ids=_frozen([e[0] for e in gated], np.int64) if g else None,
-            gated_observations=_frozen([e[1:3] for e in gated], np.float64, (g, 2))
-            if g else None,
-            gated_nis=_frozen([e[3] for e in gated], np.float64) if g else None,
-            refused=refused)
+        return batch.report()
+
+    def _observe_one(self, batch: BatchRecord, lid: int, z_r: float, z_b: float,
+                     stamp: float) -> None:
+        """One observation of a batch: associated if anonymous, then an update or a new
+        landmark; what happened goes into ``batch``."""
+        var_r = self._range_variance(z_r, z_b)
+        if lid == -1:
+            found = self._associate(batch, z_r, z_b, var_r, stamp)
+            if found is None:
+                batch.assigned.append(-1)
+                return
+            lid = found
+        j = self._index.get(lid)
+        if j is None and self._fej is not None:
+            batch.hold_new(lid, z_r, z_b, var_r)  # FEJ: mapped after the batch's updates
+            return
+        try:
+            if j is None:
+                self._initialise(lid, z_r, z_b, var_r)
+                batch.new.append(lid)
+            else:
+                out = ekf.update(self._x, self._L, self._n, j, z_range=z_r, z_bearing=z_b,
+                                 var_range=var_r, var_bearing=self._var_b, ws=self._ws,
+                                 gate=self._gate, guard=self._guard, defer=True,
+                                 at=None if self._fej is None else self._fej.update_point(j))
+        except ekf.GatedObservationError as exc:
+            self.gated += 1
+            batch.gated.append((lid, z_r, z_b, exc.nis))
+            batch.rejected += 1
+            batch.assigned.append(-1)
+            return
+        except ekf.RefusedStepError as exc:  # the guard: an update or a new landmark
+            self._refuse(exc.reason, str(exc), stamp,
+                         f"observation id={lid} range={z_r!r} bearing={z_b!r}")
+            batch.rejected += 1
+            batch.refused += 1
+            batch.assigned.append(-1)
+            return
+        except ekf.SingularInnovationError as exc:
+            self._log_refused(lid, exc)
+            batch.rejected += 1
+            batch.assigned.append(-1)
+            return
+        if j is not None:
+            nu_r, nu_b, s00, s01, s11 = out
+            batch.innovation_ids.append(lid)
+            batch.innovations.append((nu_r, nu_b))
+            batch.covariances.append((s00, s01, s01, s11))
+        batch.assigned.append(lid)
+        if lid not in batch.observed:
+            batch.observed.append(lid)
+
+    def _map_unmapped(self, batch: BatchRecord, stamp: float) -> None:
+        """FEJ: the batch's new landmarks, mapped after its updates (so that no update of
+        the batch moves them: a state publishes a new landmark at its first estimate, which
+        a monitor takes as its linearisation point); sightings of one landmark fused."""
+        for lid, sightings in batch.unmapped.items():
+            z_r, z_b, var_r, var_b = fused(sightings, self._var_b)
+            try:
+                self._initialise(lid, z_r, z_b, var_r, var_b)
+            except ekf.RefusedStepError as exc:
+                self._refuse(exc.reason, str(exc), stamp,
+                             f"observation id={lid} range={z_r!r} bearing={z_b!r}")
+                batch.drop_new(lid, refused=True)
+                continue
+            batch.new.append(lid)
+
+    def _associate(self, batch: BatchRecord, z_r: float, z_b: float, var_r: float,
+                   stamp: float) -> int | None:
+        """The id an anonymous observation is (a landmark's, or a fresh one for a new
+        landmark), or None when it is not applied (ambiguous, or the map is full)."""
+        self._flush()  # association reads P
+        decision = association.decide(association.mahalanobis_all(
+            self._x, self._L, self._n, z_range=z_r, z_bearing=z_b, var_range=var_r,
+            var_bearing=self._var_b), self._gates)
+        if decision.kind == association.AMBIGUOUS:
+            log.debug("anonymous observation (%.3f m, %.3f rad) ambiguous: d² = %.2f",
+                      z_r, z_b, decision.d2)
+            batch.rejected += 1
+            batch.ambiguous += 1
+            return None
+        if decision.kind != association.MATCH and self.gates.map_full(self._n):
+            self._refuse("map_size", f"the map holds {self._n} landmarks, the bound: an "
+                                     "anonymous observation was not mapped",
+                         stamp, f"observation range={z_r!r} bearing={z_b!r}")
+            batch.rejected += 1
+            return None
+        return (self._ids[decision.index] if decision.kind == association.MATCH
+                else self._fresh_anonymous_id())
 
     def to_state(self, *, seq: int, stamp: float, step: str,
                  report: ObserveReport | None = None, epoch: int = 0,
@@ -376,11 +361,20 @@ class Estimator:
 
     def diagnostics(self) -> dict[str, float]:
         """Running counts published in every state (docs/protocol.md ``diagnostics``):
-        ``gated``, ``refused_updates`` (S not PD) and ``refused.<reason>`` per reason."""
+        ``gated``, ``refused_updates`` (S not PD) and ``refused.<reason>`` per reason; and
+        ``linearisation.fej`` = 1 when the Jacobians are FEJ's (the monitor then holds the
+        filter to FEJ's theorems: docs/monitor.md)."""
         out = {"gated": float(self.gated), "refused_updates": float(self.refused_updates)}
         for reason, count in sorted(self.refusals.items()):
             out[f"refused.{reason}"] = float(count)
+        if self._fej is not None:
+            out["linearisation.fej"] = 1.0
         return out
+
+    def linearisation_points(self) -> dict[str, Any] | None:
+        """What a checkpoint must keep besides the state for the map to continue exactly:
+        the FEJ linearisation points (None for the standard EKF, which needs none)."""
+        return None if self._fej is None else self._fej.to_dict(self._ids)
 
     # -- checkpoints -------------------------------------------------------------------
     @property
@@ -388,11 +382,14 @@ class Estimator:
         """The id the next landmark found by association gets (kept by checkpoints)."""
         return self._next_anonymous
 
-    def restore(self, state: SlamState, *, next_anonymous_id: int | None = None) -> None:
+    def restore(self, state: SlamState, *, next_anonymous_id: int | None = None,
+                linearisation: dict[str, Any] | None = None) -> None:
         """Continue from ``state`` (a checkpoint): the same map, bit for bit.
 
         The buffers get the capacity an uninterrupted run would have by now (16 doubled
-        as needed), so that every later BLAS call sees the same layout.
+        as needed), so that every later BLAS call sees the same layout. With FEJ,
+        ``linearisation`` is what :meth:`linearisation_points` gave when the checkpoint was
+        made; without it the estimates of ``state`` become the first estimates.
         """
         n = state.n
         capacity = _INITIAL_CAPACITY
@@ -412,6 +409,10 @@ class Estimator:
         self._index = {lid: k for k, lid in enumerate(self._ids)}
         self._next_anonymous = (self.settings.anonymous_id_base if next_anonymous_id is None
                                 else int(next_anonymous_id))
+        if self._fej is not None:
+            self._fej = FirstEstimates.from_dict(
+                linearisation, ids=self._ids, robot=[float(v) for v in state.pose],
+                landmarks=state.landmarks.reshape(-1, 2).tolist())
         self.gates.restore(None if state.step == "init" else
                            float(state.input_stamp if state.input_stamp is not None
                                  else state.stamp))
@@ -422,33 +423,6 @@ class Estimator:
                                  if k.startswith("refused.")})
 
     # -- internals ---------------------------------------------------------------------
-    @staticmethod
-    def _check_batch(ids: Any, ranges: Any, bearings: Any,
-                     stamp: float) -> tuple[list[int], list[float], list[float]]:
-        """Validated plain lists (the loop runs on Python scalars; builtins over small
-        lists are cheaper than a numpy call per check)."""
-        ekf.check_finite_inputs(stamp=stamp)
-        ids_a = np.asarray(ids)
-        if ids_a.ndim != 1 or (ids_a.size and ids_a.dtype.kind not in "iu"):
-            raise EstimationError(f"ids must be a 1-D integer array, got dtype {ids_a.dtype} "
-                             f"shape {ids_a.shape}")
-        ranges_a = np.asarray(ranges, dtype=np.float64)
-        bearings_a = np.asarray(bearings, dtype=np.float64)
-        if ranges_a.shape != ids_a.shape or bearings_a.shape != ids_a.shape:
-            raise EstimationError(f"ids, ranges and bearings must have the same length, got "
-                             f"{ids_a.shape}, {ranges_a.shape}, {bearings_a.shape}")
-        id_list: list[int] = ids_a.tolist()
-        range_list: list[float] = ranges_a.tolist()
-        bearing_list: list[float] = bearings_a.tolist()
-        if not (all(map(math.isfinite, range_list)) and all(map(math.isfinite, bearing_list))):
-            raise EstimationError("ranges and bearings must be finite (NaN or infinity received)")
-        if id_list:
-            if min(range_list) < 0:
-                raise EstimationError("ranges must be ≥ 0")
-            if min(id_list) < -1:
-                raise EstimationError(f"ids must be ≥ −1, got {min(id_list)}")
-        return id_list, range_list, bearing_list
-
     def _range_variance(self, z_range: float, z_bearing: float) -> float:
         """σr² (SPEC §4), plus the opt-in terms (k·r)² and (k·r·φ²)² when configured."""
         var = self._var_r
@@ -462,13 +436,6 @@ class Estimator:
     def _refuse(self, reason: str, detail: str, stamp: float, what: str) -> None:
         self.refusals[reason] += 1
         self.last_refusal = Refusal(reason=reason, detail=detail, stamp=stamp, input=what)
-
-    @staticmethod
-    def _describe_batch(ids: list[int], ranges: list[float], bearings: list[float]) -> str:
-        head = ", ".join(f"{i}:({r:.6g} m, {b:.6g} rad)"
-                         for i, r, b in zip(ids[:3], ranges[:3], bearings[:3], strict=True))
-        more = f" … ({len(ids)} in all)" if len(ids) > 3 else ""
-        return f"observations [{head}{more}]"
 
     def _log_refused(self, lid: int, exc: Exception) -> None:
         self.refused_updates += 1
@@ -488,12 +455,18 @@ class Estimator:
         self._next_anonymous += 1
         return lid
 
-    def _initialise(self, lid: int, z_range: float, z_bearing: float, var_range: float) -> None:
+    def _initialise(self, lid: int, z_range: float, z_bearing: float, var_range: float,
+                    var_bearing: float | None = None) -> None:
         self._flush()  # the new rows are made from P's robot rows (and a larger L from P)
         self._ensure_capacity(self._n + 1)
         ekf.initialise(self._x, self._L, self._n, z_range=z_range, z_bearing=z_bearing,
-                       var_range=var_range, var_bearing=self._var_b, ws=self._ws,
-                       guard=self._guard)
+                       var_range=var_range,
+                       var_bearing=self._var_b if var_bearing is None else var_bearing,
+                       ws=self._ws,
+                       guard=self._guard, at=None if self._fej is None else self._fej.robot)
+        if self._fej is not None:
+            a = 3 + 2 * self._n
+            self._fej.mapped(float(self._x[a]), float(self._x[a + 1]))
         self._index[lid] = self._n
         self._ids.append(lid)
         self._n += 1

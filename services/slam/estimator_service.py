@@ -149,7 +149,8 @@ class EstimatorService:
         if cp.noise != noise:
             log.warning("the checkpoint was made with %s, now %s: the map continues with the "
                         "new settings", cp.noise, noise)
-        self.estimator.restore(state, next_anonymous_id=cp.next_anonymous_id)
+        self.estimator.restore(state, next_anonymous_id=cp.next_anonymous_id,
+                               linearisation=cp.linearisation)
         self.order.resume(cp.positions)
         _restore_counts(self.order.stats, state.diagnostics or {})
         self.epoch, self._seq = state.epoch, state.seq
@@ -166,7 +167,8 @@ class EstimatorService:
             robot=self.robot, state=self._out.latest_bytes(),
             positions=self.order.positions(),
             next_anonymous_id=self.estimator.next_anonymous_id,
-            noise={k: float(getattr(self.settings, k)) for k in _NOISE})
+            noise={k: float(getattr(self.settings, k)) for k in _NOISE},
+            linearisation=self.estimator.linearisation_points())
 
     def _maybe_checkpoint(self) -> None:
         """A checkpoint if one is due — after the states it covers were put."""

@@ -83,13 +83,14 @@ def predict_without_cross_covariance(x: np.ndarray, L: np.ndarray, n: int, *,
                                      w: float, dt: float, var_v: float, var_w: float,
                                      extra_qv: float = 0.0, extra_qw: float = 0.0,
                                      guard: ekf.Guard | None = None,
-                                     ws: ekf.Workspace | None = None) -> None:
+                                     ws: ekf.Workspace | None = None,
+                                     at: tuple[float, float] | None = None) -> None:
     """:func:`ekf.predict` with P_v,f of the landmarks ``indices`` (state order) not
     propagated (``fraction`` 1) or only partly (``fraction`` in (0, 1))."""
     rows = _state_rows(indices)
     saved = L[rows, 0:3].copy()  # P_f,v before (lower storage: rows of f, robot columns)
     ekf.predict(x, L, n, v=v, w=w, dt=dt, var_v=var_v, var_w=var_w, extra_qv=extra_qv,
-                extra_qw=extra_qw, guard=guard, ws=ws)
+                extra_qw=extra_qw, guard=guard, ws=ws, at=at)
     if rows.size:
         L[rows, 0:3] = fraction * saved + (1.0 - fraction) * L[rows, 0:3]
 

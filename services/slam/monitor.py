@@ -43,6 +43,11 @@ from slamlens.services.slam.monitor_stats import (
     pose_nees,
     quadratic_forms_2x2,
 )
+from slamlens.services.slam.monitor_unobservable import (
+    UnobservableCheck,
+    declares_fej,
+    predict_points,
+)
 from slamlens.services.slam.monitor_verdict import Verdict
 from slamlens.services.slam.settings import MonitorSettings
 
@@ -100,6 +105,9 @@ class _Screened:
     #: predict-step tests pass); None: the per-state tests decide
     pair: tuple[bool, bool, bool] | None
     terms: BlockTerms  #: the features' own blocks, for their NEES
+    factor: np.ndarray | None  #: lower Cholesky factor of sym(P) + tol·I (PSD screen)
+    #: where this state's prediction Fx is measured from (None: not checkable)
+    before: np.ndarray | None
 
 
 class Monitor:
@@ -118,6 +126,7 @@ class Monitor:
         self._truth_cov = np.diag(self._truth_sigma2)  #: added to Pvv for the pose NEES
         self._verdict = Verdict(clear_after=s.clear_after,
                                 max_listed=s.max_violations_per_kind)
+        self._unobservable = UnobservableCheck()
         self.reset()
 
     # -- state ---------------------------------------------------------------------------
@@ -140,6 +149,7 @@ class Monitor:
         self._nees_features.reset()
         self._evidence.reset()
         self._verdict.reset()
+        self._unobservable.reset()
         self._frame_reset()
         self._counts: Counter[str] = Counter()
         self._phase_counts: Counter[str] = Counter()
@@ -159,6 +169,7 @@ class Monitor:
         self._nees_features.reset()
         self._evidence.reset()
         self._verdict.reset()
+        self._unobservable.reset()
 
     def new_map(self) -> None:
         """A new epoch (a map started from scratch): nothing of the old map compares."""
@@ -284,13 +295,16 @@ class Monitor:
         self._screens = {}
         prev = self._prev
         start = 0
+        # where each state's prediction linearised, followed through the whole burst
+        before = predict_points(self._unobservable.robot, [prev, *states[:-1]], list(states))
         for k in range(1, len(states) + 1):  # runs of one covariance size
             if k == len(states) or states[k].covariance.shape != states[start].covariance.shape:
-                self._screen_run(prev, states[start:k])
+                self._screen_run(prev, states[start:k], before[start:k])
                 prev = states[k - 1]
                 start = k
 
-    def _screen_run(self, prev: SlamState | None, run: Sequence[SlamState]) -> None:
+    def _screen_run(self, prev: SlamState | None, run: Sequence[SlamState],
+                    before: list[np.ndarray | None] | None = None) -> None:
         s = self.settings
         P = np.stack([x.covariance for x in run])
         K, N = len(run), P.shape[1]
@@ -304,6 +318,8 @@ class Monitor:
                                         rtol_correlation=s.rtol_correlation,
                                         rtol_psd=s.rtol_psd, atol=s.atol_growth)
             prevs = [prev, *run[:-1]]
+            if before is None:  # one state, after the last one checked
+                before = predict_points(self._unobservable.robot, prevs, list(run))
             # the same landmarks in the same order (int64 ids: equal iff their bytes are)
             same = np.array([p is not None and p.landmark_ids.shape == x.landmark_ids.shape
                              and p.landmark_ids.tobytes() == x.landmark_ids.tobytes()
@@ -315,9 +331,14 @@ class Monitor:
                 P_ext = np.concatenate([lead, P])
                 poses = np.stack([np.zeros(3) if p is None else p.pose
                                   for p in [prevs[0], *run]])
+                for k, xy in enumerate(before):  # FEJ: from the propagated position
+                    if xy is not None:
+                        poses[k, :2] = xy
                 predict = np.array([s.check_prediction and x.step == "predict"
                                     and p is not None and x.seq == p.seq + 1
-                                    for p, x in zip(prevs, run, strict=True)], dtype=bool)
+                                    and xy is not None
+                                    for p, x, xy in zip(prevs, run, before, strict=True)],
+                                   dtype=bool)
                 at = np.flatnonzero(same)
                 whole = at.size == K
                 pairs = checks.screen_pairs(
@@ -337,8 +358,9 @@ class Monitor:
             if found is not None and found[0][k] >= 0:
                 j = found[0][k]
                 pair = (found[1][j], found[2][j], found[3][j])
-            self._screens[id(x)] = _Screened(x, prevs[k], structure[k], psd[k], pair,
-                                             terms[k])
+            self._screens[id(x)] = _Screened(
+                x, prevs[k], structure[k], psd[k], pair, terms[k],
+                alone.factors[k] if alone.factors else None, before[k])
 
     def _screened(self, state: SlamState, prev: SlamState | None) -> _Screened:
         """The screen of ``state`` after ``prev`` (from :meth:`prepare`, else made now)."""
@@ -349,7 +371,7 @@ class Monitor:
         if got.prev is not prev:  # checked after another state than the screen assumed
             self._screen_run(prev, [state])
             fresh = self._screens.pop(id(state))
-            got = dataclasses.replace(got, prev=prev, pair=fresh.pair)
+            got = dataclasses.replace(got, prev=prev, pair=fresh.pair, before=fresh.before)
         return got
 
     # -- the check -----------------------------------------------------------------------
@@ -374,13 +396,16 @@ class Monitor:
         pairs = _NO_PAIRS
         direct: list[int] = []
         screened = self._screened(state, prev)
+        self._unobservable.advance(state)
         # huge-but-finite covariances may overflow products: the comparisons still decide
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             found += self._check_alone(state, screened)
             if prev is not None:
-                pairs, direct, more = self._check_against(prev, state, stats, screened.pair)
+                pairs, direct, more = self._check_against(prev, state, stats, screened.pair,
+                                                          before=screened.before)
                 found += more
             found += self._statistics(state, stats, screened.terms)
+            found += self._check_unobservable(state, screened, stats)
         found += self._late
         self._late = []
         if self.truth_missing:
@@ -474,7 +499,8 @@ class Monitor:
 
     # -- checks against the previous received state --------------------------------------
     def _check_against(self, prev: SlamState, state: SlamState, stats: dict[str, float],
-                       screened: tuple[bool, bool, bool] | None = None
+                       screened: tuple[bool, bool, bool] | None = None, *,
+                       before: np.ndarray | None = None
                        ) -> tuple[np.ndarray, list[int], list[Violation]]:
         s = self.settings
         out: list[Violation] = []
@@ -531,9 +557,9 @@ class Monitor:
                     detail=f"P_d of features {i}, {j} grew by {pair.value[k]:.3g} m²"))
         stats["growth_max"] = growth_max
         if (s.check_prediction and state.step == "predict"
-                and state.seq == prev.seq + 1 and not predicted):
+                and state.seq == prev.seq + 1 and not predicted and before is not None):
             more, blamed = self._check_prediction(prev, state, pos_prev, pos_cur, ids,
-                                                  map_unchanged=unchanged)
+                                                  map_unchanged=unchanged, before=before)
             out += more
             direct += blamed
         return pairs, direct, out
@@ -545,11 +571,12 @@ class Monitor:
         return np.argpartition(-values, limit - 1)[:limit]
 
     def _check_prediction(self, prev: SlamState, state: SlamState, pos_prev: np.ndarray,
-                          pos_cur: np.ndarray, ids: np.ndarray, *, map_unchanged: bool
-                          ) -> tuple[list[Violation], list[int]]:
+                          pos_cur: np.ndarray, ids: np.ndarray, *, map_unchanged: bool,
+                          before: np.ndarray) -> tuple[list[Violation], list[int]]:
         s = self.settings
         map_changed, cross_wrong, noise = checks.prediction_residuals(
-            prev.covariance, state.covariance, prev.pose, state.pose, pos_prev, pos_cur,
+            prev.covariance, state.covariance, np.array([before[0], before[1], 0.0]),
+            state.pose, pos_prev, pos_cur,
             rtol=s.rtol_prediction, atol=s.atol_growth, map_unchanged=map_unchanged)
         out: list[Violation] = []
         blamed: list[int] = []
@@ -575,6 +602,21 @@ class Monitor:
                 detail=f"Pvv − Fx·Pvv·Fxᵀ not PSD (λ_min {noise:.3g}): process noise "
                        f"negative"))
         return out, blamed
+
+    # -- the unobservable directions (monitor_unobservable.py) ---------------------------
+    def _check_unobservable(self, state: SlamState, screened: _Screened,
+                            stats: dict[str, float]) -> list[Violation]:
+        s = self.settings
+        if s.check_unobservable == "off":
+            return []
+        factor = screened.factor
+        if factor is None:  # not screened PSD (the stack failed, or P is not): one alone
+            factor = checks.psd_factor(state.covariance, rtol=s.rtol_psd, atol=s.atol_growth)
+        found = self._unobservable.step(state, factor)
+        stats.update(found.statistics)
+        v = found.violation(state, rtol=s.rtol_unobservable,
+                            theorem=s.check_unobservable == "always" or declares_fej(state))
+        return [] if v is None else [v]
 
     # -- statistics ----------------------------------------------------------------------
     def _statistics(self, state: SlamState, stats: dict[str, float], terms: BlockTerms

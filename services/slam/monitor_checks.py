@@ -193,6 +193,23 @@ def min_eigenvalue_if_indefinite(P: np.ndarray, *, rtol: float,
     return None
 
 
+def psd_factor(P: np.ndarray, *, rtol: float, atol: float) -> np.ndarray | None:
+    """The lower Cholesky factor of sym(P) + tol·I that :func:`screen_alone` makes for a
+    state, made the same way for one state (the same operations, so the same numbers);
+    None if there is none."""
+    S = P + P.T
+    S *= 0.5
+    tol = rtol * np.abs(np.diagonal(S)).max() + atol if S.size else atol
+    if not (np.isfinite(S.sum()) and np.isfinite(tol)):
+        return None
+    idx = np.arange(S.shape[0])
+    S[idx, idx] += tol
+    try:
+        return np.linalg.cholesky(S)
+    except np.linalg.LinAlgError:
+        return None
+
+
 def prediction_residuals(P_prev: np.ndarray, P_cur: np.ndarray, pose_prev: np.ndarray,
                          pose_cur: np.ndarray, pos_prev: np.ndarray, pos_cur: np.ndarray, *,
                          rtol: float, atol: float, map_unchanged: bool | None = None
@@ -273,6 +290,9 @@ class Screen:
 
     structure: np.ndarray  #: bool [K]: no asymmetric entry, no |ρ| > 1 (:func:`structure`)
     psd: np.ndarray  #: bool [K]: sym(P) + tol·I has a Cholesky factor (PSD within tol)
+    #: that lower factor per state where it was made (for the unobservable-directions check,
+    #: monitor_unobservable.py: O(N²) solves on it instead of a factorisation of its own)
+    factors: tuple[np.ndarray | None, ...] = ()
 
 
 @dataclass(frozen=True)
@@ -294,7 +314,7 @@ def screen_alone(P: np.ndarray, *, rtol_symmetry: float, rtol_correlation: float
     """
     K, N, _ = P.shape
     if N == 0 or K == 0:
-        return Screen(np.ones(K, bool), np.ones(K, bool))
+        return Screen(np.ones(K, bool), np.ones(K, bool), (None,) * K)
     idx = np.arange(N)
     PT = P.transpose(0, 2, 1)
     diag = np.diagonal(P, axis1=1, axis2=2)
@@ -320,13 +340,17 @@ def screen_alone(P: np.ndarray, *, rtol_symmetry: float, rtol_correlation: float
     clean &= ~bad.any(axis=(1, 2))
     tol = rtol_psd * np.abs(np.diagonal(S, axis1=1, axis2=2)).max(axis=1) + atol
     psd = np.isfinite(S.sum(axis=(1, 2))) & np.isfinite(tol)
+    factors: list[np.ndarray | None] = [None] * K
     if psd.any():
         S[:, idx, idx] += tol[:, None]
         try:
-            np.linalg.cholesky(S[psd] if not psd.all() else S)
+            made = np.linalg.cholesky(S[psd] if not psd.all() else S)
         except np.linalg.LinAlgError:  # some matrix of the stack has none: test each
             psd[:] = False
-    return Screen(clean, psd)
+        else:
+            for j, k in enumerate(np.flatnonzero(psd).tolist()):
+                factors[k] = made[j]
+    return Screen(clean, psd, tuple(factors))
 
 
 def screen_pairs(P_prev: np.ndarray, P_cur: np.ndarray, pose_prev: np.ndarray,

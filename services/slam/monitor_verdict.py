@@ -6,7 +6,8 @@ update fault shows only on update states, for instance). :class:`Verdict` keeps 
 violations that stand and gives one word for them:
 
 * ``fault`` — a covariance theorem or a structural property is broken (pair, feature,
-  prediction, symmetry, psd, correlation): a programming fault in the estimator;
+  prediction, symmetry, psd, correlation, unobservable): a programming fault in the
+  estimator;
 * ``tuning`` — only the statistical tests fail (NEES / NIS outside their bands): the filter
   is overconfident or its models do not fit the data, but it computes what it should;
 * ``ok`` — nothing stands.
@@ -26,7 +27,8 @@ from dataclasses import dataclass
 from slamlens.common.messages import Violation
 from slamlens.common.verdict import WORDS, summary_text  # noqa: F401  (the one wording: common/verdict.py)
 
-FAULT_KINDS = ("pair", "feature", "prediction", "symmetry", "psd", "correlation")
+FAULT_KINDS = ("pair", "feature", "prediction", "symmetry", "psd", "correlation",
+               "unobservable")
 TUNING_KINDS = ("nees", "nis")
 VERDICTS = ("ok", "fault", "tuning")
 _RANK = {k: i for i, k in enumerate(FAULT_KINDS + TUNING_KINDS)}

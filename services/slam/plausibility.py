@@ -21,6 +21,9 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
 
 from slamlens.common.errors import EstimationError
 
@@ -130,3 +133,39 @@ class InputGates:
         """Continue from a checkpoint whose newest input had ``last_stamp``."""
         self.last_stamp = last_stamp
         self._jumped.clear()
+
+
+def checked_batch(ids: Any, ranges: Any, bearings: Any,
+                 stamp: float) -> tuple[list[int], list[float], list[float]]:
+    """Validated plain lists (the loop runs on Python scalars; builtins over small
+    lists are cheaper than a numpy call per check)."""
+    if not math.isfinite(stamp):
+        raise EstimationError(f"stamp must be finite, got {stamp!r}")
+    ids_a = np.asarray(ids)
+    if ids_a.ndim != 1 or (ids_a.size and ids_a.dtype.kind not in "iu"):
+        raise EstimationError(f"ids must be a 1-D integer array, got dtype {ids_a.dtype} "
+                              f"shape {ids_a.shape}")
+    ranges_a = np.asarray(ranges, dtype=np.float64)
+    bearings_a = np.asarray(bearings, dtype=np.float64)
+    if ranges_a.shape != ids_a.shape or bearings_a.shape != ids_a.shape:
+        raise EstimationError(f"ids, ranges and bearings must have the same length, got "
+                              f"{ids_a.shape}, {ranges_a.shape}, {bearings_a.shape}")
+    id_list: list[int] = ids_a.tolist()
+    range_list: list[float] = ranges_a.tolist()
+    bearing_list: list[float] = bearings_a.tolist()
+    if not (all(map(math.isfinite, range_list)) and all(map(math.isfinite, bearing_list))):
+        raise EstimationError("ranges and bearings must be finite (NaN or infinity received)")
+    if id_list:
+        if min(range_list) < 0:
+            raise EstimationError("ranges must be ≥ 0")
+        if min(id_list) < -1:
+            raise EstimationError(f"ids must be ≥ −1, got {min(id_list)}")
+    return id_list, range_list, bearing_list
+
+
+def describe_batch(ids: list[int], ranges: list[float], bearings: list[float]) -> str:
+    """A batch, abridged, for a refusal's record."""
+    head = ", ".join(f"{i}:({r:.6g} m, {b:.6g} rad)"
+                     for i, r, b in zip(ids[:3], ranges[:3], bearings[:3], strict=True))
+    more = f" … ({len(ids)} in all)" if len(ids) > 3 else ""
+    return f"observations [{head}{more}]"

@@ -16,6 +16,9 @@ from slamlens.common.errors import ConfigError
 #: planted fault kinds (services/slam/faults.py says what each does)
 NONE, MAP_UPDATE, CROSS_COVARIANCE = "none", "map-update", "cross-covariance"
 FAULT_KINDS = (NONE, MAP_UPDATE, CROSS_COVARIANCE)
+#: where the estimator's Jacobians are evaluated (services/slam/linearisation.py)
+STANDARD, FEJ = "standard", "fej"
+LINEARISATIONS = (STANDARD, FEJ)
 
 
 def check_fault(kind: str, feature_ids: tuple[int, ...], magnitude: float | None) -> None:
@@ -156,9 +159,27 @@ class TuneSettings:
         choices=("spec", "distance"))
     gate_chi2: float = setting(13.82, doc="innovation gate written into the profile (χ²₂ "
                                           "99.9 %); 0 = none", min=0.0)
+    linearisation: str = setting(
+        "both", doc="the estimator's linearisation to fit for: standard, fej, or both = fit "
+                    "each and choose by the robots left out (by the fit itself with one "
+                    "robot or --no-cross-validate)", choices=(STANDARD, FEJ, "both"))
+    cross_validate: bool = setting(
+        True, doc="leave each robot out in turn: fit on the others, score it (NEES, landmark "
+                  "RMSE after a rigid fit), report, and choose the linearisation by that; "
+                  "needs two robots or more (docs/estimator.md)", flag="--no-cross-validate")
+    scale: str = setting(
+        "motion", doc="what the NEES scale multiplies: motion = the odometry σ only (the "
+                      "sensor σ stay as measured against the truth); all = every σ",
+        choices=("motion", "all"))
+    jobs: int = setting(2, doc="processes scoring the robots of a pass at once (1 = this "
+                               "process only)", min=1)
+    folds: str = setting("", doc="also write each leave-one-robot-out profile here, as "
+                                 "without-robotK.toml (to run a robot left out through the "
+                                 "real processes); empty = none", metavar="DIR")
     output: str = setting("", doc="settings TOML to write; empty = print it", short="-o",
                           metavar="FILE.toml")
     progress: str = _progress()
+
 
 
 
@@ -218,6 +239,12 @@ class EstimatorSettings:
                                           "start)", unit="s")
     publish_innovations: bool = setting(
         True, doc="put each update's innovations and S into the state (the monitor's NIS)")
+    linearisation: str = setting(
+        STANDARD, doc="where the Jacobians are evaluated: standard = at the latest estimates "
+                      "(SPEC §4); fej = First-Estimates Jacobians (the robot's propagated "
+                      "estimate, each landmark's first estimate), so global translation and "
+                      "rotation stay unobservable and the filter does not grow overconfident "
+                      "in the map's heading (docs/estimator.md)", choices=LINEARISATIONS)
     # -- opt-in motion noise (not SPEC §4; all 0 = the SPEC §4 model exactly) ------------
     sigma_distance: float = setting(
         0.0, doc="opt-in, not SPEC §4: along-track noise growing with the distance driven, "
@@ -366,6 +393,17 @@ class MonitorSettings:
     rtol_prediction: float = setting(1e-9, doc="prediction residual tolerance, relative to "
                                                "sqrt(P_aa·P_bb) of the entry checked",
                                      min=0.0, group=_THEOREMS)
+    check_unobservable: str = setting(
+        "auto", doc="the information in the unobservable directions (global x, y, rotation) "
+                    "must never grow: auto = a violation for an estimator that says it keeps "
+                    "them unobservable (FEJ), the growth in the statistics for any other (a "
+                    "standard EKF grows it by construction); always = a violation for any; "
+                    "off = not computed (docs/monitor.md)", choices=("auto", "always", "off"),
+        group=_THEOREMS)
+    rtol_unobservable: float = setting(
+        1e-6, doc="growth of that information allowed, relative (in the direction it grew "
+                  "most): rounding stays below 2e-12 on MRCLAM, a standard EKF's updates add "
+                  "1e-3 to 5", min=0.0, group=_THEOREMS)
 
     # -- statistical tests -------------------------------------------------------------
     significance: float = setting(1e-6, doc="two-sided α of each windowed test (one test per "

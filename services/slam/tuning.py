@@ -19,12 +19,14 @@ How a profile is made (docs/estimator.md, "Tuning on real data"):
    k_d²·distance and k_t²·turn + k_hd²·distance (the opt-in terms,
    ``motion_model = "distance"``), fitted the same way, each window length weighted equally.
 3. **Check and scale.** The estimator runs over every run with the fitted settings and its
-   time-averaged pose NEES is measured against the truth. Scaling every σ by c leaves the
-   estimate unchanged and scales P by c² (the gain does not change), so NEES/c²: the
-   residual fit sets the shape of the noise, and c, from the pooled runs, sets its size:
-   c ← c·sqrt(mean NEES / 3) until the pooled mean is within 2 % of 3 (the innovation gate
-   refuses other observations at another scale, so a few passes). The last pass is the
-   check: each run's NEES against the band (:meth:`TuneResult.passes`).
+   time-averaged pose NEES is measured against the truth. The sensor σ are measured
+   against the truth directly, per measurement: they stay as fitted. The odometry errors
+   are correlated in time (commanded, not measured, velocities), which a white-noise model
+   fitted on windows underestimates, so the motion σ are multiplied by a scale c until the
+   pooled mean NEES is within 2 % of 3: ln NEES is close to linear in ln c, so a secant
+   on the passes so far (``scaled = "all"`` multiplies every σ instead: then P scales by c²
+   and the slope is −2). The last pass is the check: each run's NEES against the band
+   (:meth:`TuneResult.passes`).
 
 No I/O besides reading the dataset (through :mod:`slamlens.services.slam.mrclam`).
 """
@@ -32,322 +34,53 @@ No I/O besides reading the dataset (through :mod:`slamlens.services.slam.mrclam`
 from __future__ import annotations
 
 import math
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
+from concurrent.futures import Executor
 from dataclasses import dataclass, field, replace
 from typing import Any
 
 import numpy as np
 from scipy import optimize, stats
 
-from slamlens.common.errors import ConfigError, EstimationError
+from slamlens.common.errors import ConfigError
 from slamlens.common.geometry import wrap_angle
-from slamlens.common.messages import Observations, Odometry, SlamState, Truth
-from slamlens.services.slam.estimator import Estimator
 from slamlens.services.slam.mrclam import MrclamRun
+from slamlens.services.slam.scoring import (
+    NEES_WINDOW,
+    POSE_DOF,
+    Evaluation,
+    Progress,
+    evaluate_all,
+)
 from slamlens.services.slam.settings import EstimatorSettings
 
 #: window lengths of the odometry residuals, s (up to the longest blind drives of MRCLAM)
 WINDOWS_S = (1.0, 2.0, 4.0, 8.0, 16.0, 32.0, 64.0)
 #: residuals beyond this many σ are left out of a fit (then the fit is repeated)
 TRIM_SIGMA = 3.0
-#: states per NEES window (issue 11's acceptance)
-NEES_WINDOW = 100
-#: the pose has 3 degrees of freedom: a consistent filter's NEES averages 3
-POSE_DOF = 3
-#: NEES is skipped while P_vv is this ill-conditioned (tr³/det, as the monitor)
-CONDITION_MAX = 1e10
-
-Progress = Callable[[int], object]
-
-
-# ---------------------------------------------------------------------------- truth, NEES
-
-
-@dataclass(frozen=True)
-class TruthTrack:
-    """Ground truth in the map frame: poses at stamps (interpolated between), landmarks."""
-
-    stamps: np.ndarray  #: float64[G], increasing
-    poses: np.ndarray  #: float64[G, 3]
-    landmark_ids: np.ndarray  #: int64[L]
-    landmarks: np.ndarray  #: float64[L, 2]
-
-    @classmethod
-    def from_mrclam(cls, run: MrclamRun, start: float | None = None) -> TruthTrack:
-        stamps, poses, landmarks = run.truth_in_map_frame(start)
-        return cls(stamps, poses, np.array(run.landmark_ids), landmarks)
-
-    @classmethod
-    def from_truths(cls, truths: Iterable[Truth]) -> TruthTrack:
-        items = sorted(truths, key=lambda t: t.stamp)
-        if not items:
-            return cls(np.zeros(0), np.zeros((0, 3)), np.zeros(0, np.int64), np.zeros((0, 2)))
-        last = items[-1]
-        return cls(np.array([t.stamp for t in items]), np.array([t.pose for t in items]),
-                   np.array(last.landmark_ids), np.array(last.landmarks))
-
-    def pose_at(self, t: float) -> np.ndarray | None:
-        """The true pose at ``t`` (linear between samples, the angle the short way round);
-        None outside the track."""
-        s = self.stamps
-        if s.size == 0 or not s[0] <= t <= s[-1]:
-            return None
-        i = int(np.searchsorted(s, t, side="right"))
-        if i >= s.size:
-            return self.poses[-1].copy()
-        i = max(i, 1)
-        a, b = self.poses[i - 1], self.poses[i]
-        span = s[i] - s[i - 1]
-        f = 0.0 if span <= 0 else (t - s[i - 1]) / span
-        return np.array([a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1]),
-                         float(wrap_angle(a[2] + f * float(wrap_angle(b[2] - a[2]))))])
-
-
-def pose_nees(error: np.ndarray, P: np.ndarray) -> float:
-    """eᵀ P⁻¹ e for a pose error (heading wrapped); NaN while P is too ill-conditioned."""
-    tr = float(np.trace(P))
-    det = float(np.linalg.det(P))
-    if not det > 0 or tr ** 3 / det > CONDITION_MAX:
-        return math.nan
-    return float(error @ np.linalg.solve(P, error))
-
-
-def rigid_fit(estimated: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
-    """RMSE (m) of ``estimated`` [n, 2] after the rotation and translation that fit it best
-    to ``truth`` (Kabsch), and that rotation in degrees."""
-    if estimated.shape[0] < 2:
-        return math.nan, math.nan
-    me, mt = estimated.mean(0), truth.mean(0)
-    U, _, Vt = np.linalg.svd((estimated - me).T @ (truth - mt))
-    D = np.diag([1.0, float(np.sign(np.linalg.det(Vt.T @ U.T)))])
-    R = Vt.T @ D @ U.T
-    fitted = (estimated - me) @ R.T + mt
-    return (float(np.sqrt(np.mean(np.sum((fitted - truth) ** 2, axis=1)))),
-            math.degrees(math.atan2(R[1, 0], R[0, 0])))
-
-
-def nees_band(dof: int = POSE_DOF, confidence: float = 0.95) -> tuple[float, float]:
-    """The two-sided ``confidence`` band of one χ²(dof) sample. It is also the band of a
-    window mean of NEES along one run (the samples are strongly dependent: the monitor's
-    dependence-robust band, docs/monitor.md)."""
-    a = (1.0 - confidence) / 2
-    return float(stats.chi2.ppf(a, dof)), float(stats.chi2.ppf(1 - a, dof))
-
-
-@dataclass
-class Evaluation:
-    """How one run's states compare with the truth."""
-
-    robot: str
-    stamps: np.ndarray  #: float64[T], of the states scored
-    nees: np.ndarray  #: float64[T], pose NEES (NaN while skipped)
-    errors: np.ndarray  #: float64[T, 3], truth − estimate (heading wrapped)
-    landmark_ids: np.ndarray  #: of the final map
-    landmark_errors: np.ndarray  #: float64[n, 2], truth − estimate, final map
-    landmark_rmse: float  #: absolute, m, final map
-    landmark_rmse_rigid: float  #: after a rigid fit, m
-    map_rotation_deg: float  #: the rigid fit's rotation
-    dead_reckoning: np.ndarray | None = None  #: float64[T, 3] errors of odometry alone
-    counts: dict[str, float] = field(default_factory=dict)  #: gated, refused …
-    nis: np.ndarray | None = None  #: float64[k] NIS νᵀS⁻¹ν of every update (2 expected)
-    poses: np.ndarray | None = None  #: float64[T, 3] the estimates scored (for plots)
-    sigmas: np.ndarray | None = None  #: float64[T, 3] their standard deviations
-    landmarks: np.ndarray | None = None  #: float64[n, 2] the final map (ids above)
-    band: tuple[float, float] = field(default_factory=nees_band)
-
-    @property
-    def nees_mean(self) -> float:
-        return float(np.nanmean(self.nees)) if np.isfinite(self.nees).any() else math.nan
-
-    @property
-    def nis_mean(self) -> float:
-        """Mean NIS of the updates (2 for a consistent filter: 2 degrees of freedom)."""
-        return float(np.mean(self.nis)) if self.nis is not None and self.nis.size else math.nan
-
-    def windows(self, size: int = NEES_WINDOW) -> np.ndarray:
-        """Means of consecutive windows of ``size`` scored states (NaN ones left out)."""
-        finite = self.nees[np.isfinite(self.nees)]
-        k = finite.size // size
-        return finite[:k * size].reshape(k, size).mean(axis=1)
-
-    def window_fraction(self, size: int = NEES_WINDOW) -> float:
-        """Fraction of those windows inside :attr:`band`."""
-        w = self.windows(size)
-        lo, hi = self.band
-        return float(np.mean((w >= lo) & (w <= hi))) if w.size else math.nan
-
-    @property
-    def state_fraction(self) -> float:
-        """Fraction of single states whose NEES lies inside :attr:`band`."""
-        finite = self.nees[np.isfinite(self.nees)]
-        lo, hi = self.band
-        return float(np.mean((finite >= lo) & (finite <= hi))) if finite.size else math.nan
-
-    @property
-    def pose_rmse(self) -> float:
-        return float(np.sqrt(np.mean(np.sum(self.errors[:, :2] ** 2, axis=1))))
-
-    @property
-    def heading_rmse_deg(self) -> float:
-        return math.degrees(float(np.sqrt(np.mean(self.errors[:, 2] ** 2))))
-
-    def dead_reckoning_rmse(self) -> tuple[float, float]:
-        """(position m, heading deg) RMSE of odometry alone over the same stamps."""
-        e = self.dead_reckoning
-        if e is None or not len(e):
-            return math.nan, math.nan
-        return (float(np.sqrt(np.mean(np.sum(e[:, :2] ** 2, axis=1)))),
-                math.degrees(float(np.sqrt(np.mean(e[:, 2] ** 2)))))
-
-    def summary(self) -> dict[str, Any]:
-        dr_pos, dr_head = self.dead_reckoning_rmse()
-        return {"robot": self.robot, "states": int(self.stamps.size),
-                "nees_mean": round(self.nees_mean, 3),
-                "windows_inside": round(self.window_fraction(), 3),
-                "states_inside": round(self.state_fraction, 3),
-                "nis_mean": round(self.nis_mean, 3),
-                "pose_rmse_m": round(self.pose_rmse, 3),
-                "heading_rmse_deg": round(self.heading_rmse_deg, 2),
-                "landmark_rmse_m": round(self.landmark_rmse, 3),
-                "landmark_rmse_rigid_m": round(self.landmark_rmse_rigid, 3),
-                "map_rotation_deg": round(self.map_rotation_deg, 2),
-                "dead_reckoning_pose_rmse_m": round(dr_pos, 3),
-                "dead_reckoning_heading_rmse_deg": round(dr_head, 2),
-                "landmarks": int(self.landmark_ids.size), **self.counts}
-
-
-class Scorer:
-    """Scores states one by one against a :class:`TruthTrack` (the states of an offline
-    estimator, or those a test received from the real processes)."""
-
-    def __init__(self, truth: TruthTrack, *, robot: str = "",
-                 dead_reckoning: TruthTrack | None = None) -> None:
-        self.truth = truth
-        self.robot = robot
-        self.dead = dead_reckoning  #: odometry alone (:func:`dead_reckoning_track`)
-        self._stamps: list[float] = []
-        self._nees: list[float] = []
-        self._errors: list[np.ndarray] = []
-        self._dr: list[np.ndarray] = []
-        self._poses: list[np.ndarray] = []
-        self._sigmas: list[np.ndarray] = []
-        self._nis: list[float] = []
-
-    def add_innovations(self, innovations: np.ndarray | None,
-                        covariances: np.ndarray | None) -> None:
-        """The NIS of one update's innovations (a state's innovations, S)."""
-        if innovations is None or covariances is None or not len(innovations):
-            return
-        nu = np.asarray(innovations).reshape(-1, 2)
-        S = np.asarray(covariances).reshape(-1, 2, 2)
-        self._nis.extend(float(v) for v in np.einsum("ki,kij,kj->k", nu, np.linalg.inv(S), nu))
-
-    def add(self, stamp: float, pose: np.ndarray, pose_covariance: np.ndarray) -> None:
-        """One state: its stamp, pose and P_vv. States outside the truth are skipped."""
-        true = self.truth.pose_at(stamp)
-        if true is None:
-            return
-        self._poses.append(np.array(pose, dtype=float))
-        self._sigmas.append(np.sqrt(np.maximum(np.diag(pose_covariance), 0.0)))
-        e = true - pose
-        e[2] = float(wrap_angle(e[2]))
-        self._stamps.append(stamp)
-        self._errors.append(e)
-        self._nees.append(pose_nees(e, pose_covariance))
-        dead = self.dead.pose_at(stamp) if self.dead is not None else None
-        if dead is not None:
-            dr = true - dead
-            dr[2] = float(wrap_angle(dr[2]))
-            self._dr.append(dr)
-
-    def add_state(self, state: SlamState) -> None:
-        self.add(state.stamp, np.asarray(state.pose), np.asarray(state.covariance)[:3, :3])
-        self.add_innovations(state.innovations, state.innovation_covariances)
-
-    def finish(self, landmark_ids: np.ndarray, landmarks: np.ndarray,
-               counts: dict[str, float] | None = None) -> Evaluation:
-        index = {int(i): k for k, i in enumerate(self.truth.landmark_ids)}
-        keep = [k for k, i in enumerate(landmark_ids) if int(i) in index]
-        ids = np.asarray(landmark_ids)[keep]
-        est = np.asarray(landmarks).reshape(-1, 2)[keep]
-        true = self.truth.landmarks[[index[int(i)] for i in ids]] if keep else np.zeros((0, 2))
-        err = true - est
-        rmse = float(np.sqrt(np.mean(np.sum(err ** 2, axis=1)))) if keep else math.nan
-        rigid, rotation = rigid_fit(est, true)
-        return Evaluation(
-            robot=self.robot, stamps=np.array(self._stamps), nees=np.array(self._nees),
-            errors=np.array(self._errors).reshape(-1, 3), landmark_ids=ids,
-            landmark_errors=err, landmark_rmse=rmse, landmark_rmse_rigid=rigid,
-            map_rotation_deg=rotation, dead_reckoning=np.array(self._dr).reshape(-1, 3),
-            counts=dict(counts or {}), nis=np.array(self._nis),
-            poses=np.array(self._poses).reshape(-1, 3),
-            sigmas=np.array(self._sigmas).reshape(-1, 3), landmarks=est)
-
-
-def dead_reckoning_track(run: MrclamRun, start: float | None = None,
-                         end: float | None = None) -> TruthTrack:
-    """The odometry of ``run.events(start, end)`` integrated alone (SPEC §4 model, from the
-    map origin): what the robot would believe with no landmarks."""
-    x = y = th = 0.0
-    stamps, poses = [run.origin_time(start)], [(0.0, 0.0, 0.0)]
-    for m in run.events(start, end, truth=False):
-        if isinstance(m, Odometry):
-            d = m.v * m.dt
-            x, y = x + d * math.cos(th), y + d * math.sin(th)
-            th = float(wrap_angle(th + m.w * m.dt))
-            stamps.append(m.stamp)
-            poses.append((x, y, th))
-    return TruthTrack(np.array(stamps), np.array(poses), np.zeros(0, np.int64),
-                      np.zeros((0, 2)))
-
-
-def evaluate(run: MrclamRun, settings: EstimatorSettings, *, start: float | None = None,
-             end: float | None = None, progress: Progress | None = None) -> Evaluation:
-    """Run an :class:`Estimator` with ``settings`` over ``run`` (offline) and score it."""
-    est = Estimator(replace(settings, robot=run.robot))
-    scorer = Scorer(TruthTrack.from_mrclam(run, start), robot=run.robot,
-                    dead_reckoning=dead_reckoning_track(run, start, end))
-    done = 0
-    for message in run.events(start, end, truth=False):
-        done += 1
-        if progress is not None and done % 1000 == 0:
-            progress(1000)
-        try:
-            if isinstance(message, Odometry):
-                est.predict(v=message.v, w=message.w, dt=message.dt, stamp=message.stamp)
-            else:
-                assert isinstance(message, Observations)
-                report = est.observe(ids=message.ids, ranges=message.ranges,
-                                     bearings=message.bearings, stamp=message.stamp)
-                scorer.add_innovations(report.innovations, report.innovation_covariances)
-        except EstimationError:
-            continue  # refused (counted by the estimator): no state for it
-        scorer.add(message.stamp, est.pose, est.pose_covariance)
-    if progress is not None:
-        progress(done % 1000)
-    return scorer.finish(est.landmark_ids, est.landmarks, est.diagnostics())
-
-
-def event_count(run: MrclamRun, start: float | None = None, end: float | None = None) -> int:
-    """Odometry steps and observation batches of :meth:`MrclamRun.events` (for progress)."""
-    return sum(1 for _ in run.events(start, end, truth=False))
-
 
 # ------------------------------------------------------------------------------ residuals
 
 
 @dataclass(frozen=True)
 class SensorResiduals:
-    """Per measurement with truth: the true range and bearing, and z − h."""
+    """Per measurement with truth: the true range and bearing, and z − h; and z against
+    every other landmark (a misidentified barcode is explained by another one)."""
 
     ranges: np.ndarray  #: measured range, m
     bearings: np.ndarray  #: measured bearing, rad
     range_errors: np.ndarray  #: z_r − h_r, m
     bearing_errors: np.ndarray  #: wrap(z_φ − h_φ), rad
+    robots: np.ndarray  #: int: the robot number of each measurement
+    #: [M, L] z − h against each landmark of the dataset (the named one: inf)
+    other_range_errors: np.ndarray
+    other_bearing_errors: np.ndarray
 
 
 def sensor_residuals(runs: Sequence[MrclamRun]) -> SensorResiduals:
-    rows: list[tuple[float, float, float, float]] = []
+    rows: list[tuple[float, ...]] = []
+    others_r: list[np.ndarray] = []
+    others_b: list[np.ndarray] = []
     for run in runs:
         index = {int(i): k for k, i in enumerate(run.landmark_ids)}
         for t, subject, z_r, z_b in run.measurements:
@@ -355,12 +88,36 @@ def sensor_residuals(runs: Sequence[MrclamRun]) -> SensorResiduals:
             k = index.get(int(subject))
             if pose is None or k is None:
                 continue
-            dx, dy = run.landmarks_world[k] - pose[:2]
-            h_r = math.hypot(dx, dy)
-            h_b = math.atan2(dy, dx) - pose[2]
-            rows.append((z_r, z_b, z_r - h_r, float(wrap_angle(z_b - h_b))))
-    a = np.array(rows).reshape(-1, 4)
-    return SensorResiduals(a[:, 0], a[:, 1], a[:, 2], a[:, 3])
+            d = run.landmarks_world - pose[:2]
+            h_r = np.hypot(d[:, 0], d[:, 1])
+            e_b = np.asarray(wrap_angle(z_b - (np.arctan2(d[:, 1], d[:, 0]) - pose[2])))
+            e_r = z_r - h_r
+            rows.append((z_r, z_b, float(e_r[k]), float(e_b[k]), run.robot_number))
+            e_r[k] = e_b[k] = math.inf
+            others_r.append(e_r)
+            others_b.append(e_b)
+    a = np.array(rows).reshape(-1, 5)
+    width = max((o.size for o in others_r), default=0)
+    return SensorResiduals(a[:, 0], a[:, 1], a[:, 2], a[:, 3], a[:, 4].astype(int),
+                           np.array(others_r).reshape(-1, width),
+                           np.array(others_b).reshape(-1, width))
+
+
+def misidentified(sensor: SensorResiduals, values: dict[str, float], *,
+                  gate: float = 13.82) -> np.ndarray:
+    """Measurements whose named landmark is beyond the χ²₂ ``gate`` with the fitted σ while
+    another landmark is inside it: a barcode read as another's (bool [M])."""
+    r, phi = sensor.ranges, sensor.bearings
+    var_r = (values["sigma_range"] ** 2 + (values["sigma_range_per_m"] * r) ** 2
+             + (values["sigma_range_off_axis"] * r * phi ** 2) ** 2)
+    var_b = values["sigma_bearing"] ** 2
+    named = sensor.range_errors ** 2 / var_r + sensor.bearing_errors ** 2 / var_b
+    if not sensor.other_range_errors.size:
+        return np.zeros(r.size, bool)
+    with np.errstate(invalid="ignore"):
+        other = (sensor.other_range_errors ** 2 / var_r[:, None]
+                 + sensor.other_bearing_errors ** 2 / var_b).min(axis=1)
+    return (named > gate) & (other <= gate)
 
 
 @dataclass(frozen=True)
@@ -459,6 +216,9 @@ class NoiseFit:
     odometry_windows: int
     range_outliers: float  #: fraction of |range error| > 0.5 m
     bearing_outliers: float  #: fraction beyond 3 fitted σ
+    #: per robot number: the fraction of its measurements another landmark explains
+    #: (a misidentified barcode: :func:`misidentified`); none enter the fit (trimmed)
+    misidentified: dict[int, float] = field(default_factory=dict)
 
 
 def fit_noise(runs: Sequence[MrclamRun], *, motion_model: str = "spec",
@@ -494,11 +254,14 @@ def fit_noise(runs: Sequence[MrclamRun], *, motion_model: str = "spec",
     else:
         raise ConfigError(f"motion model {motion_model!r}: spec or distance")
     sigma_b = values["sigma_bearing"]
+    wrong = misidentified(sensor, values)
     return NoiseFit(values=values, sensor_samples=int(r.size),
                     odometry_windows=int(odo.along.size),
                     range_outliers=float(np.mean(np.abs(sensor.range_errors) > 0.5)),
                     bearing_outliers=float(np.mean(np.abs(sensor.bearing_errors) >
-                                                   TRIM_SIGMA * sigma_b)))
+                                                   TRIM_SIGMA * sigma_b)),
+                    misidentified={int(k): float(np.mean(wrong[sensor.robots == k]))
+                                   for k in np.unique(sensor.robots)})
 
 
 # ---------------------------------------------------------------------------------- tune
@@ -506,6 +269,11 @@ def fit_noise(runs: Sequence[MrclamRun], *, motion_model: str = "spec",
 NOISE_KEYS = ("sigma_v", "sigma_w", "sigma_range", "sigma_bearing", "sigma_distance",
               "sigma_turn", "sigma_heading_per_distance", "sigma_range_per_m",
               "sigma_range_off_axis")
+#: the largest scale tried: a profile needing more is a model that does not fit
+MAX_SCALE = 20.0
+#: the odometry σ (what the NEES scale multiplies by default)
+MOTION_KEYS = ("sigma_v", "sigma_w", "sigma_distance", "sigma_turn",
+               "sigma_heading_per_distance")
 
 
 @dataclass
@@ -519,6 +287,8 @@ class TuneResult:
     after: list[Evaluation]  #: the profile
     motion_model: str
     passes_run: int = 0  #: estimator passes over the runs
+    linearisation: str = "standard"  #: the estimator's (EstimatorSettings.linearisation)
+    scaled: str = "motion"  #: which σ the scale multiplies: motion or all
 
     @property
     def pooled_nees(self) -> float:
@@ -529,6 +299,28 @@ class TuneResult:
         ``min_windows`` of its 100-state windows inside the 95 % band."""
         return all(e.nees_mean <= max_nees and e.window_fraction() >= min_windows
                    for e in self.after)
+
+
+def _next_scale(history: list[tuple[float, float]]) -> float:
+    """The next scale c from the passes so far, (ln c, ln pooled NEES): ln NEES is close to
+    linear in ln c — slope −2 when every σ scales (P ∝ c²), flatter when only the motion σ
+    do — so a secant through the last two passes, the slope −2 until there are two (or
+    while the secant's is not clearly negative)."""
+    lc, ln = history[-1]
+    slope = -2.0
+    if len(history) >= 2:
+        lc0, ln0 = history[-2]
+        if lc != lc0 and (ln - ln0) / (lc - lc0) < -0.25:
+            slope = (ln - ln0) / (lc - lc0)
+    return math.exp(lc + (math.log(POSE_DOF) - ln) / slope)
+
+
+def in_sample_rank(result: TuneResult) -> tuple[bool, float]:
+    """Orders fits by their own figures when no robot was left out: passing first, then
+    the worst robot's NEES nearest 3 (in ratio)."""
+    worst = max((abs(math.log(e.nees_mean / POSE_DOF)) if e.nees_mean > 0 else math.inf)
+                for e in result.after)
+    return not result.passes(), worst
 
 
 def _pooled_nees(evaluations: Sequence[Evaluation]) -> float:
@@ -543,24 +335,32 @@ def settings_with(base: EstimatorSettings, values: dict[str, float]) -> Estimato
 
 def tune(runs: Sequence[MrclamRun], *, motion_model: str = "spec",
          gate_chi2: float = 13.82, base: EstimatorSettings | None = None,
-         max_passes: int = 6, tolerance: float = 0.02,
-         progress: Callable[[int, float], Progress | None] | None = None) -> TuneResult:
+         max_passes: int = 8, tolerance: float = 0.02, scaled: str = "motion",
+         progress: Callable[[int, float], Progress | None] | None = None,
+         executor: Executor | None = None) -> TuneResult:
     """Fit, check and scale until consistent (module docstring).
 
-    ``progress(pass_number, scale)`` may return a callable that is told how many events
-    each pass has pushed through (for a progress bar).
+    ``scaled`` says which σ the NEES scale multiplies: ``motion`` (the odometry σ; the
+    sensor σ stay as measured against the truth) or ``all``. ``progress(pass_number,
+    scale)`` may return a callable that is told how many events each pass has pushed
+    through (for a progress bar). With an ``executor`` the runs of a pass are scored on
+    its processes.
     """
+    if scaled not in ("motion", "all"):
+        raise ConfigError(f"scaled {scaled!r}: motion or all")
     base = base or EstimatorSettings()
     fit = fit_noise(runs, motion_model=motion_model)
     scale = 1.0
     before: list[Evaluation] = []
     after: list[Evaluation] = []
     values: dict[str, float] = {}
+    history: list[tuple[float, float]] = []
     for number in range(1, max_passes + 1):
-        values = {**{k: v * scale for k, v in fit.values.items()},
-                  "innovation_gate_chi2": gate_chi2}
+        values = {**{k: v * (scale if scaled == "all" or k in MOTION_KEYS else 1.0)
+                     for k, v in fit.values.items()}, "innovation_gate_chi2": gate_chi2}
         tick = progress(number, scale) if progress is not None else None
-        after = [evaluate(run, settings_with(base, values), progress=tick) for run in runs]
+        after = evaluate_all(runs, settings_with(base, values), executor=executor,
+                             progress=tick)
         if number == 1:
             before = after
         nees = _pooled_nees(after)
@@ -568,35 +368,70 @@ def tune(runs: Sequence[MrclamRun], *, motion_model: str = "spec",
             break
         if abs(nees / POSE_DOF - 1) <= tolerance or number == max_passes:
             break
-        scale *= math.sqrt(nees / POSE_DOF)
+        history.append((math.log(scale), math.log(nees)))
+        if len(history) >= 2 and nees > 3 * POSE_DOF and \
+                history[-1][1] > history[-2][1] + math.log(0.9):
+            break  # the scale no longer moves the NEES: noise cannot make this consistent
+        new = min(max(_next_scale(history), scale / 10), scale * 10, MAX_SCALE)
+        if new == scale:
+            break  # at the largest scale tried
+        scale = new
     return TuneResult(fit=fit, scale=scale, values=values, before=before, after=after,
-                      motion_model=motion_model, passes_run=number)
+                      motion_model=motion_model, passes_run=number, scaled=scaled,
+                      linearisation=base.linearisation)
 
 
-def profile_toml(result: TuneResult, *, header: Sequence[str] = ()) -> str:
-    """The profile as an estimator settings TOML (``--config FILE``), with how it was made."""
+#: what each setting of a profile means, physically (written next to its value)
+MEANING = {
+    "sigma_v": "m/s: error of the commanded speed over one odometry step (along-track "
+               "variance σv²·dt² a step, SPEC §4)",
+    "sigma_w": "rad/s: error of the commanded turn rate over one step (heading variance "
+               "σω²·dt² a step)",
+    "sigma_range": "m: range noise at any range (the sensor's floor)",
+    "sigma_bearing": "rad: bearing noise",
+    "sigma_distance": "m/√m: along-track error growing with the distance driven",
+    "sigma_turn": "rad/√rad: heading error growing with the angle turned",
+    "sigma_heading_per_distance": "rad/√m: heading error growing with the distance driven",
+    "sigma_range_per_m": "m/m: range error in proportion to the range (a scale error)",
+    "sigma_range_off_axis": "1/rad²: range error growing with range × bearing² (a marker "
+                            "ranged by its apparent size off the optical axis)",
+    "innovation_gate_chi2": "χ²₂: an observation whose NIS is above this is refused "
+                            "(misread barcodes, reflections)",
+}
+
+
+def profile_toml(result: TuneResult, *, header: Sequence[str] = (),
+                 notes: Sequence[str] = ()) -> str:
+    """The profile as an estimator settings TOML (``--config FILE``), with how it was made
+    (``header``, then the fit's figures, then ``notes``: e.g. the cross-validation), each
+    setting with what it means."""
     lines = [f"# {h}" if h else "#" for h in header]
     model = ("spec: SPEC §4's sigma_v, sigma_w" if result.motion_model == "spec" else
              "distance: the opt-in sigma_distance, sigma_turn, sigma_heading_per_distance "
              "(not SPEC §4)")
+    wrong = ", ".join(f"robot{k} {v:.1%}" for k, v in sorted(result.fit.misidentified.items()))
     lines += [
         f"# motion model: {model}; sigma_range_per_m and sigma_range_off_axis are opt-in "
         "range terms (not SPEC §4)",
         f"# fitted from {result.fit.sensor_samples} measurements and "
         f"{result.fit.odometry_windows} odometry windows; {result.fit.range_outliers:.1%} of "
-        "ranges off by > 0.5 m",
-        f"# NEES scale c = {result.scale:.3f} (pooled pose NEES before: "
-        f"{_pooled_nees(result.before):.2f}, after: {result.pooled_nees:.2f})",
+        "ranges off by > 0.5 m" + (f"; barcodes read as another landmark's: {wrong}"
+                                   if wrong else ""),
+        f"# NEES scale c = {result.scale:.3f} on "
+        + ("the motion σ (the sensor σ as measured)" if result.scaled == "motion"
+           else "every σ") + f" (pooled pose NEES before: {_pooled_nees(result.before):.2f},"
+        f" after: {result.pooled_nees:.2f})",
     ]
     for e in result.after:
-        lines.append(f"# {e.robot}: pose NEES {e.nees_mean:.2f}, "
+        lines.append(f"# {e.robot} (fitted on): pose NEES {e.nees_mean:.2f}, "
                      f"{e.window_fraction():.0%} of {NEES_WINDOW}-state windows in "
                      f"[{e.band[0]:.2f}, {e.band[1]:.2f}], landmark RMSE {e.landmark_rmse:.3f} m "
                      f"({e.landmark_rmse_rigid:.3f} m after a rigid fit)")
-    lines.append("")
+    lines += [f"# {n}" if n else "#" for n in notes]
+    lines += ["", f'linearisation = "{result.linearisation}"']
     for key in (*NOISE_KEYS, "innovation_gate_chi2"):
         if key in result.values:
-            lines.append(f"{key} = {_number(result.values[key])}")
+            lines.append(f"{key} = {_number(result.values[key])}  # {MEANING[key]}")
     return "\n".join(lines) + "\n"
 
 

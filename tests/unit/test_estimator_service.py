@@ -123,9 +123,12 @@ def test_a_burst_is_put_back_to_back_in_order_and_get_never_runs_ahead_of_the_pu
     np.testing.assert_array_equal(made[-1].covariance, expected.covariance)
 
 
-def test_checkpoint_resume_continues_the_same_map_bit_for_bit(tmp_path) -> None:
+@pytest.mark.parametrize("linearisation", ["standard", "fej"])
+def test_checkpoint_resume_continues_the_same_map_bit_for_bit(tmp_path,
+                                                              linearisation: str) -> None:
+    # FEJ needs its linearisation points after the restart: the checkpoint keeps them
     settings = EstimatorSettings(robot=ROBOT, checkpoint=str(tmp_path),
-                                 checkpoint_interval_s=1e-3)
+                                 checkpoint_interval_s=1e-3, linearisation=linearisation)
     inputs = _inputs(400)
     _, first, first_states = _service(settings)
     for t, (key, payload) in enumerate(inputs[:250]):
@@ -144,10 +147,11 @@ def test_checkpoint_resume_continues_the_same_map_bit_for_bit(tmp_path) -> None:
         second.ingest(_sample(key, payload, t))
     assert [s.seq for s in states] == list(range(at.seq, len(inputs) + 1))
     assert states[0].epoch == first.epoch and states[-1].epoch == first.epoch
-    expected = _direct(inputs, EstimatorSettings(robot=ROBOT))
+    expected = _direct(inputs, EstimatorSettings(robot=ROBOT, linearisation=linearisation))
     np.testing.assert_array_equal(states[-1].covariance, expected.covariance)
     np.testing.assert_array_equal(states[-1].landmarks, expected.landmarks)
     assert second.order.stats.duplicates == at.seq
+    assert (saved.linearisation is None) == (linearisation == "standard")
 
 
 def test_without_a_checkpoint_a_restart_is_a_new_epoch() -> None:

@@ -13,7 +13,7 @@ import pytest
 
 from slamlens.common.config import load_settings
 from slamlens.services.harness.procs import REPO, spawn
-from slamlens.services.slam import tuning
+from slamlens.services.slam import scoring, tuning
 from slamlens.services.slam.mrclam import load_mrclam
 from slamlens.services.slam.settings import EstimatorSettings
 
@@ -47,7 +47,7 @@ def test_samples_no_term_can_explain_are_left_out() -> None:
 
 
 def test_truth_track_interpolates_the_angle_the_short_way_round() -> None:
-    track = tuning.TruthTrack(np.array([0.0, 1.0]), np.array([[0.0, 0.0, 3.1],
+    track = scoring.TruthTrack(np.array([0.0, 1.0]), np.array([[0.0, 0.0, 3.1],
                                                               [1.0, 2.0, -3.1]]),
                               np.zeros(0, np.int64), np.zeros((0, 2)))
     p = track.pose_at(0.5)
@@ -59,21 +59,21 @@ def test_truth_track_interpolates_the_angle_the_short_way_round() -> None:
 
 def test_pose_nees_rigid_fit_and_band() -> None:
     P = np.diag([0.25, 0.25, 0.01])
-    assert tuning.pose_nees(np.array([1.0, 0.0, 0.1]), P) == pytest.approx(4.0 + 1.0)
-    assert math.isnan(tuning.pose_nees(np.ones(3), np.diag([1.0, 1.0, 0.0])))
+    assert scoring.pose_nees(np.array([1.0, 0.0, 0.1]), P) == pytest.approx(4.0 + 1.0)
+    assert math.isnan(scoring.pose_nees(np.ones(3), np.diag([1.0, 1.0, 0.0])))
     truth = np.array([[0.0, 0.0], [2.0, 0.0], [0.0, 1.0], [3.0, 3.0]])
     a = math.radians(25.0)
     R = np.array([[math.cos(a), -math.sin(a)], [math.sin(a), math.cos(a)]])
     estimated = (truth - 1.0) @ R.T + [4.0, -2.0]
-    rmse, rotation = tuning.rigid_fit(estimated, truth)
+    rmse, rotation = scoring.rigid_fit(estimated, truth)
     assert rmse == pytest.approx(0.0, abs=1e-12) and rotation == pytest.approx(-25.0)
-    lo, hi = tuning.nees_band()
+    lo, hi = scoring.nees_band()
     assert (lo, hi) == pytest.approx((0.2158, 9.348), abs=1e-3)
 
 
 def test_window_figures_of_an_evaluation() -> None:
     nees = np.r_[np.full(100, 2.0), np.full(100, 20.0), np.full(50, 3.0), [math.nan]]
-    ev = tuning.Evaluation(robot="r", stamps=np.arange(nees.size, dtype=float), nees=nees,
+    ev = scoring.Evaluation(robot="r", stamps=np.arange(nees.size, dtype=float), nees=nees,
                            errors=np.zeros((nees.size, 3)), landmark_ids=np.zeros(0, np.int64),
                            landmark_errors=np.zeros((0, 2)), landmark_rmse=math.nan,
                            landmark_rmse_rigid=math.nan, map_rotation_deg=math.nan)
@@ -129,3 +129,110 @@ def test_the_shipped_profile_is_one_for_the_dataset_and_loads() -> None:
     assert "--robot-index 1,3" in path.read_text()
     s = load_settings(EstimatorSettings, path, {"robot": "robot1"})
     assert s.sigma_v > 0 and s.sigma_range_off_axis > 0 and s.innovation_gate_chi2 > 0
+
+
+# ------------------------------------------------------------------ leave one robot out
+
+
+def two_robots(tmp_path: Path, *, corrupt_robot2: bool = False) -> Path:
+    """The excerpt twice, as robots 1 and 2 (robot 2's ranges ×1.5 if ``corrupt_robot2``)."""
+    folder = tmp_path / ("corrupt" if corrupt_robot2 else "clean")
+    folder.mkdir()
+    for f in SMALL.glob("*.dat"):
+        (folder / f.name).write_bytes(f.read_bytes())
+        if f.name.startswith("Robot1_"):
+            text = f.read_text()
+            if corrupt_robot2 and f.name == "Robot1_Measurement.dat":
+                lines = []
+                for line in text.splitlines():
+                    parts = line.split()
+                    if line.startswith("#") or len(parts) != 4:
+                        lines.append(line)
+                        continue
+                    parts[2] = f"{float(parts[2]) * 1.5:.3f}"
+                    lines.append("\t".join(parts))
+                text = "\n".join(lines) + "\n"
+            (folder / f.name.replace("Robot1_", "Robot2_")).write_text(text)
+    return folder
+
+
+def test_a_fold_never_sees_the_robot_it_scores(tmp_path: Path) -> None:
+    """Corrupting robot 2 changes the profile fitted with robot 2 in it, and not the one
+    scored on robot 2: that one is fitted on robot 1 alone, exactly as tune() on it."""
+    from slamlens.services.slam import crossval
+
+    folders = [two_robots(tmp_path, corrupt_robot2=c) for c in (False, True)]
+    clean, corrupt = ([load_mrclam(folder, k) for k in (1, 2)] for folder in folders)
+    cand = crossval.Candidate("fej")
+    a = crossval.cross_validate(clean, cand)
+    b = crossval.cross_validate(corrupt, cand)
+    assert [f.held_out for f in a.folds] == ["robot1", "robot2"]
+    assert a.folds[1].result.values == b.folds[1].result.values  # robot 2 left out
+    assert a.folds[0].result.values != b.folds[0].result.values  # robot 2 fitted on
+    alone = tuning.tune([clean[0]], base=EstimatorSettings(linearisation="fej"))
+    assert alone.values == a.folds[1].result.values
+    expected = scoring.evaluate(clean[1], tuning.settings_with(
+        EstimatorSettings(linearisation="fej"), alone.values))
+    assert np.array_equal(a.folds[1].test.nees, expected.nees, equal_nan=True)
+    assert b.folds[1].test.landmark_rmse_rigid > a.folds[1].test.landmark_rmse_rigid
+
+
+def _evaluation(nees: float, rigid: float) -> scoring.Evaluation:
+    return scoring.Evaluation(
+        robot="r", stamps=np.arange(3.0), nees=np.full(3, nees), errors=np.zeros((3, 3)),
+        landmark_ids=np.zeros(0, np.int64), landmark_errors=np.zeros((0, 2)),
+        landmark_rmse=math.nan, landmark_rmse_rigid=rigid, map_rotation_deg=0.0)
+
+
+def test_the_choice_goes_by_the_robots_left_out() -> None:
+    from slamlens.services.slam import crossval
+
+    def cv(name: str, *figures: tuple[float, float]) -> crossval.CrossValidation:
+        return crossval.CrossValidation(crossval.Candidate(name), [
+            crossval.Fold(f"robot{k}", None, _evaluation(*f))  # type: ignore[arg-type]
+            for k, f in enumerate(figures)])
+
+    timid = cv("standard", (0.5, 0.05), (0.9, 0.05), (2.5, 0.05))  # 1 meets
+    honest = cv("fej", (2.0, 0.05), (5.0, 0.05), (7.0, 0.05))  # 2 meet
+    assert crossval.choose([timid, honest]) is honest
+    assert [crossval.meets(e) for e in honest.held_out] == [True, True, False]
+    tied = cv("fej", (1.5, 0.05), (3.0, 0.2), (4.0, 0.05))  # 2 meet, nearer 3
+    assert crossval.choose([honest, tied]) is tied
+    assert crossval.meets(_evaluation(3.0, 0.1)) and not crossval.meets(_evaluation(3.0, 0.11))
+
+
+def test_tune_cli_leaves_each_robot_out_and_writes_the_choice(tmp_path: Path) -> None:
+    out = tmp_path / "profile.toml"
+    proc = spawn("tune", str(two_robots(tmp_path)), "--robot-index", "1,2", "--jobs", "1",
+                 "--linearisation", "fej", "-o", str(out))
+    stdout, stderr = proc.communicate(timeout=600)
+    assert proc.returncode in (0, 1), stderr
+    assert "leave-one-robot-out" in stderr and "chosen: fej" in stderr
+    text = out.read_text()
+    assert "robot2 left out" not in text  # the table names the robot left out …
+    assert "fej, spec motion model" in text and "robot1" in text
+    settings = load_settings(EstimatorSettings, out, {"robot": "robot2"})
+    assert settings.linearisation == "fej" and tomllib.loads(text)["linearisation"] == "fej"
+    assert "# m/s: error of the commanded speed" in text  # what each term means
+
+
+def test_the_scale_search_is_a_secant_in_log_log() -> None:
+    # NEES = 40·c^s: from two passes the secant lands on 3 whatever the slope s
+    for s in (-2.0, -1.3, -0.7):
+        history = [(math.log(c), math.log(40.0 * c ** s)) for c in (1.0, 2.0)]
+        c = tuning._next_scale(history)
+        assert 40.0 * c ** s == pytest.approx(3.0, rel=1e-9)
+    # one pass: the every-σ rule c·sqrt(NEES/3)
+    assert tuning._next_scale([(0.0, math.log(12.0))]) == pytest.approx(2.0)
+
+
+def test_the_scale_multiplies_the_motion_sigma_only() -> None:
+    """The sensor σ stay as measured against the truth; the NEES scale is the odometry's."""
+    run = load_mrclam(SMALL, 1)
+    fit = tuning.fit_noise([run]).values
+    result = tuning.tune([run], max_passes=2)
+    assert result.scaled == "motion" and result.scale != 1.0
+    for key in ("sigma_range", "sigma_bearing", "sigma_range_per_m", "sigma_range_off_axis"):
+        assert result.values[key] == fit[key]
+    for key in ("sigma_v", "sigma_w"):
+        assert result.values[key] == pytest.approx(fit[key] * result.scale, rel=1e-12)

@@ -56,3 +56,18 @@ def test_the_summary_is_the_verdict_and_what_keeps_it_up() -> None:
                                     "NEES pose")
     # the monitor's module speaks the same words
     assert monitor_verdict.WORDS is WORDS and monitor_verdict.summary_text is summary_text
+
+
+def test_spurious_information_is_an_estimator_fault_in_words() -> None:
+    v = Violation("unobservable", (), 611, 0.0794, bound=1e-6, phase="update",
+                  detail="information in the unobservable directions grew by 0.0794",
+                  first_step=611, count=1)
+    assert violation_head(v) == "spurious information in an unobservable direction"
+    assert violation_text(v).startswith("spurious information in an unobservable direction: "
+                                        "information in the unobservable directions grew")
+    held = Health.from_bytes(health(ok=False, violations=(v,), verdict="fault",
+                                    verdict_since=611, standing=(v,)).to_bytes())
+    assert held.violations[0].kind == "unobservable"  # on the wire, decoded
+    assert summary_text(held) == ("estimator fault since seq 611: spurious information in an "
+                                  "unobservable direction")
+    assert "unobservable" in monitor_verdict.FAULT_KINDS
