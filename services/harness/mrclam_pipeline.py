@@ -1,4 +1,4 @@
-"""UTIAS MRCLAM through the real processes (issue 11's acceptance), for tests and benchmarks.
+"""UTIAS MRCLAM through the real processes, for tests and benchmarks.
 
 ``run_pipeline`` starts a router, ``slamlens estimator --config deploy/mrclam.toml``,
 ``slamlens monitor`` and ``slamlens replay --rate 0`` as separate processes on a free

@@ -53,7 +53,7 @@ _BAD_KEY = re.compile(r"(^/|/$|//|[*$?#\s])")
 
 
 def message_of_key(key: str, prefix: str) -> str:
-    """The slamlens message type a key carries ("" if the key is not one of SPEC §7's)."""
+    """The slamlens message type a key carries ("" if the key is not one of docs/protocol.md's)."""
     parts = key.split("/")
     n = len(prefix.split("/"))
     if parts[:n] != prefix.split("/") or len(parts) < n + 3:

@@ -1,7 +1,7 @@
 """``slamlens play``: a recording published back on the bus (docs/recording.md).
 
 Every recorded key is published again on itself, the payload byte for byte, as the live
-service published it (SPEC §7a): inputs and states through advanced publishers with caches
+service published it (docs/delivery.md): inputs and states through advanced publishers with caches
 (a consumer that needs everything recovers what it missed), camera frames best effort; the
 newest ``state``, ``health`` and ``registration`` also answer a ``get``, so a viewer that
 joins late shows the current picture at once. Timing is the recorded log times × ``rate``
@@ -38,7 +38,7 @@ from slamlens.services.recorder.timeline import PlayClock
 
 log = logging.getLogger("slamlens.play")
 
-INPUT_CACHE = 10_000  #: as a driver's (SPEC §7a: at least 10 000 samples and 60 s)
+INPUT_CACHE = 10_000  #: as a driver's (docs/delivery.md: at least 10 000 samples and 60 s)
 STATE_CACHE = 10_000  #: as the estimator's
 STATE_CACHE_BYTES = 256 << 20
 INPUTS = ("Odometry", "Observations")

@@ -1,6 +1,6 @@
 """``slamlens record``: what flows on the bus, into an MCAP file (docs/recording.md).
 
-One recovering channel (a ``zenoh.ext`` advanced subscriber with recovery, SPEC §7a) per
+One recovering channel (a ``zenoh.ext`` advanced subscriber with recovery, docs/delivery.md) per
 key expression, each read by its own thread; every sample is written at once, under one
 lock, as a message of its key's MCAP channel (:mod:`.layout`): the payload byte for byte,
 ``log_time`` when the recorder took it, ``publish_time`` its Zenoh timestamp. Nothing is

@@ -1,4 +1,4 @@
-"""Marker pose and the registration chain camera ← marker ← robot ← map (SPEC §3).
+"""Marker pose and the registration chain camera ← marker ← robot ← map (docs/protocol.md).
 
 Frames: the marker frame is OpenCV's (origin at the marker centre, x to the right of the
 marker image, y up the image, z out of its face). By default the marker lies flat on the
@@ -125,7 +125,7 @@ def _offset(marker_offset_xyz: Sequence[float]) -> np.ndarray:
 
 
 def T_robot_from_marker(marker_offset_xyz: Sequence[float]) -> np.ndarray:
-    """Marker flat on the robot, face up, axes aligned with the robot's (SPEC §3)."""
+    """Marker flat on the robot, face up, axes aligned with the robot's (docs/protocol.md)."""
     return make_T(np.eye(3), _offset(marker_offset_xyz))
 
 

@@ -10,7 +10,7 @@ What is drawn (z up, metres, world frame):
 * a procedural floor (tiles, grout, blotches and grain; deterministic for a seed),
 * the landmarks as shaded coloured posts,
 * the robot at its true pose: a grey cylinder with a yellow heading wedge and its fiducial
-  marker flat on top (SPEC §3: marker x = robot forward, marker y = robot left, face up),
+  marker flat on top (docs/protocol.md: marker x = robot forward, marker y = robot left, face up),
   with a white quiet zone,
 * optionally fixed world markers (the head-mounted camera's board).
 
@@ -159,7 +159,7 @@ def robot_marker_corners_world(pose: Pose2, *, size_m: float,
     """World corners (TL, TR, BR, BL as OpenCV orders them) of the robot's marker.
 
     Marker frame (OpenCV): x right of the marker image, y up the image, z out of the face;
-    SPEC §3 aligns it with the robot: image right = robot forward, image up = robot left.
+    docs/protocol.md aligns it with the robot: image right = robot forward, image up = robot left.
     ``scale`` > 1 gives the outer corners of a border around the marker.
     """
     h = size_m * scale / 2.0

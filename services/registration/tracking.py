@@ -6,7 +6,7 @@ T_marker_from_map). A :class:`Registrar` averages the first ``register_frames`` 
 (it stops early if the marker moves: the robot has started), then keeps measuring the robot
 pose from the marker in every later frame (the "tracked" pose, beyond the paper).
 
-A new map (a new epoch of the estimator, SPEC §7a: restarted without a checkpoint) has its
+A new map (a new epoch of the estimator, docs/delivery.md: restarted without a checkpoint) has its
 origin where the robot stood when that map started (its ``origin_stamp``), usually while the
 robot moves. The registrar keeps the marker's recent poses, so :meth:`Registrar.register_at`
 registers the new map frame from the frame nearest that instant.

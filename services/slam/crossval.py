@@ -34,7 +34,7 @@ from slamlens.services.slam.scoring import (
 from slamlens.services.slam.settings import EstimatorSettings
 from slamlens.services.slam.tuning import TuneResult, settings_with, tune
 
-#: what a held-out robot must show (issue 32's targets)
+#: what a held-out robot must show (docs/estimator.md)
 NEES_RANGE = (1.0, 6.0)
 RIGID_RMSE_MAX = 0.10  #: m
 

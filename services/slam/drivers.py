@@ -1,7 +1,7 @@
 """Robot drivers on the bus: the simulator, dataset replay and a serial robot.
 
 Every driver turns a stream of ``Odometry`` / ``Observations`` / ``Truth`` messages into
-publications on the robot's keys through one :class:`RobotPublisher` (SPEC §7a):
+publications on the robot's keys through one :class:`RobotPublisher` (docs/delivery.md):
 
 * odometry and observations go through advanced publishers with a cache of at least the
   last 60 s and 10 000 samples (an estimator that missed some, or restarted from a

@@ -1,4 +1,4 @@
-"""EKF-SLAM numerical core: the SPEC §4 models, their Jacobians, and in-place kernels.
+"""EKF-SLAM numerical core: the standard model (docs/estimator.md), their Jacobians, and in-place kernels.
 
 The state is ``x = [x, y, θ, m1x, m1y, …]`` (N = 3 + 2n). Its covariance lives in the
 lower triangle of a preallocated buffer ``L`` (:mod:`slamlens.services.slam.ekf_storage`:
@@ -8,9 +8,9 @@ The kernels (:func:`predict`, :func:`update`, :func:`initialise`) mutate ``x`` a
 place: the covariance *is* the estimator's memory and a copy would cost a full pass. They
 validate everything that can fail (a degenerate innovation covariance, a landmark on top of
 the robot) before writing anything, so a refused call leaves the state as it was.
-Dense (3+2n)² Jacobians are never built (SPEC §4 "Cost").
+Dense (3+2n)² Jacobians are never built (docs/estimator.md "Cost").
 
-**Where the Jacobians are evaluated.** By default at the latest estimates (SPEC §4, the
+**Where the Jacobians are evaluated.** By default at the latest estimates (docs/estimator.md, the
 standard EKF). Each kernel also takes ``at``, the point of a First-Estimates-Jacobian EKF
 (Huang, Mourikis & Roumeliotis 2010; docs/estimator.md): the robot's *propagated* position
 p̂(k|k−1) and, for an update, the landmark's *first* estimate. The mean is always moved by
@@ -112,7 +112,7 @@ def _wrap(angle: float) -> float:
 
 
 # ---------------------------------------------------------------------------------------
-# the models of SPEC §4 (pure functions of small arrays; used by tests and association)
+# the models of docs/estimator.md (pure functions of small arrays; used by tests and association)
 # ---------------------------------------------------------------------------------------
 
 
@@ -210,7 +210,7 @@ def predict(x: np.ndarray, L: np.ndarray, n: int, *, v: float, w: float, dt: flo
             var_v: float, var_w: float, extra_qv: float = 0.0, extra_qw: float = 0.0,
             guard: Guard | None = None, ws: Workspace | None = None,
             at: tuple[float, float] | None = None) -> None:
-    """SPEC §4 prediction in place: O(n), only the robot rows/columns of P change.
+    """docs/estimator.md prediction in place: O(n), only the robot rows/columns of P change.
 
     Fx's θ column is ∂(x', y')/∂θ = J·(p' − p) with p the latest position, or ``at`` (FEJ:
     the propagated position p̂(k|k−1), so that Fx carries the unobservable directions of
@@ -218,7 +218,7 @@ def predict(x: np.ndarray, L: np.ndarray, n: int, *, v: float, w: float, dt: flo
 
     ``var_v``, ``var_w`` are the odometry variances σv² (m²/s²), σω² (rad²/s²). ``extra_qv``
     (m²) and ``extra_qw`` (rad²) are opt-in variances added to this step's along-heading and
-    heading noise (:meth:`Estimator.predict`'s distance and turn terms; 0 = SPEC §4 exactly).
+    heading noise (:meth:`Estimator.predict`'s distance and turn terms; 0 = docs/estimator.md exactly).
     With a ``guard`` (and ``ws`` for scratch) the step is computed first and written only if
     it stays finite and P_vv stays PSD; else :class:`RefusedStepError`, nothing written.
     """
@@ -283,7 +283,7 @@ def update(x: np.ndarray, L: np.ndarray, n: int, j: int, *, z_range: float,
            defer: bool = False,
            at: tuple[float, float, float, float] | None = None
            ) -> tuple[float, float, float, float, float]:
-    """SPEC §4 update with one observation of landmark ``j`` (0-based state order), in place.
+    """docs/estimator.md update with one observation of landmark ``j`` (0-based state order), in place.
 
     Never builds H: it touches 5 columns of P. With W = P Hᵀ (N×2) and S = L_S L_Sᵀ
     (2×2 Cholesky, closed form), V = W L_S⁻ᵀ gives K S Kᵀ = W S⁻¹ Wᵀ = V Vᵀ and

@@ -3,7 +3,7 @@
 
 It owns the state buffers (capacity doubled when the map outgrows them, so adding a
 landmark does not reallocate every time), maps landmark ids to state order, applies
-observation batches one observation at a time (SPEC §4), associates anonymous observations
+observation batches one observation at a time (docs/estimator.md), associates anonymous observations
 (:mod:`slamlens.services.slam.association`), plants a configured fault
 (:mod:`slamlens.services.slam.faults`)
 and turns its state into a :class:`~slamlens.common.messages.SlamState`. No I/O here.
@@ -39,7 +39,7 @@ _INITIAL_CAPACITY = 16  # landmarks; doubled on demand
 
 
 class Estimator:
-    """EKF-SLAM with the SPEC §4 models (see docs/estimator.md)."""
+    """EKF-SLAM with the standard model (docs/estimator.md)."""
 
     def __init__(self, settings: EstimatorSettings, *,
                  capacity: int = _INITIAL_CAPACITY) -> None:
@@ -55,7 +55,7 @@ class Estimator:
         self._fault = faults.make_fault(settings.fault, settings.faulty_features,
                                         magnitude=settings.fault_magnitude,
                                         onset=settings.fault_onset)
-        # the opt-in motion noise terms (0 = SPEC §4 exactly), as variances per m / rad
+        # the opt-in motion noise terms (0 = docs/estimator.md exactly), as variances per m / rad
         self._q_dist = settings.sigma_distance ** 2
         self._q_turn = settings.sigma_turn ** 2
         self._q_head_dist = settings.sigma_heading_per_distance ** 2
@@ -320,7 +320,7 @@ class Estimator:
         # recycled once no message or view of an earlier state holds it any more
         previous, self._published = self._published, None
         if not self._map_dirty and previous is not None and previous.shape == (N, N):
-            # only predicts since the last state: P_mm is as it was (SPEC §4). If nothing
+            # only predicts since the last state: P_mm is as it was (docs/estimator.md). If nothing
             # holds the last state's matrix any more (its message went out: a large state
             # is sent from shared memory and a get answers with that), its robot rows and
             # columns are patched in place, O(N); else it is copied with them patched
@@ -424,7 +424,7 @@ class Estimator:
 
     # -- internals ---------------------------------------------------------------------
     def _range_variance(self, z_range: float, z_bearing: float) -> float:
-        """σr² (SPEC §4), plus the opt-in terms (k·r)² and (k·r·φ²)² when configured."""
+        """σr² (docs/estimator.md), plus the opt-in terms (k·r)² and (k·r·φ²)² when configured."""
         var = self._var_r
         if self._q_range:
             var += self._q_range * z_range * z_range

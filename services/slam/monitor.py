@@ -1,4 +1,4 @@
-"""The behaviour monitor (SPEC §5): checks every SlamState, returns a Health, names suspects.
+"""The behaviour monitor (docs/monitor.md): checks every SlamState, returns a Health, names suspects.
 
 ``Monitor`` is the thin stateful class around the pure checks of ``monitor_checks``, the
 statistics of ``monitor_stats`` and the pinpointing of ``monitor_blame``. It keeps only what
@@ -186,7 +186,7 @@ class Monitor:
 
     def _follow_frame(self, state: SlamState) -> None:
         """Truth is given in its own world frame; the map frame is the robot's pose at
-        the map's origin (SPEC §3). When a state says when that was (``origin_stamp``),
+        the map's origin (docs/protocol.md). When a state says when that was (``origin_stamp``),
         truth is re-expressed in the map frame — identity for a map started where the
         truth's frame starts, a real change for a map restarted mid-run."""
         if state.step == "init":
@@ -707,7 +707,7 @@ class Monitor:
 
 
 def _finite(v: Violation) -> Violation:
-    """Health carries finite numbers only (SPEC §7 decoders reject NaN/∞): clip overflows."""
+    """Health carries finite numbers only (docs/protocol.md decoders reject NaN/∞): clip overflows."""
     if math.isfinite(v.value) and (v.bound is None or math.isfinite(v.bound)):
         return v
     clip = 1e300

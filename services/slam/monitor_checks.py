@@ -1,7 +1,7 @@
-"""Pure, vectorised covariance checks of the behaviour monitor (SPEC §5, paper §2.2).
+"""Pure, vectorised covariance checks of the behaviour monitor (docs/monitor.md, paper §2.2).
 
 All functions take plain arrays and return plain arrays; nothing here keeps state. State
-index conventions follow SPEC §4: robot rows 0..2, landmark k at rows 3 + 2k, 3 + 2k + 1.
+index conventions follow docs/estimator.md: robot rows 0..2, landmark k at rows 3 + 2k, 3 + 2k + 1.
 
 The Loewner test "A ≽ B" for 2×2 blocks is the sign of the smallest eigenvalue of
 D = A − B, in closed form: λ_min = (a + c)/2 − hypot((a − c)/2, b) for D = [[a, b], [b, c]].
@@ -216,7 +216,7 @@ def prediction_residuals(P_prev: np.ndarray, P_cur: np.ndarray, pose_prev: np.nd
                          ) -> tuple[Findings, Findings, float | None]:
     """Check one predict step without knowing the controls.
 
-    For any odometry model whose displacement turns with the heading (SPEC §4's first-order
+    For any odometry model whose displacement turns with the heading (the standard model's first-order
     model, the midpoint and the exact arc models), ∂(x', y')/∂θ = (−Δy, Δx) with (Δx, Δy)
     the change of the estimated position, so Fx = [[1,0,−Δy],[0,1,Δx],[0,0,1]] and:
 

@@ -1,4 +1,4 @@
-"""The behaviour monitor as a bus service (SPEC §5, §7, §7a; issue 5).
+"""The behaviour monitor as a bus service (docs/monitor.md).
 
 It listens to one robot's keys through a single ordered, recovering channel — states,
 simulator truth and the camera-tracked pose, in the order they arrive; a state missed under
@@ -37,7 +37,7 @@ from slamlens.services.slam.settings import MonitorSettings
 
 log = logging.getLogger("slamlens.monitor")
 
-#: Health caches this many (SPEC §7a: at least the last 10 s)
+#: Health caches this many (docs/delivery.md: at least the last 10 s)
 HEALTH_CACHE = 10_000
 #: from this many states waiting, the monitor says it is behind
 BEHIND_REPORT = 50

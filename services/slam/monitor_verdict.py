@@ -1,4 +1,4 @@
-"""One verdict per robot that a person can trust (issue 8 item 9; issue 11 item 4).
+"""One verdict per robot that a person can trust.
 
 ``Health.ok`` says whether *this* state broke anything; a person wants to know whether the
 estimator is right *now*, and a single clean state proves nothing while a fault stands (an

@@ -23,7 +23,7 @@ from slamlens.services.slam.estimator import Estimator
 from slamlens.services.slam.mrclam import MrclamRun
 from slamlens.services.slam.settings import EstimatorSettings
 
-#: states per NEES window (issue 11's acceptance)
+#: states per NEES window (docs/estimator.md)
 NEES_WINDOW = 100
 #: the pose has 3 degrees of freedom: a consistent filter's NEES averages 3
 POSE_DOF = 3
@@ -282,7 +282,7 @@ class Scorer:
 
 def dead_reckoning_track(run: MrclamRun, start: float | None = None,
                          end: float | None = None) -> TruthTrack:
-    """The odometry of ``run.events(start, end)`` integrated alone (SPEC §4 model, from the
+    """The odometry of ``run.events(start, end)`` integrated alone (docs/estimator.md model, from the
     map origin): what the robot would believe with no landmarks."""
     x = y = th = 0.0
     stamps, poses = [run.origin_time(start)], [(0.0, 0.0, 0.0)]

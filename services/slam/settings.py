@@ -154,8 +154,8 @@ class TuneSettings:
         (1,), doc="robots of the dataset to fit together (one profile for all of them)",
         metavar="K,K")
     motion_model: str = setting(
-        "spec", doc="odometry noise to fit: spec = SPEC §4's σv, σω; distance = the opt-in "
-                    "terms growing with distance and turn instead (not SPEC §4)",
+        "spec", doc="odometry noise to fit: spec = the standard model's σv, σω; distance = the opt-in "
+                    "terms growing with distance and turn instead (not the standard model)",
         choices=("spec", "distance"))
     gate_chi2: float = setting(13.82, doc="innovation gate written into the profile (χ²₂ "
                                           "99.9 %); 0 = none", min=0.0)
@@ -195,14 +195,14 @@ class SerialSettings:
 
 # ---------------------------------------------------------------------------- estimator
 
-_MOTION = "estimator: opt-in noise terms (not SPEC §4; 0 = off)"
+_MOTION = "estimator: opt-in noise terms (not the standard model; 0 = off)"
 _GATES = "estimator: innovation gate and guard"
 _PLAUSIBLE = "estimator: plausibility gates (0 = no bound)"
 
 
 @dataclass(frozen=True)
 class EstimatorSettings:
-    """``slamlens estimator``: EKF-SLAM with the SPEC §4 models (docs/estimator.md).
+    """``slamlens estimator``: EKF-SLAM with the standard model (docs/estimator.md).
 
     Noise defaults equal the simulator's "paper" world, so a correct run is consistent.
     """
@@ -241,13 +241,13 @@ class EstimatorSettings:
         True, doc="put each update's innovations and S into the state (the monitor's NIS)")
     linearisation: str = setting(
         STANDARD, doc="where the Jacobians are evaluated: standard = at the latest estimates "
-                      "(SPEC §4); fej = First-Estimates Jacobians (the robot's propagated "
+                      "(docs/estimator.md); fej = First-Estimates Jacobians (the robot's propagated "
                       "estimate, each landmark's first estimate), so global translation and "
                       "rotation stay unobservable and the filter does not grow overconfident "
                       "in the map's heading (docs/estimator.md)", choices=LINEARISATIONS)
-    # -- opt-in motion noise (not SPEC §4; all 0 = the SPEC §4 model exactly) ------------
+    # -- opt-in motion noise (not the standard model; all 0 = the standard model (docs/estimator.md) exactly) ------------
     sigma_distance: float = setting(
-        0.0, doc="opt-in, not SPEC §4: along-track noise growing with the distance driven, "
+        0.0, doc="opt-in, not the standard model: along-track noise growing with the distance driven, "
                  "σ after 1 m (variance σ²·|v·dt| per step, whatever the odometry rate)",
         unit="m/√m", min=0.0, group=_MOTION)
     sigma_turn: float = setting(
@@ -257,7 +257,7 @@ class EstimatorSettings:
         0.0, doc="opt-in: heading noise growing with the distance driven, σ after 1 m "
                  "(variance σ²·|v·dt| per step)", unit="rad/√m", min=0.0, group=_MOTION)
     sigma_range_per_m: float = setting(
-        0.0, doc="opt-in, not SPEC §4: range noise growing with the range measured: "
+        0.0, doc="opt-in, not the standard model: range noise growing with the range measured: "
                  "variance σr² + (k·r)²", unit="m/m", min=0.0, group=_MOTION)
     sigma_range_off_axis: float = setting(
         0.0, doc="opt-in: range noise growing with the range and the bearing off the sensor's "
@@ -274,7 +274,7 @@ class EstimatorSettings:
         1e-9, doc="the filter's guard: a step that would make the state non-finite or take a "
                   "variance below −guard_rtol × its value is refused (off for planted "
                   "faults, which break PSD on purpose)", min=0.0, group=_GATES)
-    # -- plausibility gates (issue 14): an input outside is refused whole; 0 = no bound --
+    # -- plausibility gates: an input outside is refused whole; 0 = no bound --
     max_dt_s: float = setting(10.0, doc="odometry dt above this is refused", unit="s",
                               min=0.0, group=_PLAUSIBLE)
     max_speed: float = setting(10.0, doc="odometry |v| above this is refused", unit="m/s",
@@ -300,7 +300,7 @@ class EstimatorSettings:
         2000, doc="a batch whose new ids would grow the map beyond this is refused (an "
                   "anonymous observation that would start one is not applied)", min=0,
         group=_PLAUSIBLE)
-    # -- delivery (SPEC §7a; the service, not the filter) --------------------------------
+    # -- delivery (docs/delivery.md; the service, not the filter) --------------------------------
     checkpoint: str = setting(
         "", doc="crash recovery: save the map in DIR (atomically, at least once a second and "
                 "at exit) and resume it from there on a restart; empty = none", metavar="DIR")
@@ -359,7 +359,7 @@ _BLAME = "monitor: pinpointing"
 
 @dataclass(frozen=True)
 class MonitorSettings:
-    """``slamlens monitor``: the behaviour monitor (SPEC §5, docs/monitor.md).
+    """``slamlens monitor``: the behaviour monitor (docs/monitor.md).
 
     Every tolerance is *relative* to the scale of the covariance entries it guards, plus a
     tiny absolute floor, because rounding in an EKF update is relative to the entries it

@@ -13,9 +13,9 @@ How a profile is made (docs/estimator.md, "Tuning on real data"):
    variances corrected for the trimming) — robust to the gross outliers the innovation gate
    is there to refuse.
 2. **Odometry residuals.** Windows of 1, 2, 4 … 64 s; in each, the commanded controls
-   are integrated with the SPEC §4 model from the true pose at the window's start, and the
+   are integrated with the standard model (docs/estimator.md) from the true pose at the window's start, and the
    error at its end is split into along-track and heading. Their variances are modelled
-   per window as Σ σv²dt² (SPEC §4, ``motion_model = "spec"``, the default) or as
+   per window as Σ σv²dt² (docs/estimator.md, ``motion_model = "spec"``, the default) or as
    k_d²·distance and k_t²·turn + k_hd²·distance (the opt-in terms,
    ``motion_model = "distance"``), fitted the same way, each window length weighted equally.
 3. **Check and scale.** The estimator runs over every run with the fitted settings and its
@@ -125,7 +125,7 @@ class OdometryResiduals:
     """Per window: the noise model's regressors and the error of integrated odometry."""
 
     window_s: np.ndarray  #: the window's length
-    sum_dt2: np.ndarray  #: Σ dt² of its steps (the SPEC §4 noise scales with it)
+    sum_dt2: np.ndarray  #: Σ dt² of its steps (the docs/estimator.md noise scales with it)
     distance: np.ndarray  #: Σ |v·dt|, m
     turn: np.ndarray  #: Σ |ω·dt|, rad
     along: np.ndarray  #: truth − odometry along the start heading, m
@@ -384,7 +384,7 @@ def tune(runs: Sequence[MrclamRun], *, motion_model: str = "spec",
 #: what each setting of a profile means, physically (written next to its value)
 MEANING = {
     "sigma_v": "m/s: error of the commanded speed over one odometry step (along-track "
-               "variance σv²·dt² a step, SPEC §4)",
+               "variance σv²·dt² a step, docs/estimator.md)",
     "sigma_w": "rad/s: error of the commanded turn rate over one step (heading variance "
                "σω²·dt² a step)",
     "sigma_range": "m: range noise at any range (the sensor's floor)",
@@ -406,13 +406,13 @@ def profile_toml(result: TuneResult, *, header: Sequence[str] = (),
     (``header``, then the fit's figures, then ``notes``: e.g. the cross-validation), each
     setting with what it means."""
     lines = [f"# {h}" if h else "#" for h in header]
-    model = ("spec: SPEC §4's sigma_v, sigma_w" if result.motion_model == "spec" else
+    model = ("spec: the standard model's sigma_v, sigma_w" if result.motion_model == "spec" else
              "distance: the opt-in sigma_distance, sigma_turn, sigma_heading_per_distance "
-             "(not SPEC §4)")
+             "(not the standard model)")
     wrong = ", ".join(f"robot{k} {v:.1%}" for k, v in sorted(result.fit.misidentified.items()))
     lines += [
         f"# motion model: {model}; sigma_range_per_m and sigma_range_off_axis are opt-in "
-        "range terms (not SPEC §4)",
+        "range terms (not the standard model)",
         f"# fitted from {result.fit.sensor_samples} measurements and "
         f"{result.fit.odometry_windows} odometry windows; {result.fit.range_outliers:.1%} of "
         "ranges off by > 0.5 m" + (f"; barcodes read as another landmark's: {wrong}"

@@ -1,4 +1,4 @@
-"""A pinhole camera with OpenCV distortion, placed by ``T_camera_from_map`` (SPEC §3).
+"""A pinhole camera with OpenCV distortion, placed by ``T_camera_from_map`` (docs/protocol.md).
 
 ``project`` is a vectorised equivalent of ``cv2.projectPoints`` for the rational /
 thin-prism models (4, 5, 8 or 12 coefficients); a tilted sensor (14 coefficients with a

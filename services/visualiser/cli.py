@@ -35,7 +35,7 @@ def run(command: str, args: argparse.Namespace) -> int:
     setup_logging(args, "viewer")
     config = settings_from_args(ViewerConfig, args)
     host, port = parse_http(config.http)
-    # beyond loopback nothing is served without a token (SPEC §7b, docs/security.md)
+    # beyond loopback nothing is served without a token (docs/security.md)
     token = read_token(config.token_file) if config.token_file else (
         None if is_loopback(host) else new_token())
     if host in ("0.0.0.0", "::", ""):

@@ -1,6 +1,6 @@
 """What to draw for one state and one ``ViewSettings``: pairs, lines and glyphs (pure).
 
-Modes (SPEC §6, paper §3.2):
+Modes (docs/visualisation.md, paper §3.2):
 
 * ``all``: every pair i < j of features.
 * ``inter``: only pairs whose features lie in different clusters.

@@ -1,4 +1,4 @@
-"""Time series behind the viewer's plots (issue 5): P_d size per pair, min/mean/max per
+"""Time series behind the viewer's plots: P_d size per pair, min/mean/max per
 cluster pair, and the monitor's statistics (NEES, NIS and their bounds).
 
 Samples are decimated in wall-clock time (one state and one health sample per
@@ -7,7 +7,7 @@ estimator's event rate. Each state sample of a map of up to ``DENSE_PAIRS`` pair
 size of P_d for *every* pair, so the plot of any pair can be drawn after the fact, not only
 from when somebody asked for it.
 
-Large maps (issue 13; more than ``DENSE_PAIRS`` pairs, n > 200): every pair's size is still
+Large maps (more than ``DENSE_PAIRS`` pairs, n > 200): every pair's size is still
 computed per sample (:func:`all_pair_sizes`, whole-matrix float32 passes, no per-pair
 gathers), but only the newest sample keeps all of them (what ``default_pairs`` ranks); the
 history keeps, per sample, the ``KEEP_LARGEST`` largest pairs and the pairs plotted

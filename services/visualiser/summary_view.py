@@ -1,6 +1,6 @@
 """A picture from a robot's summary instead of its full state (``--source summary``, pure).
 
-A viewer behind a slow link pulls a :class:`~slamlens.common.messages.StateSummary` (issue 13,
+A viewer behind a slow link pulls a :class:`~slamlens.common.messages.StateSummary` (
 docs/remote_viewers.md): the map's blocks and the clustered min / mean / max of the
 relative covariances, never the whole matrix. :func:`summarised_state` makes of it a
 :class:`SummarisedState` — a ``SlamState`` whose covariance holds only what arrived (the

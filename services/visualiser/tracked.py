@@ -1,4 +1,4 @@
-"""The camera-tracked robot pose, matched with the estimate of the same instant (issue 3).
+"""The camera-tracked robot pose, matched with the estimate of the same instant.
 
 The registration service measures the robot's pose from its marker every frame and
 publishes it on ``slamlens/robot/{robot}/tracked``. The viewer draws the newest one beside

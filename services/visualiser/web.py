@@ -8,7 +8,7 @@ Endpoints (every ``client`` is a browser tab's random id; without one, the defau
   never a growing backlog);
 * ``GET /stream.mjpg?client=ID`` the same as ``multipart/x-mixed-replace`` MJPEG (for
   ``<img>``, VLC, ffmpeg); every part carries ``X-State-Seq`` and ``X-State-Stamp``;
-* ``GET /snapshot.png[?client=ID][&download=1]`` the current picture as PNG (SPEC §9);
+* ``GET /snapshot.png[?client=ID][&download=1]`` the current picture as PNG (docs/cli.md);
 * ``GET/POST /api/settings?client=ID``, ``GET /api/status``, ``GET /api/features``,
   ``GET /api/health``, ``GET /api/series[?pairs=1-2,3-4]``,
   ``POST /api/record/start|stop?client=ID``, ``GET /recordings/NAME``,
