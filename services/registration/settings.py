@@ -52,7 +52,7 @@ class RegistrationSettings:
     marker_size: float = setting(0.2, doc="marker black square side", unit="m", min=1e-3,
                                  group=_CAMERA)
     marker_offset: tuple[float, ...] = setting(
-        (0.0, 0.0, 0.2), doc="marker centre in the robot frame, m (docs/protocol.md: flat, face up, "
+        (0.0, 0.0, 0.2), doc="marker centre in the robot frame, m (protocol.md: flat, face up, "
                              "x = robot forward)", metavar="X,Y,Z", group=_CAMERA)
     mode: str = setting("overhead", doc="overhead (a fixed camera) or head-mounted (moving)",
                         choices=MODES, group=_CAMERA)

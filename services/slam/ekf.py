@@ -1,4 +1,4 @@
-"""EKF-SLAM numerical core: the standard model (docs/estimator.md), their Jacobians, and in-place kernels.
+"""EKF-SLAM numerical core: the standard models (docs/estimator.md), their Jacobians, kernels.
 
 The state is ``x = [x, y, θ, m1x, m1y, …]`` (N = 3 + 2n). Its covariance lives in the
 lower triangle of a preallocated buffer ``L`` (:mod:`slamlens.services.slam.ekf_storage`:
@@ -218,7 +218,7 @@ def predict(x: np.ndarray, L: np.ndarray, n: int, *, v: float, w: float, dt: flo
 
     ``var_v``, ``var_w`` are the odometry variances σv² (m²/s²), σω² (rad²/s²). ``extra_qv``
     (m²) and ``extra_qw`` (rad²) are opt-in variances added to this step's along-heading and
-    heading noise (:meth:`Estimator.predict`'s distance and turn terms; 0 = docs/estimator.md exactly).
+    heading noise (:meth:`Estimator.predict`'s distance and turn terms; 0 = the standard model).
     With a ``guard`` (and ``ws`` for scratch) the step is computed first and written only if
     it stays finite and P_vv stays PSD; else :class:`RefusedStepError`, nothing written.
     """
@@ -283,7 +283,7 @@ def update(x: np.ndarray, L: np.ndarray, n: int, j: int, *, z_range: float,
            defer: bool = False,
            at: tuple[float, float, float, float] | None = None
            ) -> tuple[float, float, float, float, float]:
-    """docs/estimator.md update with one observation of landmark ``j`` (0-based state order), in place.
+    """The update with one observation of landmark ``j`` (0-based state order), in place.
 
     Never builds H: it touches 5 columns of P. With W = P Hᵀ (N×2) and S = L_S L_Sᵀ
     (2×2 Cholesky, closed form), V = W L_S⁻ᵀ gives K S Kᵀ = W S⁻¹ Wᵀ = V Vᵀ and

@@ -1,4 +1,4 @@
-"""The behaviour monitor (docs/monitor.md): checks every SlamState, returns a Health, names suspects.
+"""The behaviour monitor (docs/monitor.md): checks each SlamState, returns a Health, names suspects.
 
 ``Monitor`` is the thin stateful class around the pure checks of ``monitor_checks``, the
 statistics of ``monitor_stats`` and the pinpointing of ``monitor_blame``. It keeps only what
@@ -707,7 +707,7 @@ class Monitor:
 
 
 def _finite(v: Violation) -> Violation:
-    """Health carries finite numbers only (docs/protocol.md decoders reject NaN/∞): clip overflows."""
+    """Health carries finite numbers only (decoders reject NaN/∞): clip overflows."""
     if math.isfinite(v.value) and (v.bound is None or math.isfinite(v.bound)):
         return v
     clip = 1e300

@@ -216,7 +216,7 @@ def prediction_residuals(P_prev: np.ndarray, P_cur: np.ndarray, pose_prev: np.nd
                          ) -> tuple[Findings, Findings, float | None]:
     """Check one predict step without knowing the controls.
 
-    For any odometry model whose displacement turns with the heading (the standard model's first-order
+    For any odometry model whose displacement turns with the heading (the standard first-order
     model, the midpoint and the exact arc models), ∂(x', y')/∂θ = (−Δy, Δx) with (Δx, Δy)
     the change of the estimated position, so Fx = [[1,0,−Δy],[0,1,Δx],[0,0,1]] and:
 

@@ -16,7 +16,7 @@ Conventions (also in ``docs/drivers.md``):
 * Measurements with identical timestamps form one ``Observations`` batch, in file order.
   Ids are landmark subject numbers (6–20). Barcodes of subjects without landmark ground
   truth (the robots, subjects 1–5) are skipped, as are barcodes in no subject; both counted.
-* The map frame (docs/protocol.md) is the robot's ground-truth pose at the replay's origin time = the
+* The map frame (protocol.md) is the robot's ground-truth pose at the replay's origin time = the
   first odometry sample in the window, linearly interpolated; poses and landmarks are
   transformed into it. ``Truth`` is emitted once at the origin time (pose 0, 0, 0) and then at
   every ground-truth sample after it.

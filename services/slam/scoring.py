@@ -282,7 +282,7 @@ class Scorer:
 
 def dead_reckoning_track(run: MrclamRun, start: float | None = None,
                          end: float | None = None) -> TruthTrack:
-    """The odometry of ``run.events(start, end)`` integrated alone (docs/estimator.md model, from the
+    """The odometry of ``run.events(start, end)`` integrated alone (the standard model, from the
     map origin): what the robot would believe with no landmarks."""
     x = y = th = 0.0
     stamps, poses = [run.origin_time(start)], [(0.0, 0.0, 0.0)]

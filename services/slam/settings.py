@@ -154,7 +154,7 @@ class TuneSettings:
         (1,), doc="robots of the dataset to fit together (one profile for all of them)",
         metavar="K,K")
     motion_model: str = setting(
-        "spec", doc="odometry noise to fit: spec = the standard model's σv, σω; distance = the opt-in "
+        "spec", doc="odometry noise to fit: spec = the standard σv, σω; distance = the opt-in "
                     "terms growing with distance and turn instead (not the standard model)",
         choices=("spec", "distance"))
     gate_chi2: float = setting(13.82, doc="innovation gate written into the profile (χ²₂ "
@@ -241,13 +241,14 @@ class EstimatorSettings:
         True, doc="put each update's innovations and S into the state (the monitor's NIS)")
     linearisation: str = setting(
         STANDARD, doc="where the Jacobians are evaluated: standard = at the latest estimates "
-                      "(docs/estimator.md); fej = First-Estimates Jacobians (the robot's propagated "
+                      "(estimator.md); fej = First-Estimates Jacobians (the robot's propagated "
                       "estimate, each landmark's first estimate), so global translation and "
                       "rotation stay unobservable and the filter does not grow overconfident "
                       "in the map's heading (docs/estimator.md)", choices=LINEARISATIONS)
-    # -- opt-in motion noise (not the standard model; all 0 = the standard model (docs/estimator.md) exactly) ------------
+    # -- opt-in motion noise (not the standard model; all 0 = the standard model exactly) --
     sigma_distance: float = setting(
-        0.0, doc="opt-in, not the standard model: along-track noise growing with the distance driven, "
+        0.0, doc="opt-in, not the standard model: along-track noise growing with the distance "
+                 "driven, "
                  "σ after 1 m (variance σ²·|v·dt| per step, whatever the odometry rate)",
         unit="m/√m", min=0.0, group=_MOTION)
     sigma_turn: float = setting(

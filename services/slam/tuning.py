@@ -13,7 +13,7 @@ How a profile is made (docs/estimator.md, "Tuning on real data"):
    variances corrected for the trimming) — robust to the gross outliers the innovation gate
    is there to refuse.
 2. **Odometry residuals.** Windows of 1, 2, 4 … 64 s; in each, the commanded controls
-   are integrated with the standard model (docs/estimator.md) from the true pose at the window's start, and the
+   are integrated with the standard model from the true pose at the window's start, and the
    error at its end is split into along-track and heading. Their variances are modelled
    per window as Σ σv²dt² (docs/estimator.md, ``motion_model = "spec"``, the default) or as
    k_d²·distance and k_t²·turn + k_hd²·distance (the opt-in terms,

@@ -3,7 +3,7 @@
 ``ViewerConfig`` is ``slamlens viewer``'s: every field a TOML key of ``--config FILE`` and a
 flag over it (:func:`slamlens.common.config.setting`; docs/cli.md lists them all).
 
-``ViewSettings`` is what one viewer wants to see (docs/visualisation.md, paper §3.2), one frozen object
+``ViewSettings`` is what one viewer wants to see (docs/visualisation.md), one frozen object
 per client. Colours are OpenCV BGR tuples with the paper's defaults (robot and path green,
 heading arrow yellow, features cyan, pair lines yellow, correlation ellipsoids red);
 violations and suspects are magenta, which the paper does not use, so they cannot be
