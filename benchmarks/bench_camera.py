@@ -7,7 +7,7 @@ slow subscriber attached over real Zenoh on loopback.
 The last section runs the large world's fixed camera with the robot driving in real time,
 detection windows (``detect_full_every`` 15) against every frame detected whole (1).
 
-Targets (issue 3): a 1280×720 synthetic frame fast enough for 30 fps; JPEG encode ≤ 4 ms;
+Targets: a 1280×720 synthetic frame fast enough for 30 fps; JPEG encode ≤ 4 ms;
 a steady 30 fps published while a subscriber sleeping 200 ms per frame is attached. Every
 figure is a median over the run; baselines are measured in the same run (the machine is
 shared: run it a few times and quote medians).

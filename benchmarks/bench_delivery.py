@@ -1,4 +1,4 @@
-"""Delivery targets of issue 8 (SPEC §7a), real processes over Zenoh on loopback.
+"""Delivery targets (docs/delivery.md), real processes over Zenoh on loopback.
 
 1. **MRCLAM at full speed.** ``slamlens replay ../shared/data/mrclam6 --rate 0`` (robot 1)
    through a router into an estimator, with a monitor and a recording subscriber (a

@@ -130,7 +130,7 @@ def measure(n: int, rng: np.random.Generator, *, reps: int, dense_reps: int) -> 
     out["floor_view_us"] = median_us(lambda: np.multiply(view, 1.0, out=view), max(5, reps // 4))
     out["symmetric_us"] = median_us(lambda: ekf.symmetric(L, N), max(5, reps // 4))
 
-    # dense textbook EKF (SPEC §4 with full F, G, H): same maths, no structure exploited
+    # dense textbook EKF (docs/estimator.md with full F, G, H): same maths, no structure exploited
     P = ekf.symmetric(L, N)
     xd = x[:N].copy()
 

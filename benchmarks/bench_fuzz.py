@@ -1,4 +1,4 @@
-"""≥ 100 000 malformed payloads on every key a service subscribes to (issue 8).
+"""≥ 100 000 malformed payloads on every key a service subscribes to.
 
 For each service (a real process behind a real router on loopback) and each key it
 subscribes to, this sends ``--count`` payloads from services/harness/fuzz.py (random bytes, wrong

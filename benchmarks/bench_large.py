@@ -1,4 +1,4 @@
-"""Issue 13's n = 1000 targets: the whole pipeline on the ``large`` world, on one host.
+"""The n = 1000 targets: the whole pipeline on the ``large`` world, on one host.
 
 Real processes over Zenoh on loopback, as ``slamlens demo`` runs them: a router, the
 estimator, the monitor, the synthetic overhead camera with registration at 30 fps, the viewer
@@ -24,7 +24,7 @@ CPU seconds per process over the window and the load average are printed too.
 ``--profile`` first profiles the estimator service in this process at n = 1000 (a real
 Zenoh session, shared memory on): where a state's time goes (EKF update, materialising the
 covariance, encoding, the shared-memory copy, the publish), and the publish path as it was
-before issue 13 (msgpack.packb of a freshly materialised state) timed on the same states.
+before the large-map work (msgpack.packb of a freshly materialised state) timed on the same states.
 When the window opens the bench prints a line with the processes' ids, so a sampling
 profiler can be attached for it (e.g. ``py-spy record -p PID -d 20``).
 ``--profile-viewer`` profiles the viewer's state → picture path in this process at
@@ -361,7 +361,7 @@ def profile_estimator(events: int = 300) -> None:
           f"covariance buffers reused {est._buffers.reused - reused_before} of {n}")
     for name, t in sorted(spent.items(), key=lambda kv: -kv[1]):
         print(f"  {name:52s} {t / n * 1e3:6.2f} ms per state ({t / wall:5.1%})")
-    # the same states through the old publish path (before issue 13), timed without profiler
+    # the same states through the old publish path (before the large-map work), unprofiled
     state = est.to_state(seq=1, stamp=0.0, step="update")
     old, new = [], []
     for _ in range(7):
@@ -401,7 +401,7 @@ def profile_viewer(repeats: int = 9) -> None:
     """The viewer's state → picture path in this process at n = 1000 (a real state of the
     ``large`` world): thread CPU ms per picture of a new state and per camera frame of the
     same state, the plot sample, decoding; baselines in the same run: the scene computed
-    for every picture (a fresh ``Renderer`` each time, as before issue 13's viewer work)
+    for every picture (a fresh ``Renderer`` each time, as before the viewer work)
     and the plot sample as before (every pair's P_d gathered, then its size)."""
     import cProfile
     import dataclasses

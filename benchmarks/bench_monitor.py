@@ -1,6 +1,6 @@
 """Monitor.check per state at n = 15, 50, 100 landmarks, without and with truth.
 
-States come from the real estimator (SPEC §4 models) on a ring of n landmarks: all are
+States come from the real estimator (docs/estimator.md models) on a ring of n landmarks: all are
 initialised from the start pose, then the robot alternates predict and an update of 5
 landmarks, so half the states are predicts (map block untouched: the fast path) and half
 are updates (every pair compared). Target: median ≤ 2 ms per state at n = 100 (a monitor

@@ -1,4 +1,4 @@
-"""End-to-end speed of the SLAM pipeline over real Zenoh on loopback (issue 2 targets).
+"""End-to-end speed of the SLAM pipeline over real Zenoh on loopback (s).
 
 1. Throughput: ``slamlens sim --rate 0`` and ``slamlens estimator`` as separate processes
    through a ``slamlens router`` process; this script subscribes to every state and times

@@ -1,6 +1,6 @@
 """What one Zenoh publication costs the publishing process, back to back and spaced out.
 
-Issue 8's MRCLAM target is CPU-bound on two cores: every state, Health and input is one
+The MRCLAM target is CPU-bound on two cores: every state, Health and input is one
 ``put``. This measures the floor that sets, with the publisher as the services make it
 (``Bus.publisher(key, cache=…)``: a ``zenoh.ext`` advanced publisher, congestion control
 drop, heartbeats), a ``slamlens router`` process and a subscriber in a third process, all

@@ -1,4 +1,4 @@
-"""Recording targets of issue 12, real processes over Zenoh on loopback.
+"""Recording targets, real processes over Zenoh on loopback.
 
 1. **Recording costs the estimator nothing measurable.** The paper run (``slamlens sim
    --rate 0``, paced on the estimator) with the synthetic overhead camera publishing JPEG

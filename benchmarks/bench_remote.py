@@ -1,4 +1,4 @@
-"""A remote viewer behind a 20 Mbit/s link (issue 13): full state vs. the summary stream.
+"""A remote viewer behind a 20 Mbit/s link: full state vs. the summary stream.
 
 Two network namespaces (``services/harness/netns.py``: a robot and a workstation joined by a
 veth pair)
@@ -20,7 +20,7 @@ On the workstation, one phase after the other (the link carries one at a time):
 (c) optional (``--viewer``): ``slamlens viewer --source summary`` itself, its state seq
     and age read from ``/api/status`` once a second.
 
-Target (issue 13): the clustered picture of an n = 1000 map at ≥ 2 states/s, ≤ 1 s behind.
+Target: the clustered picture of an n = 1000 map at ≥ 2 states/s, ≤ 1 s behind.
 Prints medians and the ratio summary/full. Needs root (namespaces, tc).
 
 Run: ``.venv/bin/python benchmarks/bench_remote.py [--seconds 40] [--rate 20] [--viewer]``
@@ -126,7 +126,7 @@ def role_full(args: argparse.Namespace) -> None:
 
 
 def role_fullpull(args: argparse.Namespace) -> None:
-    """Workstation: the full state by ``get`` on ``state`` (SPEC §7's queryable), one
+    """Workstation: the full state by ``get`` on ``state`` (docs/protocol.md's queryable), one
     query in flight — the full-state counterpart of the summary pull."""
     from slamlens.common.keys import Keys
     from slamlens.common.messages import SlamState, peek_fields

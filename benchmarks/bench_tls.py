@@ -1,4 +1,4 @@
-"""What mutual TLS and the router's access control cost (SPEC §7b, issue 10 target).
+"""What mutual TLS and the router's access control cost (docs/security.md, ).
 
 Two pipelines run side by side, each a real `slamlens router` process and a real
 `slamlens estimator` process: one plain (tcp/), one secure (tls/, `--secure DIR --name …`,

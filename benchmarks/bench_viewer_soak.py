@@ -1,4 +1,4 @@
-"""Viewer soak (issue 14): many clients, many distinct settings; memory and fairness.
+"""Viewer soak: many clients, many distinct settings; memory and fairness.
 
 ``slamlens viewer`` runs as a real process (map view, 1280x720, default limits), fed a
 paper-like state (n = 15) at 30 Hz over loopback Zenoh. Websocket clients in this process

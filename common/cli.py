@@ -26,10 +26,11 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, NoReturn
 
+from slamlens.common.bus import Bus
 from slamlens.common.config import add_flags, flag_values, setting, settings_from_mapping
 from slamlens.common.errors import SlamlensError
 from slamlens.common.keys import DEFAULT_PREFIX, Keys
-from slamlens.common.session import BusSettings
+from slamlens.common.session import BusSettings, open_bus
 
 log = logging.getLogger("slamlens")
 
@@ -102,6 +103,12 @@ def bus_settings(args: argparse.Namespace) -> BusSettings:
     return BusSettings(connect=flags.connect, listen=flags.listen,
                        zenoh_config=flags.zenoh_config or None, secure=flags.secure or None,
                        name=flags.name or None, prefix=flags.prefix)
+
+
+def command_bus(args: argparse.Namespace) -> Bus:
+    """The bus a command talks on, opened as its bus flags say (``--connect``, ``--listen``,
+    ``--zenoh-config``, ``--secure``, ``--name``, ``--prefix``): every command's one preamble."""
+    return open_bus(bus_settings(args))
 
 
 def keys_from(args: argparse.Namespace) -> Keys:

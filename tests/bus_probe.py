@@ -6,7 +6,7 @@ reads a few lines, never a flood) and, at SIGTERM, ``probe done: {"KEY": count, 
 
 ``--subscribers N`` declares N subscribers on the key (counts are summed); ``--stall S``
 makes every callback sit for S seconds, on purpose: a client as bad as a paused debugger,
-which the publishers must not wait for (SPEC §7a).
+which the publishers must not wait for (docs/delivery.md).
 """
 
 from __future__ import annotations

@@ -19,12 +19,11 @@ import time
 import numpy as np
 
 from slamlens.common.bus import Bus
-from slamlens.common.cli import bus_settings, keys_from, setup_logging, stop_event
+from slamlens.common.cli import command_bus, keys_from, setup_logging, stop_event
 from slamlens.common.config import settings_from_args
 from slamlens.common.errors import BusError, MessageError, ServiceError
 from slamlens.common.keys import Keys, check_name
 from slamlens.common.messages import CameraControl, Registration
-from slamlens.common.session import open_bus
 from slamlens.services.commands.settings import RegisterSettings
 
 REREGISTERING = "reregistering"  #: the status a camera says while it averages anew
@@ -124,7 +123,7 @@ def run(command: str, args: argparse.Namespace) -> int:
     s = settings_from_args(RegisterSettings, args)
     keys = keys_from(args)
     stop = stop_event()
-    bus = open_bus(bus_settings(args))
+    bus = command_bus(args)
     try:
         reg = reregister(bus, keys, camera=s.camera, robot=s.robot, timeout_s=s.timeout_s,
                          stop=stop)

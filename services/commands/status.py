@@ -20,12 +20,11 @@ import time
 from typing import Any
 
 from slamlens.common.bus import Bus
-from slamlens.common.cli import bus_settings, keys_from, setup_logging, stop_event
+from slamlens.common.cli import command_bus, keys_from, setup_logging, stop_event
 from slamlens.common.config import settings_from_args
 from slamlens.common.errors import MessageError
 from slamlens.common.keys import Keys
 from slamlens.common.messages import ServiceStatus
-from slamlens.common.session import open_bus
 from slamlens.services.commands.settings import StatusSettings
 
 COLUMNS = ("SERVICE", "NAME", "HOST", "ROBOT", "CAMERA", "STATE", "RATE", "DROPPED", "LOST",
@@ -102,7 +101,7 @@ def run(command: str, args: argparse.Namespace) -> int:
     s = settings_from_args(StatusSettings, args)
     keys = keys_from(args)
     stop = stop_event()
-    bus = open_bus(bus_settings(args))
+    bus = command_bus(args)
     try:
         if s.json:
             print(json.dumps(gather(bus, keys, timeout_s=s.timeout_s), indent=2), flush=True)

@@ -14,10 +14,9 @@ import logging
 import os
 from pathlib import Path
 
-from slamlens.common.cli import bus_settings, keys_from, setup_logging, stop_event
+from slamlens.common.cli import command_bus, keys_from, setup_logging, stop_event
 from slamlens.common.config import settings_from_args
 from slamlens.common.errors import ConfigError
-from slamlens.common.session import open_bus
 from slamlens.services.recorder.settings import FoxgloveSettings, PlaySettings, RecordSettings
 
 log = logging.getLogger("slamlens")
@@ -38,7 +37,7 @@ def _run_record(args: argparse.Namespace) -> int:
     if settings.nice and hasattr(os, "nice"):
         os.nice(settings.nice)  # a background consumer: the live services go first
     stop = stop_event(grace_s=None)  # the file is finished however long that takes
-    bus = open_bus(bus_settings(args))
+    bus = command_bus(args)
     try:
         recorder = Recorder(bus, settings=settings, prefix=keys_from(args).prefix)
         log.info("recording %s into %s", ", ".join(recorder.expressions), recorder.path)
@@ -76,7 +75,7 @@ def _run_play(args: argparse.Namespace) -> int:
     settings = settings_from_args(PlaySettings, args)
     recording = Recording(settings.path)  # a bad file is one line before any bus
     stop = stop_event()
-    bus = open_bus(bus_settings(args))
+    bus = command_bus(args)
     control = None
     player = None
     try:
@@ -118,7 +117,7 @@ def _run_foxglove(args: argparse.Namespace) -> int:
     if settings.layout:
         _write_layout(settings.layout, settings.robot, settings.camera)
     stop = stop_event()
-    bus = open_bus(bus_settings(args))
+    bus = command_bus(args)
     live = None
     try:
         live = FoxgloveLive(bus, settings=settings, keys=keys_from(args))

@@ -12,10 +12,9 @@ import json
 import logging
 from pathlib import Path
 
-from slamlens.common.cli import bus_settings, keys_from, log_flags, setup_logging, stop_event
+from slamlens.common.cli import command_bus, keys_from, log_flags, setup_logging, stop_event
 from slamlens.common.config import settings_from_args
 from slamlens.common.errors import ConfigError
-from slamlens.common.session import open_bus
 from slamlens.common.status import Report, announce
 from slamlens.services.registration.settings import (
     CalibrateSettings,
@@ -47,7 +46,7 @@ def _run_registration(args: argparse.Namespace) -> int:
     # a missing --source file or --calibration is said before the network is tried
     check_inputs(settings)
     stop = stop_event()
-    bus = open_bus(bus_settings(args))
+    bus = command_bus(args)
     try:
         service = build_service(bus, keys, settings)
         names = ", ".join(p.camera for p in service.pipelines)

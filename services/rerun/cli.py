@@ -10,10 +10,9 @@ import json
 import logging
 from typing import TYPE_CHECKING
 
-from slamlens.common.cli import bus_settings, keys_from, setup_logging, stop_event
+from slamlens.common.cli import command_bus, keys_from, setup_logging, stop_event
 from slamlens.common.config import settings_from_args
 from slamlens.common.errors import ConfigError
-from slamlens.common.session import open_bus
 from slamlens.common.status import Provider, Report, announce
 from slamlens.services.rerun.settings import RerunSettings
 
@@ -48,7 +47,7 @@ def run(command: str, args: argparse.Namespace) -> int:
     from slamlens.services.rerun.sink import RerunSink
 
     stop = stop_event(grace_s=None) if settings.save else stop_event()  # a file is finished
-    bus = open_bus(bus_settings(args))
+    bus = command_bus(args)
     sink = None
     try:
         sink = RerunSink(bus, settings=settings, keys=keys_from(args))

@@ -13,11 +13,10 @@ import logging
 import threading
 from typing import Any
 
-from slamlens.common.cli import bus_settings, keys_from, setup_logging, stop_event
+from slamlens.common.cli import command_bus, keys_from, setup_logging, stop_event
 from slamlens.common.config import settings_from_args
 from slamlens.common.errors import ConfigError
 from slamlens.common.progress import time_bar
-from slamlens.common.session import open_bus
 from slamlens.common.status import Report, announce
 from slamlens.services.ros2.settings import BagReplay, Ros2Settings
 
@@ -34,7 +33,7 @@ def _run_bridge(args: argparse.Namespace) -> int:
 
     s = settings_from_args(Ros2Settings, args)
     stop = stop_event()
-    bus = open_bus(bus_settings(args))
+    bus = command_bus(args)
     try:
         bridge = Ros2Bridge(bus, keys=keys_from(args), settings=s)
 
@@ -76,7 +75,7 @@ def run_bag(args: argparse.Namespace, s: BagReplay) -> int:
     setup_logging(args, "replay")
     bag = Bag(s.path, robot=s.robot, what=s.what)
     stop = stop_event()
-    bus = open_bus(bus_settings(args))
+    bus = command_bus(args)
     try:
         keys = keys_from(args)
         out: Any = (RobotPublisher(bus, keys=keys, robot=s.robot) if s.what == "inputs"

@@ -22,11 +22,10 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from slamlens.common.cli import bus_settings, keys_from, setup_logging, stop_event
+from slamlens.common.cli import command_bus, keys_from, setup_logging, stop_event
 from slamlens.common.config import settings_from_args
 from slamlens.common.errors import ConfigError
 from slamlens.common.progress import count_bar, enabled, time_bar
-from slamlens.common.session import open_bus
 from slamlens.common.status import Report, announce, counts_of
 from slamlens.services.slam.settings import (
     EstimatorSettings,
@@ -83,7 +82,7 @@ def _run_sim(args: argparse.Namespace) -> int:
                               loops=s.loops or None, truth_origin=origin,
                               marker_id=s.marker_id_of(k)))
     stop = stop_event()
-    bus = open_bus(bus_settings(args))
+    bus = command_bus(args)
     try:
         out = Fleet(bus, keys=keys_from(args), robots=s.robots())
         state = {"now": "waiting for an estimator"}
@@ -158,7 +157,7 @@ def _run_estimator(args: argparse.Namespace) -> int:
 
     settings = settings_from_args(EstimatorSettings, args)
     stop = stop_event()
-    bus = open_bus(bus_settings(args))
+    bus = command_bus(args)
     try:
         service = EstimatorService(bus, keys=keys_from(args), settings=settings)
 
@@ -213,7 +212,7 @@ def _run_replay(args: argparse.Namespace) -> int:
     runs = [load_mrclam(s.path, robot=k, robot_name=name) for k, name in robots]
     names = [name for _, name in robots]
     stop = stop_event()
-    bus = open_bus(bus_settings(args))
+    bus = command_bus(args)
     try:
         out = Fleet(bus, keys=keys_from(args), robots=names)
         state = {"now": "waiting for an estimator"}
@@ -251,7 +250,7 @@ def _run_serial(args: argparse.Namespace) -> int:
 
     s = settings_from_args(SerialSettings, args)
     stop = stop_event()
-    bus = open_bus(bus_settings(args))
+    bus = command_bus(args)
     link = SerialLink(s.port, baudrate=s.baudrate, robot=s.robot)
     try:
         out = RobotPublisher(bus, keys=keys_from(args), robot=s.robot)
@@ -274,7 +273,7 @@ def _run_monitor(args: argparse.Namespace) -> int:
     settings = settings_from_args(MonitorSettings, args)
     robot = settings.robot
     stop = stop_event()
-    bus = open_bus(bus_settings(args))
+    bus = command_bus(args)
     try:
         service = MonitorService(bus, keys=keys_from(args), robot=robot, settings=settings)
 
@@ -305,7 +304,7 @@ def _run_summary(args: argparse.Namespace) -> int:
 
     settings = settings_from_args(SummarySettings, args)
     stop = stop_event()
-    bus = open_bus(bus_settings(args))
+    bus = command_bus(args)
     try:
         service = SummaryService(bus, keys=keys_from(args), robot=settings.robot,
                                  settings=settings)

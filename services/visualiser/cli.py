@@ -10,9 +10,8 @@ import argparse
 import json
 import logging
 
-from slamlens.common.cli import bus_settings, keys_from, setup_logging, stop_event
+from slamlens.common.cli import command_bus, keys_from, setup_logging, stop_event
 from slamlens.common.config import settings_from_args
-from slamlens.common.session import open_bus
 from slamlens.common.status import Report, announce
 from slamlens.services.visualiser.settings import ViewerConfig
 
@@ -44,7 +43,7 @@ def run(command: str, args: argparse.Namespace) -> int:
     ssl_context = (None if config.tls_cert is None or config.tls_key is None
                    else tls_context(config.tls_cert, config.tls_key))
     stop = stop_event()
-    bus = open_bus(bus_settings(args))
+    bus = command_bus(args)
     keys = keys_from(args)
     service = ViewerService(bus, keys=keys, config=config)
     ar = None if config.max_ar_cameras == 0 else ArHub(

@@ -73,7 +73,7 @@ def test_samples_carry_the_publishing_sessions_clock(make_client) -> None:
 
 
 def test_a_callback_that_blocks_never_stops_the_channel_or_the_publisher(make_client) -> None:
-    """SPEC §7a: a consumer stalled 1 s per sample costs the publisher nothing."""
+    """docs/delivery.md: a consumer stalled 1 s per sample costs the publisher nothing."""
     import threading
 
     a, b, c = make_client(), make_client(), make_client()
@@ -88,7 +88,7 @@ def test_a_callback_that_blocks_never_stops_the_channel_or_the_publisher(make_cl
     ch = c.channel("t/flood", recover=True)
     assert a.wait_for_subscriber("t/flood")  # (either subscriber: b's may match first)
     # the cache holds the whole burst: what congestion drops on a loaded machine (CI once
-    # lost 585 of 2000 on the way to the channel) comes back from it, as SPEC §7a's caches
+    # lost 585 of 2000 on the way to the channel) comes back from it, as docs/delivery.md's caches
     # of 10 000 inputs do for the drivers; a cache of 100 could only return the last 100
     pub = a.publisher("t/flood", cache=2000)
     # a first sample until the channel has it: its route is then open (tests/routes.py)
@@ -237,7 +237,7 @@ def test_a_client_waits_for_a_router_that_starts_later() -> None:
 
 
 def test_large_payloads_go_through_shared_memory_on_one_host(router_endpoint) -> None:
-    """Issue 13: a state-sized payload reaches a subscriber on the same host through
+    """a state-sized payload reaches a subscriber on the same host through
     shared memory and one that cannot map it (as across a network) as bytes."""
     from slamlens.common.session import BusSettings, open_bus
 

@@ -1,8 +1,8 @@
-"""The estimator against independent statistics on the real simulator (issue 2 item 6).
+"""The estimator against independent statistics on the real simulator.
 
 * Consistency: Monte-Carlo NEES of the robot pose over 20 seeds, the paper scenario's
   default run, against the two-sided 95 % χ²(3M)/M band (standard and FEJ linearisation).
-* The covariance theorem (SPEC §5): on a correct run every P_d is non-increasing across
+* The covariance theorem (docs/monitor.md): on a correct run every P_d is non-increasing across
   every event (Loewner order); on a faulty run the pairs containing faulty features grow.
 """
 

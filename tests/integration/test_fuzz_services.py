@@ -182,7 +182,7 @@ def test_monitor_survives_garbage_on_state_truth_and_tracked(router_endpoint,
 
 def test_registration_counts_a_control_flood_in_a_few_log_lines(router_endpoint,
                                                                 make_client) -> None:
-    """Issue 15: 20 000 bad control messages are counted, logged in a handful of lines,
+    """20 000 bad control messages are counted, logged in a handful of lines,
     and the camera keeps registering (garbage on truth and camera pose too)."""
     from slamlens.common.messages import CameraControl, Registration
 

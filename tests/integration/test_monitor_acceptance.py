@@ -1,6 +1,6 @@
-"""Acceptance of the behaviour monitor on the paper scenario (SPEC §5, §8; issue 5).
+"""Acceptance of the behaviour monitor on the paper scenario (docs/monitor.md).
 
-The real chain, in-process: Simulator("paper") → Estimator (SPEC §4) → Monitor, one state
+The real chain, in-process: Simulator("paper") → Estimator (docs/estimator.md) → Monitor, one state
 per event as the estimator service publishes them, truth delivered in stream order.
 
 * Correct runs, 20 seeds: no violation, ever — also with 30 % of the states dropped; and the

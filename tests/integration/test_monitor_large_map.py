@@ -1,7 +1,7 @@
-"""The monitor on a 1000-landmark map (issue 13): far behind, it samples, and still names
+"""The monitor on a 1000-landmark map: far behind, it samples, and still names
 the planted faulty feature within one sampling interval.
 
-The real estimator (SPEC §4, with the ``map-update`` fault planted on one feature from a
+The real estimator (docs/estimator.md, with the ``map-update`` fault planted on one feature from a
 given stamp) builds a map of 1000 landmarks and runs on; its states (32 MB each) go to a
 :class:`MonitorService` with the default ``sample_above_mb`` (512 MB). The monitor is made to
 fall behind deterministically: it takes a step only after every ``BURST`` states published,

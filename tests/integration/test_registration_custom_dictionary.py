@@ -1,4 +1,4 @@
-"""``slamlens registration --dictionary FILE.yml`` (issue 11 item 6): a custom ArUco
+"""``slamlens registration --dictionary FILE.yml``: a custom ArUco
 dictionary from an OpenCV YAML file, on OpenCV's own photo of a board in that dictionary
 (../shared/data/fiducials/opencv_aruco: tutorial_dict.yml, gboriginal.png, the tutorial's
 camera parameters). The service registers on marker 0; the pose is checked against OpenCV's

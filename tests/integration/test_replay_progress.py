@@ -1,4 +1,4 @@
-"""``slamlens replay`` with its progress bar, as a real process (issue 11 item 5)."""
+"""``slamlens replay`` with its progress bar, as a real process."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""SPEC §7b over real Zenoh: a `slamlens router` process serving mutual TLS and enforcing the
+"""docs/security.md on real Zenoh: a `slamlens router` process serving mutual TLS, enforcing the
 roles of every identity in its folder, against clients on loopback — legitimate ones, with
 plain and advanced (zenoh.ext) publishers and subscribers, and spoofers.
 
@@ -228,7 +228,7 @@ def test_roles_of_monitor_and_camera(connect, secure_router) -> None:
     for _ in range(3):
         monitor.session.put(STATE, b"monitor's forged state")
         camera.session.put("slamlens/camera/other/frame", b"another camera's frame")
-        # SPEC §7b: a camera says nothing outside slamlens/camera/C/** (not a tracked pose)
+        # docs/security.md: a camera says nothing outside slamlens/camera/C/** (not a tracked pose)
         camera.session.put("slamlens/robot/r1/tracked", b"camera's tracked pose")
         _settle(monitor)
         _settle(camera)
@@ -297,7 +297,7 @@ def _advanced_subscriber(bus: ZenohBus, key: str, inbox: Inbox):
 
 
 def test_advanced_pub_sub_history_and_recovery_through_the_roles(connect, secure_router) -> None:
-    """SPEC §7a's advanced publishers/subscribers need the @adv key spaces: a late
+    """docs/delivery.md's advanced publishers/subscribers need the @adv key spaces: a late
     subscriber gets robot-r1's cached history, never the spoofer's, and the spoofer's
     cache queryable and detection token are refused."""
     robot, spoofer, viewer = connect("robot-r1"), connect("robot-r2"), connect("viewer-lab")

@@ -1,5 +1,5 @@
-"""``slamlens serial`` over a real pseudo-terminal against checksum-valid but absurd records
-(issue 15): an id beyond int64 ended the process with OverflowError, ``$O,1e308,…`` was
+"""``slamlens serial`` over a real pseudo-terminal against checksum-valid but absurd records:
+an id beyond int64 ended the process with OverflowError, ``$O,1e308,…`` was
 accepted. Every parsed field is range-checked; the service drops, counts and goes on."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The ``large`` world (issue 13) through real processes: sim → estimator over Zenoh."""
+"""The ``large`` world through real processes: sim → estimator over Zenoh."""
 
 from __future__ import annotations
 

@@ -20,7 +20,7 @@ KEYS = Keys()
 
 class _Collector(StateCollector):
     """Every state, as a recorder gets them: states go out with congestion control *drop*
-    (SPEC §7a), so a consumer that needs all of them recovers what a loaded machine drops."""
+    (delivery.md), so a consumer that needs all of them recovers what a loaded machine drops."""
 
     def __init__(self, endpoint: str) -> None:
         self.states: list[SlamState] = []
@@ -74,7 +74,7 @@ def _spec_array(a: np.ndarray, dtype: str) -> dict:
 
 
 def test_third_party_client_from_spec_only(router_endpoint, estimator):
-    """A client written only from SPEC §7: raw zenoh and msgpack, no slamlens import."""
+    """A client written only from docs/protocol.md: raw zenoh and msgpack, no slamlens import."""
     conf = zenoh.Config()
     conf.insert_json5("mode", '"client"')
     conf.insert_json5("connect/endpoints", f'["{router_endpoint}"]')

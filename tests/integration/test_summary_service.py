@@ -1,4 +1,4 @@
-"""``slamlens summary`` over real Zenoh on loopback (issue 13, docs/remote_viewers.md):
+"""``slamlens summary`` over real Zenoh on loopback (docs/remote_viewers.md):
 the answer is the newest state's summary, a pull waits for a newer state, bad parameters
 get an error reply and the service goes on, and the process exits cleanly."""
 

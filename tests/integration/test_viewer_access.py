@@ -1,4 +1,4 @@
-"""Who may use the web viewer: Host, Origin and the access token (issues 10 and 15).
+"""Who may use the web viewer: Host, Origin and the access token.
 
 A real viewer service on loopback Zenoh and its real aiohttp server; real HTTP (urllib)
 and websocket (aiohttp) clients send the headers a hostile page would make a browser

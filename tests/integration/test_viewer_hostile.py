@@ -1,4 +1,4 @@
-"""Well-formed but hostile input to a real ``slamlens viewer`` process (issues 14 and 15).
+"""Well-formed but hostile input to a real ``slamlens viewer`` process.
 
 * a decode bomb on the camera's frame key: a JPEG of a few hundred bytes whose header
   claims 20000 × 20000 pixels (1.2 GB once decoded). The viewer reads the header's size

@@ -1,4 +1,4 @@
-"""The viewer's resources stay bounded whatever clients ask (issue 14 items 3 and 4).
+"""The viewer's resources stay bounded whatever clients ask.
 
 A real viewer service and web server on loopback Zenoh; the clients are real HTTP
 clients (urllib; MJPEG streams read on threads). Every wait is on an event: a state's seq

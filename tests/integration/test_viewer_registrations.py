@@ -1,4 +1,4 @@
-"""Every re-registration is shown with who asked and how far the frame moved (issue 15).
+"""Every re-registration is shown with who asked and how far the frame moved.
 
 A real viewer service on loopback Zenoh receives Registration messages as the registration
 service publishes them (start, requested, refused); ``/api/status`` lists each one once,

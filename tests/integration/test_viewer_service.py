@@ -300,7 +300,7 @@ def test_two_clients_with_different_modes_get_different_pictures(start_viewer,
     # each tab kept its own settings
     assert json.loads(http(url + "/api/settings?client=tabA")[2])["settings"]["mode"] == "all"
     assert json.loads(http(url + "/api/settings?client=tabB")[2])["settings"]["mode"] == "inter"
-    # the default snapshot (no client) is all pairs (SPEC §9)
+    # the default snapshot (no client) is all pairs (docs/cli.md)
     default, _ = snapshot(url)
     assert red_pixels(default, midpoint(0, 1)) >= 40
     # tab A and the default snapshot have equal settings: they share one rendering
@@ -648,7 +648,7 @@ def test_all_robots_whose_estimator_is_alive_are_shown(start_viewer, make_client
 
 def test_the_reregister_button_asks_the_registration_service_by_a_query(start_viewer,
                                                                        make_client) -> None:
-    """A viewer may publish nothing (SPEC §7b): it asks by a Zenoh query carrying a
+    """A viewer may publish nothing (docs/security.md): it asks by a Zenoh query carrying a
     CameraControl, which the registration service answers."""
     from slamlens.common.messages import CameraControl
 
@@ -689,7 +689,7 @@ def test_the_reregister_button_asks_the_registration_service_by_a_query(start_vi
 
 def test_each_state_is_drawn_on_layers_before_the_render_thread_takes_it_in(
         start_viewer, publisher) -> None:
-    """Over a camera, ``viewer-layers`` draws each new state onto its layers (issue 13),
+    """Over a camera, ``viewer-layers`` draws each new state onto its layers,
     so the render thread only puts them over the frames: of five states it draws at most
     the first itself (before any picture, the eyes are not known yet)."""
     service, url = start_viewer(camera=CAMERA)

@@ -1,4 +1,4 @@
-"""``slamlens viewer --source summary`` on real Zenoh (issue 13, docs/remote_viewers.md):
+"""``slamlens viewer --source summary`` on real Zenoh (docs/remote_viewers.md):
 the viewer pulls the robot's summary instead of subscribing to the full state, and serves
 the clustered min / mean / max picture over the camera."""
 
@@ -110,7 +110,7 @@ def test_the_summary_intake_never_takes_the_full_state(start_viewer, publisher, 
 def test_a_selection_pulls_its_pairs_from_the_summary(start_viewer, publisher,  # noqa: F811
                                                       make_client) -> None:
     """Selecting a feature or a cluster in ``--source summary`` asks the robot for
-    ``what=pairs`` of it (issue 13 item 3): the view then shows that selection's pairs at
+    ``what=pairs`` of it: the view then shows that selection's pairs at
     full detail — a glyph at each of its pairs' midpoints, none elsewhere; without a
     selection the clusters' min / mean / max come back."""
     with summary_of_state_7(make_client, publisher):

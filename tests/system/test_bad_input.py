@@ -1,5 +1,5 @@
-"""What a new user types wrong gets one clear line and exit 1, before anything else happens
-(issue 10 item 7): a missing video file before the network is tried, a taken port refused
+"""What a new user types wrong gets one clear line and exit 1, before anything else happens:
+a missing video file before the network is tried, a taken port refused
 by the demo instead of silently replaced."""
 
 from __future__ import annotations

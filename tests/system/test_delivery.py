@@ -1,4 +1,4 @@
-"""Delivery under faults (SPEC §7a), with real processes on loopback.
+"""Delivery under faults (docs/delivery.md), with real processes on loopback.
 
 Flood at full speed, SIGKILL and restart with and without a checkpoint, a router killed
 and restarted, SIGTERM in the middle of a flood: every input applied exactly once, every
@@ -123,7 +123,7 @@ def _probe_counts(probe: Service) -> int:
 
 
 def test_a_stalled_subscriber_and_ten_more_cost_the_flood_nothing(router) -> None:
-    """SPEC §7a: a client whose callback sits 1 s per state (a paused debugger) and ten
+    """docs/delivery.md: a client whose callback sits 1 s per state (a paused debugger) and ten
     more subscribers: the estimator still applies every input and publishes every state,
     the recovering subscriber gets them all, the stalled client is dropped for."""
     ep = router.endpoint

@@ -1,4 +1,4 @@
-"""Issue 11's acceptance on real data: UTIAS MRCLAM dataset 6, robots 1 and 3, through the
+"""The acceptance on real data: UTIAS MRCLAM dataset 6, robots 1 and 3, through the
 real processes at --rate 0 (router + ``slamlens estimator --config deploy/mrclam.toml`` +
 ``slamlens monitor`` + ``slamlens replay``), every state received and scored against the
 dataset's ground truth (services/harness/mrclam_pipeline.py). About 1.5 min per robot on 2 cores.

@@ -1,4 +1,4 @@
-"""Drivers of several robots at once (issue 10 item 3), as real processes on loopback:
+"""Drivers of several robots at once, as real processes on loopback:
 `slamlens sim --robot r1,r2,r3` in one arena and `slamlens replay --robots all`. Each robot
 has its own estimator (and, for the simulator, its own monitor checking it against the
 arena's truth, re-expressed in that robot's map frame)."""

@@ -1,4 +1,4 @@
-"""``slamlens record`` / ``play`` / ``foxglove`` with real processes on loopback (issue 12).
+"""``slamlens record`` / ``play`` / ``foxglove`` with real processes on loopback.
 
 A simulated run (sim, estimator, monitor and a viewer as processes) is recorded; the file
 passes the ``mcap`` reader's validation and its Foxglove channels decode against their

@@ -1,5 +1,5 @@
 """A viewer on the far side of a 20 Mbit/s link draws from the robot's summary stream
-(issue 13, docs/remote_viewers.md).
+(docs/remote_viewers.md).
 
 Two network namespaces joined by a veth pair shaped to 20 Mbit/s both ways (``tbf``); the
 workstation's processes get a /dev/shm of their own (``harness.netns.own_shm``), as a real

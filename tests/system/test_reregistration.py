@@ -1,6 +1,6 @@
 """The camera follows the map: a new epoch is registered at its origin instant, and a
 re-registration request that would move the frame far while the robot is away from its
-origin is refused (SPEC §7a; issues 8 and 15). Real processes on loopback: router, sim,
+origin is refused (docs/delivery.md). Real processes on loopback: router, sim,
 estimator, the synthetic overhead camera with fiducial registration.
 """
 

@@ -1,4 +1,4 @@
-"""The paper run end to end with the secure launch files (issue 10, tests): two network
+"""The paper run end to end with the secure launch files (tests): two network
 namespaces, "robot" and "workstation", joined by a veth pair; on each one
 `slamlens launch deploy/*_secure.toml` — its own router, mutual TLS between them, every
 service with its identity. The workstation registers the synthetic camera while the

@@ -1,4 +1,4 @@
-"""Two hosts on one machine over mutual TLS (SPEC §7b): network namespaces "robot" and
+"""Two hosts on one machine over mutual TLS (docs/security.md): network namespaces "robot" and
 "workstation" joined by a veth pair (the `two_hosts` fixture), each with its own
 `slamlens router --secure`, the robot's linked to the workstation's. The simulator and the
 estimator run on the robot, the monitor and a viewer-like subscriber on the workstation;

@@ -1,4 +1,4 @@
-"""The web viewer bound beyond loopback serves nothing without its token (issue 10, §7b).
+"""The web viewer bound beyond loopback serves nothing without its token (§7b).
 
 Two network namespaces joined by a veth pair: the viewer runs on the "workstation" and
 binds its veth address; the browser side is a real HTTP / websocket client

@@ -1,4 +1,4 @@
-"""The certificate authority of SPEC §7b: files, extensions, extending, refusing bad input."""
+"""The certificate authority of docs/security.md: files, extensions, extending, bad input."""
 
 from __future__ import annotations
 

@@ -80,11 +80,11 @@ LEGACY_FLAGS = {
              "--fault-onset", "--faulty", "--faulty-features", "--http", "--listen",
              "--log-dir", "--loops", "--no-camera", "--prefix", "--quiet", "--rate", "--robot",
              "--seed", "--verbose", "--zenoh-config"],
-    "certs": ["--host", "--name", "--quiet", "--verbose"],  # SPEC §7b, §9
+    "certs": ["--host", "--name", "--quiet", "--verbose"],  # docs/security.md
     "tune": ["--config", "--gate-chi2", "--motion-model", "--output", "--quiet",
-             "--robot-index", "--truth", "--verbose", "-o"],  # SPEC §9 (issue 11)
+             "--robot-index", "--truth", "--verbose", "-o"],  # docs/cli.md
     "record": ["--robot", "--camera", "--keys", "--mode", "--cluster-threshold", "--connect",
-               "--config", "--quiet", "--verbose"],  # SPEC §9, issue 12
+               "--config", "--quiet", "--verbose"],  # docs/cli.md
     "play": ["--rate", "--start", "--end", "--loop", "--inputs-only", "--connect", "--config",
              "--quiet", "--verbose"],
     "foxglove": ["--robot", "--camera", "--mode", "--cluster-threshold", "--connect",
@@ -92,13 +92,13 @@ LEGACY_FLAGS = {
     # the live scene into Rerun
     "rerun": ["--robot", "--camera", "--save", "--viewer", "--serve", "--host", "--port",
               "--source", "--mode", "--connect", "--config", "--quiet", "--verbose"],
-    # issue 10 (SPEC §9): launch files, status, re-registration
+    # docs/cli.md: launch files, status, re-registration
     "launch": ["--check", "--log-dir", "--quiet", "--set", "--verbose"],
     "status": ["--connect", "--interval", "--json", "--listen", "--once", "--prefix",
                "--quiet", "--secure", "--name", "--timeout", "--verbose", "--zenoh-config"],
     "register": ["--camera", "--connect", "--listen", "--prefix", "--quiet", "--robot",
                  "--secure", "--name", "--timeout", "--verbose", "--zenoh-config"],
-    # issue 13: the summary stream for remote viewers
+    # the summary stream for remote viewers
     "summary": ["--robot", "--hold-s", "--cache", "--max-pending", "--max-group-pairs",
                 "--max-pairs",
                 "--connect", "--config", "--secure", "--name", "--quiet", "--verbose"],

@@ -1,4 +1,4 @@
-"""The decoders' fast path (``Message._from_dict_fast``, issue 8 target 1) accepts and
+"""The decoders' fast path (``Message._from_dict_fast``) accepts and
 rejects exactly what the full validation does, with the same message or the same error.
 
 ``Message.decode_reference`` is the decoder without the fast path (every field through the

@@ -1,4 +1,4 @@
-"""Fx, Fu, Hv, Hm, Gv, Gz against central finite differences of the SPEC §4 functions."""
+"""Fx, Fu, Hv, Hm, Gv, Gz against central finite differences of the docs/estimator.md functions."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The in-place EKF kernels against a dense textbook EKF written here from SPEC §4.
+"""The in-place EKF kernels against a dense textbook EKF written here from docs/estimator.md.
 
 The oracle builds the full N×N F, the full 2×N H and the full augmentation Jacobian and
 multiplies dense matrices; it shares no code with services/slam/ekf.py.
@@ -127,7 +127,7 @@ def test_predict_equals_dense(seed: int) -> None:
     N = x.size
     assert_close(xb[:N], xe, "x")
     assert_close(full(L, N), Pe, "P")
-    # Pmm must be untouched bit for bit (SPEC: prediction touches only robot rows/columns)
+    # Pmm must be untouched bit for bit (docs/estimator.md: a prediction touches only robot rows)
     assert np.array_equal(full(L, N)[3:, 3:], P[3:, 3:])
 
 

@@ -1,4 +1,4 @@
-"""One error tree: everything slamlens raises on purpose is a SlamlensError (SPEC §9)."""
+"""One error tree: everything slamlens raises on purpose is a SlamlensError (docs/cli.md)."""
 
 from __future__ import annotations
 
@@ -17,7 +17,7 @@ _BUILTINS = {"Exception", "ValueError", "TypeError", "RuntimeError", "Arithmetic
              "LookupError", "AssertionError", "NotImplementedError"}
 #: files still raising a builtin, each with the reason (being changed by another issue)
 _PENDING = {
-    "services/registration/service.py": "control messages decoded by hand (issue 9 item 4)",
+    "services/registration/service.py": "control messages decoded by hand",
     "services/visualiser/web.py": "web.BadRequest derives from Exception (the viewer split)",
 }
 

@@ -340,7 +340,7 @@ def test_monte_carlo_single_update_is_consistent() -> None:
 def test_published_covariance_is_the_full_symmetric_matrix_after_every_event(
         fault: str) -> None:
     """A state after predicts only reuses the last published covariance and rewrites the
-    robot rows/columns (P_mm untouched by a predict, SPEC §4): it must equal the matrix
+    robot rows/columns (P_mm untouched by a predict, docs/estimator.md): it must equal the matrix
     materialised from scratch, bit for bit, whatever the planted fault."""
     from slamlens.services.slam.sim import Simulator
     from slamlens.services.slam.world import load_world

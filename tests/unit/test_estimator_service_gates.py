@@ -1,5 +1,5 @@
-"""The estimator service with hostile inputs, gated observations and the init state's stamp
-(issues 11 and 14), in-process (InProcessBus): what it publishes, counts and says."""
+"""The estimator service with hostile inputs, gated observations and the init state's stamp,
+in-process (InProcessBus): what it publishes, counts and says."""
 
 from __future__ import annotations
 

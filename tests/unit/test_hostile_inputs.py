@@ -1,4 +1,4 @@
-"""Hostile but well-formed inputs (issue 14): a test per plausibility gate and per poisoning
+"""Hostile but well-formed inputs: a test per plausibility gate and per poisoning
 path. Each hostile input is refused whole, counted by reason, and the final state after the
 hostile inputs equals — bit for bit — that of an estimator that never saw them."""
 

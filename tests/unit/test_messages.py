@@ -88,7 +88,7 @@ def test_arrays_are_read_only_and_copied() -> None:
 
 
 def test_wire_format_is_the_spec() -> None:
-    """SPEC §7 by hand: schema 1, arrays as {dtype, shape, data} little-endian."""
+    """docs/protocol.md by hand: schema 1, arrays as {dtype, shape, data} little-endian."""
     state = _state(n=2)
     raw = msgpack.unpackb(state.to_bytes(), raw=False)
     assert raw["schema"] == 1

@@ -1,5 +1,5 @@
 """The behaviour monitor: pure checks against independent oracles, and the Monitor class on
-runs of a small dense textbook EKF written here from SPEC §4 (correct, and with the two
+runs of a small dense textbook EKF written here from docs/estimator.md (correct, and with the two
 planted faults of the paper scenario done by hand)."""
 
 from __future__ import annotations
@@ -23,7 +23,7 @@ from slamlens.services.slam.settings import MonitorSettings
 SIGMAS = dict(sigma_v=0.05, sigma_w=0.05, sigma_r=0.05, sigma_b=0.02)
 
 
-# -- a dense textbook EKF (SPEC §4), the oracle of "correct" sequences ---------------------
+# -- a dense textbook EKF (docs/estimator.md), the oracle of "correct" sequences --
 class DenseEkf:
     """Full-size Jacobians, no tricks. Faults are planted by the run, not here."""
 

@@ -1,4 +1,4 @@
-"""The monitor's batched screen (issue 8 target 1): a burst of states checked at once gives
+"""The monitor's batched screen: a burst of states checked at once gives
 the Health of the same states checked one by one, and both give the Health of the per-state
 tests alone (the reference: the screen switched off), on correct runs, on runs with the
 paper's planted faults, and on streams with gaps, a restart, a duplicate, a landmark added

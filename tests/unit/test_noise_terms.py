@@ -1,5 +1,5 @@
-"""The opt-in noise terms and the innovation gate (issue 11 items 2 and 3): what each adds,
-that the defaults stay SPEC §4, and that the gate refuses a known landmark's outlier."""
+"""The opt-in noise terms and the innovation gate: what each adds,
+that the defaults stay docs/estimator.md, and that the gate refuses a known landmark's outlier."""
 
 from __future__ import annotations
 

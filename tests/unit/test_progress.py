@@ -1,4 +1,4 @@
-"""Progress bars (issue 11 item 5): only on a terminal unless asked, and what they say."""
+"""Progress bars: only on a terminal unless asked, and what they say."""
 
 from __future__ import annotations
 

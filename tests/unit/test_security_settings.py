@@ -1,4 +1,4 @@
-"""Session security settings (SPEC §7b): identity checks, TLS settings, the generated roles,
+"""Session security settings (docs/security.md): identity checks, TLS settings, the generated roles,
 and how flags, files and --secure combine in the Zenoh config."""
 
 from __future__ import annotations

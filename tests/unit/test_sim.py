@@ -23,7 +23,7 @@ PAPER = load_world("paper")
 
 
 def spec_step(pose: np.ndarray, v: float, w: float, dt: float) -> np.ndarray:
-    """SPEC §4 prediction, written out again here as the oracle."""
+    """docs/estimator.md prediction, written out again here as the oracle."""
     x, y, th = pose
     th2 = th + w * dt
     return np.array([x + v * dt * np.cos(th), y + v * dt * np.sin(th),
@@ -232,7 +232,7 @@ def test_plan_shapes_and_read_only() -> None:
     assert not traj.poses.flags.writeable
 
 
-# -- several robots in one arena (issue 10 item 3) -----------------------------------------
+# -- several robots in one arena -----------------------------------------
 def _fleet(n: int, **kw) -> list[Simulator]:
     sims = []
     for k in range(n):
@@ -265,7 +265,7 @@ def test_each_robot_drives_the_loop_in_its_own_map_frame_and_they_stay_apart() -
     for k, (odometry, truths, _) in enumerate(runs):
         assert all(o.robot == f"r{k + 1}" for o in odometry + truths)
         assert len(odometry) == len(sims[0].trajectory.controls)  # the same loop, shifted
-        # its own map frame is its start (SPEC §3): the truth re-expressed there (what the
+        # its own map frame is its start (docs/protocol.md): the truth re-expressed there (what the
         # monitor does with origin_stamp) is its trajectory, which starts at 0
         at_start = inverse2(truths[0].pose)
         for truth, pose in zip(truths, sims[k].trajectory.poses, strict=True):
@@ -292,7 +292,7 @@ def test_one_robot_is_the_plain_simulator() -> None:
 
 
 def test_large_world_path_observes_all_1000_landmarks_in_one_loop() -> None:
-    """Issue 13's scenario: the lawnmower loop sees every landmark of the 1000 within one
+    """The scenario: the lawnmower loop sees every landmark of the 1000 within one
     loop, a few at a time (the update cost stays that of ~4 observations per batch)."""
     world = load_world("large")
     traj = plan_trajectory(world, loops=1)

@@ -1,5 +1,5 @@
 """The remote viewers' summary (common/summary.py) against a dense numpy oracle, and its
-query parameters (issue 13, docs/remote_viewers.md)."""
+query parameters (docs/remote_viewers.md)."""
 
 from __future__ import annotations
 
@@ -26,7 +26,7 @@ def consistent_state(n: int, *, seed: int = 0, seq: int = 1, spread: float = 0.2
 
 
 def oracle_pd(P: np.ndarray, i: int, j: int) -> np.ndarray:
-    """P_d of landmarks i, j the textbook way: P_ii + P_jj − P_ij − P_ji (SPEC §5)."""
+    """P_d of landmarks i, j the textbook way: P_ii + P_jj − P_ij − P_ji (docs/monitor.md)."""
     a, b = slice(3 + 2 * i, 5 + 2 * i), slice(3 + 2 * j, 5 + 2 * j)
     return P[a, a] + P[b, b] - P[a, b] - P[b, a]
 

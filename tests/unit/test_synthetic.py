@@ -311,7 +311,7 @@ def test_stereo_frames_differ_by_the_baseline_parallax() -> None:
 
 
 def test_robot_marker_corners_follow_spec_orientation() -> None:
-    """SPEC §3: marker x = robot forward, marker y = robot left; TL corner = (−s/2, +s/2)."""
+    """protocol.md: marker x = robot forward, marker y = robot left; TL corner = (−s/2, +s/2)."""
     corners = robot_marker_corners_world((1.0, 2.0, math.pi / 2), size_m=0.2,
                                          offset_xyz=(0.1, 0.0, 0.3))
     # robot faces +y: marker centre 0.1 m ahead, marker x → world +y, marker y → world −x

@@ -101,7 +101,7 @@ def test_a_fit_of_the_real_excerpt_agrees_with_a_plain_robust_estimate() -> None
     # trimming only ever removes residuals (then corrects the variance by 1/0.973)
     assert mad <= v["sigma_bearing"] <= rms / math.sqrt(0.973) * 1.0001
     assert 0.0 < v["sigma_range"] < 0.15
-    assert v["sigma_v"] > 0 and v["sigma_w"] > 0 and v["sigma_distance"] == 0.0  # SPEC §4
+    assert v["sigma_v"] > 0 and v["sigma_w"] > 0 and v["sigma_distance"] == 0.0  # docs/estimator.md
     opt_in = tuning.fit_noise([run], motion_model="distance").values
     assert opt_in["sigma_v"] == opt_in["sigma_w"] == 0.0
     assert opt_in["sigma_distance"] > 0 and opt_in["sigma_turn"] > 0

@@ -1,4 +1,4 @@
-"""The viewer at n = 1000 (issue 13): what the picture shows (the overview note, a selected
+"""The viewer at n = 1000: what the picture shows (the overview note, a selected
 cluster's and a selected feature's pairs at full detail), the scene computed once per
 state however many pictures are drawn of it, and the plots' bounded samples of large maps
 (every pair's size from the whole-matrix kernel; the largest and the watched pairs kept)."""

@@ -290,7 +290,7 @@ def test_series_cluster_min_mean_max_against_brute_force() -> None:
 
 def test_series_cluster_stats_of_many_clusters_match_a_per_pair_loop() -> None:
     """Many clusters (singletons among them, labels in no order): every cluster pair's
-    min / mean / max as a loop over the pairs computes it (issue 13: a 1000-singleton map
+    min / mean / max as a loop over the pairs computes it (a 1000-singleton map
     has ~500 000 cluster pairs, reduced at once)."""
     n = 40
     rng = np.random.default_rng(11)

@@ -1,4 +1,4 @@
-"""World files: the paper scenario's geometry (SPEC §8) and the loader's validation."""
+"""World files: the paper scenario's geometry (docs/simulator.md) and the loader's validation."""
 
 from __future__ import annotations
 
@@ -127,7 +127,7 @@ def test_unknown_world_and_unreadable_files(tmp_path: Path) -> None:
         load_world(write(tmp_path, "name = \n"))
 
 
-# -- generated maps ([landmark_grid]; the "large" world, issue 13) ---------------------
+# -- generated maps ([landmark_grid]; the "large" world) ---------------------
 
 GRID = """
 name = "gen"
