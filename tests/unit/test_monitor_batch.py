@@ -14,10 +14,10 @@ import pytest
 from slamlens.common.inprocess_bus import InProcessBus
 from slamlens.common.keys import Keys
 from slamlens.common.messages import Health, SlamState, Truth
-from slamlens.services.slam import monitor_checks as checks
-from slamlens.services.slam.monitor import Monitor
-from slamlens.services.slam.monitor_service import BURST_HEALTHS, MonitorService
-from slamlens.services.slam.settings import MonitorSettings
+from slamlens.services.monitor import checks
+from slamlens.services.monitor.monitor import Monitor
+from slamlens.services.monitor.service import BURST_HEALTHS, MonitorService
+from slamlens.services.monitor.settings import MonitorSettings
 from tests.unit.test_monitor import run, with_cov
 
 SETTINGS = MonitorSettings()

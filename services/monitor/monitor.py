@@ -31,9 +31,10 @@ import numpy as np
 from slamlens.common.arrays import frozen_array
 from slamlens.common.geometry import compose2, inverse2, transform2
 from slamlens.common.messages import Health, SlamState, Truth, Violation
-from slamlens.services.slam import monitor_checks as checks
-from slamlens.services.slam.monitor_blame import Evidence, blame_weights
-from slamlens.services.slam.monitor_stats import (
+from slamlens.services.monitor import checks
+from slamlens.services.monitor.blame import Evidence, blame_weights
+from slamlens.services.monitor.settings import MonitorSettings
+from slamlens.services.monitor.stats import (
     BlockTerms,
     FeatureWindows,
     WindowTest,
@@ -43,13 +44,12 @@ from slamlens.services.slam.monitor_stats import (
     pose_nees,
     quadratic_forms_2x2,
 )
-from slamlens.services.slam.monitor_unobservable import (
+from slamlens.services.monitor.unobservable import (
     UnobservableCheck,
     declares_fej,
     predict_points,
 )
-from slamlens.services.slam.monitor_verdict import Verdict
-from slamlens.services.slam.settings import MonitorSettings
+from slamlens.services.monitor.verdict import Verdict
 
 log = logging.getLogger(__name__)
 
