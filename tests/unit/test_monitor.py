@@ -393,9 +393,9 @@ def test_the_nees_does_not_depend_on_how_far_truth_and_states_are_apart(
     assert late.statistics["nees_pose_window_mean"] == pytest.approx(
         interleaved.statistics["nees_pose_window_mean"], rel=1e-12)
     # a buffer too small for the distance: what it cannot keep is counted, never silent
-    monkeypatch.setattr("slamlens.services.monitor.monitor._TRUTH_BUFFER", 20)
+    monkeypatch.setattr("slamlens.services.monitor.truth._TRUTH_BUFFER", 20)
     assert last_health("truth first").statistics["truth_missing"] > 0
-    monkeypatch.setattr("slamlens.services.monitor.monitor._PENDING", 20)
+    monkeypatch.setattr("slamlens.services.monitor.truth._PENDING", 20)
     assert last_health("truth last").statistics["truth_missing"] > 0
 
 
