@@ -58,6 +58,8 @@ class Screen:
     def prepare(self, prev: SlamState | None, states: Sequence[SlamState]) -> None:
         """Screen ``states``, to be checked in this order after ``prev``."""
         self._screens = {}
+        if not states:  # a burst of truths, rejections or other robots' states only
+            return
         start = 0
         # where each state's prediction linearised, followed through the whole burst
         before = predict_points(self._unobservable.robot, [prev, *states[:-1]], list(states))
