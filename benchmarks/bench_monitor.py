@@ -31,10 +31,11 @@ sys.path.insert(0, str(REPO))
 
 from slamlens.common.geometry import relative_covariance  # noqa: E402
 from slamlens.common.messages import SlamState, Truth  # noqa: E402
-from slamlens.services.slam import monitor_checks as checks  # noqa: E402
+from slamlens.services.monitor import checks  # noqa: E402
+from slamlens.services.monitor.monitor import Monitor  # noqa: E402
+from slamlens.services.monitor.settings import MonitorSettings  # noqa: E402
 from slamlens.services.slam.estimator import Estimator  # noqa: E402
-from slamlens.services.slam.monitor import Monitor  # noqa: E402
-from slamlens.services.slam.settings import EstimatorSettings, MonitorSettings  # noqa: E402
+from slamlens.services.slam.settings import EstimatorSettings  # noqa: E402
 
 
 def make_run(n: int, count: int, seed: int = 0, *,

@@ -115,6 +115,16 @@ def keys_from(args: argparse.Namespace) -> Keys:
     return Keys(bus_flags(args).prefix)
 
 
+def one_blas_thread() -> None:
+    """One BLAS thread unless the user says otherwise (call it before numpy is imported).
+
+    The estimator's O(n²) downdate is memory-bound and the monitor's Cholesky is small; on
+    a shared machine a second BLAS thread waiting for a busy core stalls them by up to 20×
+    (docs/estimator.md, docs/monitor.md).
+    """
+    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+
+
 def setup_logging(args: argparse.Namespace, name: str) -> None:
     flags = log_flags(args)
     level = logging.WARNING if flags.quiet else (

@@ -51,8 +51,8 @@ COMMANDS: dict[str, Command] = {
                       "driver", "slam.settings:ReplaySettings"),
     "serial": Command("slam.cli", "a real robot on a serial line",
                       "slam.settings:SerialSettings"),
-    "monitor": Command("slam.cli", "the covariance behaviour monitor",
-                       "slam.settings:MonitorSettings"),
+    "monitor": Command("monitor.cli", "the covariance behaviour monitor",
+                       "monitor.settings:MonitorSettings"),
     "summary": Command("slam.cli", "what remote viewers draw of the newest state, "
                        "on request", "slam.settings:SummarySettings"),
     "tune": Command("slam.cli", "noise settings fitted to runs with ground truth",

@@ -1,5 +1,5 @@
-"""Commands of the SLAM side: ``sim``, ``estimator``, ``replay``, ``serial``, ``monitor``,
-``summary``.
+"""Commands of the SLAM side: ``sim``, ``estimator``, ``replay``, ``serial``, ``summary``,
+``tune``.
 
 Each command: its settings (:mod:`slamlens.services.slam.settings`) from ``--config FILE`` with the
 flags over it, a bus from the common flags, the service's ``run`` until SIGINT/SIGTERM (or
@@ -14,7 +14,6 @@ import heapq
 import itertools
 import json
 import logging
-import os
 import sys
 import threading
 import time
@@ -22,14 +21,13 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 from typing import Any
 
-from slamlens.common.cli import command_bus, keys_from, setup_logging, stop_event
+from slamlens.common.cli import command_bus, keys_from, one_blas_thread, setup_logging, stop_event
 from slamlens.common.config import settings_from_args
 from slamlens.common.errors import ConfigError
 from slamlens.common.progress import count_bar, enabled, time_bar
 from slamlens.common.status import Report, announce, counts_of
 from slamlens.services.slam.settings import (
     EstimatorSettings,
-    MonitorSettings,
     ReplaySettings,
     SerialSettings,
     SimSettings,
@@ -43,7 +41,7 @@ log = logging.getLogger("slamlens")
 def run(command: str, args: argparse.Namespace) -> int:
     setup_logging(args, command)
     return {"sim": _run_sim, "estimator": _run_estimator, "replay": _run_replay,
-            "serial": _run_serial, "monitor": _run_monitor, "tune": _run_tune,
+            "serial": _run_serial, "tune": _run_tune,
             "summary": _run_summary}[command](args)
 
 
@@ -141,18 +139,8 @@ def _finish(name: str, out: Any, stop: threading.Event, wall: float) -> None:
     print(f"{name} {verb}: {json.dumps(out.counts)} in {wall:.2f} s{applied}", flush=True)
 
 
-def _one_blas_thread() -> None:
-    """One BLAS thread unless the user says otherwise (set before numpy is imported).
-
-    The estimator's O(n²) downdate is memory-bound and the monitor's Cholesky is small; on
-    a shared machine a second BLAS thread waiting for a busy core stalls them by up to 20×
-    (docs/estimator.md, docs/monitor.md).
-    """
-    os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-
-
 def _run_estimator(args: argparse.Namespace) -> int:
-    _one_blas_thread()
+    one_blas_thread()
     from slamlens.services.slam.estimator_service import INPUT_COUNTS, EstimatorService
 
     settings = settings_from_args(EstimatorSettings, args)
@@ -266,40 +254,8 @@ def _run_serial(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_monitor(args: argparse.Namespace) -> int:
-    _one_blas_thread()
-    from slamlens.services.slam.monitor_service import MonitorService
-
-    settings = settings_from_args(MonitorSettings, args)
-    robot = settings.robot
-    stop = stop_event()
-    bus = command_bus(args)
-    try:
-        service = MonitorService(bus, keys=keys_from(args), robot=robot, settings=settings)
-
-        def status() -> Report:
-            summary = service.summary()
-            return Report(state=str(summary["verdict"]) if service.checked else
-                          "no verdict yet",
-                          counts={"checked": float(service.checked),
-                                  "violations": float(service.violations),
-                                  "behind": float(service.behind)},
-                          dropped=int(summary["dropped"]),  # type: ignore[call-overload]
-                          lost=int(summary["lost"]),  # type: ignore[call-overload]
-                          epoch=service.epoch)
-
-        announce(bus, args, "monitor", status, robot=robot)
-        print("monitor ready", flush=True)
-        service.run(stop)
-        print(f"monitor verdict: {_verdict_sentence(service.summary())}", flush=True)
-        print(f"monitor stopped: {json.dumps(service.summary())}", flush=True)
-    finally:
-        bus.close()
-    return 0
-
-
 def _run_summary(args: argparse.Namespace) -> int:
-    _one_blas_thread()
+    one_blas_thread()
     from slamlens.services.slam.summary_service import SummaryService
 
     settings = settings_from_args(SummarySettings, args)
@@ -426,16 +382,3 @@ def _tune_done(result: Any, cv: Any) -> int:
           f"linearisation {result.linearisation}; scale {result.scale:.3f} after "
           f"{result.passes_run} passes; {verdict}", flush=True)
     return 0 if ok else 1
-
-
-def _verdict_sentence(summary: dict[str, Any]) -> str:
-    """The monitor's verdict in words, for its last lines (docs/monitor.md)."""
-    by = summary.get("states_by_verdict", {})
-    checked = int(summary.get("checked", 0))
-    parts = [f"{summary.get('verdict_words')} at the end"]
-    if checked:
-        parts.append(f"{by.get('fault', 0)} of {checked} states under an estimator fault, "
-                     f"{by.get('tuning', 0)} under inconsistent tuning or model mismatch")
-    if not summary.get("estimator_fault_seen"):
-        parts.append("no estimator fault seen")
-    return "; ".join(parts)

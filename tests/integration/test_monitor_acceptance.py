@@ -20,9 +20,10 @@ import pytest
 from scipy.stats import chi2
 
 from slamlens.common.messages import Health, Odometry, SlamState, Truth
+from slamlens.services.monitor.monitor import Monitor
+from slamlens.services.monitor.settings import MonitorSettings
 from slamlens.services.slam.estimator import Estimator
-from slamlens.services.slam.monitor import Monitor
-from slamlens.services.slam.settings import EstimatorSettings, MonitorSettings
+from slamlens.services.slam.settings import EstimatorSettings
 from slamlens.services.slam.sim import Simulator, first_seen_times
 from slamlens.services.slam.world import load_world
 

@@ -17,9 +17,10 @@ import numpy as np
 from slamlens.common.inprocess_bus import InProcessBus
 from slamlens.common.keys import Keys
 from slamlens.common.messages import Health
+from slamlens.services.monitor.service import MonitorService
+from slamlens.services.monitor.settings import MonitorSettings
 from slamlens.services.slam.estimator import Estimator
-from slamlens.services.slam.monitor_service import MonitorService
-from slamlens.services.slam.settings import EstimatorSettings, MonitorSettings
+from slamlens.services.slam.settings import EstimatorSettings
 
 KEYS = Keys("t")
 ROBOT = "r1"

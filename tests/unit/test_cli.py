@@ -28,6 +28,7 @@ from slamlens.services.commands.settings import (
     RegisterSettings,
 )
 from slamlens.services.harness.procs import REPO
+from slamlens.services.monitor.settings import MonitorSettings
 from slamlens.services.recorder.settings import PlaySettings, RecordSettings
 from slamlens.services.registration.settings import (
     CalibrateSettings,
@@ -36,7 +37,6 @@ from slamlens.services.registration.settings import (
 )
 from slamlens.services.slam.settings import (
     EstimatorSettings,
-    MonitorSettings,
     ReplaySettings,
     SerialSettings,
     SimSettings,

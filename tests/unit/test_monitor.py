@@ -14,11 +14,11 @@ from slamlens.common.config import load_settings
 from slamlens.common.errors import ConfigError
 from slamlens.common.geometry import relative_covariance, wrap_angle
 from slamlens.common.messages import Health, SlamState, Truth
-from slamlens.services.slam import monitor_checks as checks
-from slamlens.services.slam.monitor import Monitor
-from slamlens.services.slam.monitor_blame import Evidence, blame_weights
-from slamlens.services.slam.monitor_stats import WindowTest, pose_nees, quadratic_forms_2x2
-from slamlens.services.slam.settings import MonitorSettings
+from slamlens.services.monitor import checks
+from slamlens.services.monitor.blame import Evidence, blame_weights
+from slamlens.services.monitor.monitor import Monitor
+from slamlens.services.monitor.settings import MonitorSettings
+from slamlens.services.monitor.stats import WindowTest, pose_nees, quadratic_forms_2x2
 
 SIGMAS = dict(sigma_v=0.05, sigma_w=0.05, sigma_r=0.05, sigma_b=0.02)
 
@@ -393,9 +393,9 @@ def test_the_nees_does_not_depend_on_how_far_truth_and_states_are_apart(
     assert late.statistics["nees_pose_window_mean"] == pytest.approx(
         interleaved.statistics["nees_pose_window_mean"], rel=1e-12)
     # a buffer too small for the distance: what it cannot keep is counted, never silent
-    monkeypatch.setattr("slamlens.services.slam.monitor._TRUTH_BUFFER", 20)
+    monkeypatch.setattr("slamlens.services.monitor.truth._TRUTH_BUFFER", 20)
     assert last_health("truth first").statistics["truth_missing"] > 0
-    monkeypatch.setattr("slamlens.services.slam.monitor._PENDING", 20)
+    monkeypatch.setattr("slamlens.services.monitor.truth._PENDING", 20)
     assert last_health("truth last").statistics["truth_missing"] > 0
 
 

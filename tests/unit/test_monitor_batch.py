@@ -14,10 +14,10 @@ import pytest
 from slamlens.common.inprocess_bus import InProcessBus
 from slamlens.common.keys import Keys
 from slamlens.common.messages import Health, SlamState, Truth
-from slamlens.services.slam import monitor_checks as checks
-from slamlens.services.slam.monitor import Monitor
-from slamlens.services.slam.monitor_service import BURST_HEALTHS, MonitorService
-from slamlens.services.slam.settings import MonitorSettings
+from slamlens.services.monitor import checks
+from slamlens.services.monitor.monitor import Monitor
+from slamlens.services.monitor.service import BURST_HEALTHS, MonitorService
+from slamlens.services.monitor.settings import MonitorSettings
 from tests.unit.test_monitor import run, with_cov
 
 SETTINGS = MonitorSettings()
@@ -299,3 +299,37 @@ def test_a_burst_s_healths_are_put_back_to_back_and_get_never_runs_ahead() -> No
     assert all(got < seq for got, seq in zip(answered, put, strict=True))
     assert len(set(answered)) == -(-len(seqs) // BURST_HEALTHS)
     assert Health.from_bytes(bus.get(keys.health("r"))[0].payload).seq == seqs[-1]
+
+
+def test_a_burst_without_a_state_to_check_is_taken_and_the_next_states_checked() -> None:
+    """A burst of truths, a rejected sample and another robot's state (no state of its own
+    robot to screen) is taken without a check; the states after it are checked as usual."""
+    keys = Keys("t")
+    states, truths = run(seed=1, steps=20)
+    bus = InProcessBus()
+    out: list[Health] = []
+    bus.subscribe(keys.health("r"), lambda _k, p: out.append(Health.from_bytes(p)))
+    service = MonitorService(bus, keys=keys, robot="r", settings=MonitorSettings(robot="r"))
+    other = SlamState(robot="q", seq=1, stamp=0.0, step="init", pose=states[0].pose,
+                      landmark_ids=states[0].landmark_ids, landmarks=states[0].landmarks,
+                      covariance=states[0].covariance)
+    for t in truths:
+        bus.put(keys.truth("r"), t.to_bytes())
+    bus.put(keys.state("r"), b"\x93not a state")
+    bus.put(keys.state("r"), other.to_bytes())
+    assert service.step(timeout=0) == len(truths) + 2
+    assert out == [] and service.drops.total == 2
+    for s in states:
+        bus.put(keys.state("r"), s.to_bytes())
+    while service.step(timeout=0):
+        pass
+    alone = Monitor(MonitorSettings(robot="r"))  # the same truths, then the states
+    for t in truths:
+        alone.add_truth(t)
+    expected = [alone.check(s) for s in states]
+    for h in out:
+        h.statistics.pop("behind")
+        for k in ("lost", "restarts", "dropped", "sampled_out"):
+            h.statistics.pop(k)
+    assert out == expected
+    assert any("nees_pose" in h.statistics for h in out)  # the truths were kept

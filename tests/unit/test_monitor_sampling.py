@@ -7,8 +7,8 @@ import numpy as np
 from slamlens.common.inprocess_bus import InProcessBus
 from slamlens.common.keys import Keys
 from slamlens.common.messages import Health, SlamState
-from slamlens.services.slam.monitor_service import MonitorService
-from slamlens.services.slam.settings import MonitorSettings
+from slamlens.services.monitor.service import MonitorService
+from slamlens.services.monitor.settings import MonitorSettings
 
 KEYS = Keys("t")
 

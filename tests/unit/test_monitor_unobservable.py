@@ -18,9 +18,9 @@ from scipy import linalg
 
 from slamlens.common.messages import Health, SlamState
 from slamlens.common.verdict import violation_text
+from slamlens.services.monitor.monitor import Monitor
+from slamlens.services.monitor.settings import MonitorSettings
 from slamlens.services.slam import consistency
-from slamlens.services.slam.monitor import Monitor
-from slamlens.services.slam.settings import MonitorSettings
 from slamlens.services.slam.world import load_world
 
 WORLD = load_world("paper")

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from slamlens.common.messages import Health, Violation
-from slamlens.services.slam.monitor_verdict import WORDS, Verdict
+from slamlens.services.monitor.verdict import WORDS, Verdict
 
 
 def v(kind: str, ids: tuple[int, ...] = (), value: float = 1.0, step: int = 0) -> Violation:

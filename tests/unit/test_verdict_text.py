@@ -13,7 +13,7 @@ from slamlens.common.verdict import (
     violation_head,
     violation_text,
 )
-from slamlens.services.slam import monitor_verdict
+from slamlens.services.monitor import verdict as monitor_verdict
 
 
 def health(**fields: object) -> Health:

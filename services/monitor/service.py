@@ -31,9 +31,9 @@ from slamlens.common.drops import DropCounter
 from slamlens.common.errors import MessageError
 from slamlens.common.keys import Keys
 from slamlens.common.messages import Health, SlamState, Truth
-from slamlens.services.slam.monitor import Monitor
-from slamlens.services.slam.monitor_verdict import WORDS
-from slamlens.services.slam.settings import MonitorSettings
+from slamlens.services.monitor.monitor import Monitor
+from slamlens.services.monitor.settings import MonitorSettings
+from slamlens.services.monitor.verdict import WORDS
 
 log = logging.getLogger("slamlens.monitor")
 

@@ -291,7 +291,7 @@ class Screen:
     structure: np.ndarray  #: bool [K]: no asymmetric entry, no |ρ| > 1 (:func:`structure`)
     psd: np.ndarray  #: bool [K]: sym(P) + tol·I has a Cholesky factor (PSD within tol)
     #: that lower factor per state where it was made (for the unobservable-directions check,
-    #: monitor_unobservable.py: O(N²) solves on it instead of a factorisation of its own)
+    #: unobservable.py: O(N²) solves on it instead of a factorisation of its own)
     factors: tuple[np.ndarray | None, ...] = ()
 
 

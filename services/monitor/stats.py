@@ -143,6 +143,11 @@ class WindowResult:
     def failed(self) -> bool:
         return not (self.lo <= self.mean <= self.hi)
 
+    @property
+    def edge(self) -> float:
+        """The band edge a failed window crossed."""
+        return float(self.hi if self.mean > self.hi else self.lo)
+
 
 class WindowTest:
     """Tumbling-window test of the mean of χ²(dof) samples; also a sliding mean for display.
