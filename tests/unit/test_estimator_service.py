@@ -201,14 +201,14 @@ def test_the_worker_holds_no_state_of_a_burst_so_covariance_buffers_are_recycled
     # per map size at most two new buffers (the first state's, and one while the last
     # published state's is still held as the base of the next); every other one reused
     fresh = 2 * len(set(sizes))
-    assert service.estimator._buffers.reused >= len(inputs) - fresh, (fresh, sizes)
+    assert service.estimator.published.buffers.reused >= len(inputs) - fresh, (fresh, sizes)
 
 
 def _dense(est: Estimator) -> np.ndarray:
     """The textbook symmetric P from the estimator's lower-triangle storage (an oracle
     independent of ``ekf.symmetric``: numpy's own triangles)."""
     N = 3 + 2 * est.n
-    lower = np.tril(est._L[:N, :N])
+    lower = np.tril(est.store.L[:N, :N])
     return lower + np.tril(lower, -1).T
 
 
