@@ -154,7 +154,8 @@ def _one_blas_thread() -> None:
 
 def _run_estimator(args: argparse.Namespace) -> int:
     _one_blas_thread()
-    from slamlens.services.slam.estimator_service import INPUT_COUNTS, EstimatorService
+    from slamlens.services.slam.estimator_service import EstimatorService
+    from slamlens.services.slam.input_order import INPUT_COUNTS
 
     settings = settings_from_args(EstimatorSettings, args)
     stop = stop_event()

@@ -134,8 +134,8 @@ def test_checkpoint_resume_continues_the_same_map_bit_for_bit(tmp_path,
     for t, (key, payload) in enumerate(inputs[:250]):
         first.ingest(_sample(key, payload, t))
     # "SIGKILL": no clean exit; what is on disk is whatever the writer last wrote
-    assert first._writer is not None
-    first._writer.close()
+    assert first.checkpoints is not None and first.checkpoints.writer is not None
+    first.checkpoints.writer.close()
     saved = ckpt.load(tmp_path, ROBOT)
     assert saved is not None
     at = SlamState.from_bytes(saved.state)
