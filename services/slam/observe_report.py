@@ -70,7 +70,8 @@ def _frozen(values: Any, dtype: Any, shape: tuple[int, ...] | None = None) -> np
 
 @dataclass
 class BatchRecord:
-    """What one observation batch did so far (:meth:`Estimator.observe`)."""
+    """What one observation batch did so far (collected by
+    :class:`~slamlens.services.slam.observe_batch.BatchApplier`)."""
 
     observed: list[int] = field(default_factory=list)
     new: list[int] = field(default_factory=list)
