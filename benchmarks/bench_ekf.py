@@ -65,7 +65,7 @@ def mapped_estimator(n: int, rng: np.random.Generator, *,
 
 def measure(n: int, rng: np.random.Generator, *, reps: int, dense_reps: int) -> dict[str, float]:
     est = mapped_estimator(n, rng)
-    x, L, ws = est._x, est._L, est._ws  # the core kernels on the estimator's own buffers
+    x, L, ws = est.store.x, est.store.L, est.store.ws  # the kernels on the estimator's buffers
     N = 3 + 2 * n
     out: dict[str, float] = {"n": n, "N": N}
 
@@ -170,7 +170,7 @@ def batch_text(n: int, rng: np.random.Generator, *, reps: int, batch: int = 4) -
     downdate of P each, as before, against the downdates held back and applied at once (what
     the Estimator does, ``ekf.update(defer=True)`` then ``ekf.flush``), in the same run."""
     est = mapped_estimator(n, rng)
-    x, L, ws = est._x, est._L, est._ws
+    x, L, ws = est.store.x, est.store.L, est.store.ws
     js = rng.integers(0, n, size=(1024, batch))
     state = {"k": 0}
 
@@ -200,7 +200,7 @@ def fej_text(n: int, *, reps: int, rounds: int = 7) -> str:
     ids = np.array([0], dtype=np.int64)
 
     def step(est: Estimator) -> Callable[[], None]:
-        x = est._x
+        x = est.store.x
 
         def go() -> None:
             est.predict(v=0.2, w=0.1, dt=0.01, stamp=1.0)

@@ -326,7 +326,7 @@ def profile_estimator(events: int = 300) -> None:
              for m in stream if isinstance(m, (Odometry, Observations))][:events + 20]
     for item in items[:20]:  # warm: the shared-memory pool is made on first use
         service.apply(item)
-    reused_before = est._buffers.reused
+    reused_before = est.published.buffers.reused
     profiler = cProfile.Profile()
     t0 = time.perf_counter()
     profiler.enable()
@@ -358,7 +358,7 @@ def profile_estimator(events: int = 300) -> None:
           f"{n / wall:.0f} states/s (under cProfile), load {os.getloadavg()[0]:.2f}; "
           f"{received[0]} received by a same-host subscriber, shm {bus.shm.shared} / plain "
           f"{bus.shm.plain}; predict states patched in place {est.predicts_in_place}, "
-          f"covariance buffers reused {est._buffers.reused - reused_before} of {n}")
+          f"covariance buffers reused {est.published.buffers.reused - reused_before} of {n}")
     for name, t in sorted(spent.items(), key=lambda kv: -kv[1]):
         print(f"  {name:52s} {t / n * 1e3:6.2f} ms per state ({t / wall:5.1%})")
     # the same states through the old publish path (before the large-map work), unprofiled
@@ -366,7 +366,7 @@ def profile_estimator(events: int = 300) -> None:
     old, new = [], []
     for _ in range(7):
         t = time.perf_counter()
-        cov = ekf.symmetric(est._L, 3 + 2 * est.n)
+        cov = ekf.symmetric(est.store.L, 3 + 2 * est.n)
         cov.flags.writeable = False
         old_state = SlamState(robot=ROBOT, seq=1, stamp=0.0, step="update", pose=est.pose,
                               landmark_ids=est.landmark_ids, landmarks=est.landmarks,
@@ -375,7 +375,7 @@ def profile_estimator(events: int = 300) -> None:
         d["covariance"] = {"dtype": "<f8", "shape": [cov.size], "data": cov.tobytes()}
         bus.shm.wrap(msgpack.packb(d, use_bin_type=True))
         old.append(time.perf_counter() - t)
-        est._map_dirty = True  # as after an update: the whole matrix, no predict shortcut
+        est.published.dirty = True  # as after an update: the whole matrix, no predict shortcut
         t = time.perf_counter()
         state = est.to_state(seq=1, stamp=0.0, step="update")
         bus.shm.wrap(state.wire_parts())
@@ -383,10 +383,10 @@ def profile_estimator(events: int = 300) -> None:
         del state
     alone = []
     N = 3 + 2 * est.n
-    out = est._buffers.array((N, N), "<f8")
+    out = est.published.buffers.array((N, N), "<f8")
     for _ in range(7):
         t = time.perf_counter()
-        ekf.symmetric(est._L, N, out=out)
+        ekf.symmetric(est.store.L, N, out=out)
         alone.append(time.perf_counter() - t)
     print(f"  ekf.symmetric alone at N = {N}, into one buffer: "
           f"{statistics.median(alone) * 1e3:.1f} ms (median of 7)")

@@ -141,7 +141,8 @@ def _finish(name: str, out: Any, stop: threading.Event, wall: float) -> None:
 
 def _run_estimator(args: argparse.Namespace) -> int:
     one_blas_thread()
-    from slamlens.services.slam.estimator_service import INPUT_COUNTS, EstimatorService
+    from slamlens.services.slam.estimator_service import EstimatorService
+    from slamlens.services.slam.input_order import INPUT_COUNTS
 
     settings = settings_from_args(EstimatorSettings, args)
     stop = stop_event()

@@ -12,10 +12,10 @@ a ``get``, a burst's states put back to back). A liveliness token announces the 
 
 Epochs: a map started from scratch gets a new ``epoch`` (the wall-clock nanoseconds at its
 start: unique in practice and increasing); with ``--checkpoint DIR`` the service saves its
-whole state there and, started again, resumes the same epoch and seq numbering, asking the
-drivers' caches for the inputs published since (:mod:`slamlens.services.slam.checkpoint`):
-the caches' samples, sorted into each source's order, go first, what the checkpoint covered
-counted as duplicates.
+whole state there and, started again, resumes the same epoch and seq numbering
+(:mod:`slamlens.services.slam.estimator_checkpoints`), asking the drivers' caches for the
+inputs published since: the caches' samples, sorted into each source's order, go first,
+what the checkpoint covered counted as duplicates.
 """
 
 from __future__ import annotations
@@ -35,14 +35,14 @@ from slamlens.common.drops import DropCounter
 from slamlens.common.errors import EstimationError, MessageError
 from slamlens.common.keys import Keys
 from slamlens.common.messages import Observations, Odometry, SlamState
-from slamlens.services.slam import checkpoint as ckpt
 from slamlens.services.slam.ekf import RefusedStepError
 from slamlens.services.slam.estimator import Estimator
+from slamlens.services.slam.estimator_checkpoints import Checkpoints
 from slamlens.services.slam.input_order import (
+    INPUT_COUNTS,
     Input,
     InputOrder,
     Missed,
-    OrderStats,
     sorted_for_replay,
 )
 from slamlens.services.slam.plausibility import ImplausibleInputError
@@ -50,11 +50,6 @@ from slamlens.services.slam.settings import EstimatorSettings
 from slamlens.services.slam.state_outlet import StateOutlet
 
 log = logging.getLogger("slamlens.estimator")
-
-_NOISE = ("sigma_v", "sigma_w", "sigma_range", "sigma_bearing")
-#: the input order's counts, as the stop line, ``state?header``, ``slamlens status`` and a
-#: state's ``diagnostics`` (``inputs.NAME``) name them
-INPUT_COUNTS = ("duplicates", "late", "lost", "waited", "reordered", "joined_late")
 
 
 @dataclass
@@ -110,14 +105,18 @@ class EstimatorService:
         self._input_stamp = 0.0
         self._said: set[str] = set()  #: refusal reasons already logged (once each)
         self._origin_stamp: float | None = None  #: when the robot stood at the map origin
-        self._writer: ckpt.CheckpointWriter | None = None
-        self._last_checkpoint = time.monotonic()
         self.resumed = False
         self.epoch = new_epoch()
-        init: SlamState | None = None
-        if settings.checkpoint:
-            init = self._resume(settings.checkpoint)
-            self._writer = ckpt.CheckpointWriter(settings.checkpoint)
+        #: resume and checkpoints (None without ``--checkpoint DIR``)
+        self.checkpoints = (Checkpoints(settings, self.estimator, self.order)
+                            if settings.checkpoint else None)
+        init = None if self.checkpoints is None else \
+            self.checkpoints.resume(epoch=self.epoch)
+        if init is not None:  # the same epoch and seq numbering go on
+            self.epoch, self._seq = init.epoch, init.seq
+            self._input_stamp = float(init.input_stamp or init.stamp)
+            self._origin_stamp = init.origin_stamp
+            self.resumed = True
         self._out = StateOutlet(bus, keys.state(self.robot), cache=settings.state_cache,
                                 cache_bytes=int(settings.state_cache_mb * 2 ** 20),
                                 header=self._header_of)
@@ -138,45 +137,9 @@ class EstimatorService:
         self._out.open(init)
         bus.declare_alive(keys.estimator_alive(self.robot))
 
-    # -- checkpoints ------------------------------------------------------------------
-    def _resume(self, directory: str) -> SlamState | None:
-        cp = ckpt.load(directory, self.robot)
-        if cp is None:
-            log.info("no checkpoint in %s yet: a new map, epoch %d", directory, self.epoch)
-            return None
-        state = SlamState.from_bytes(cp.state)
-        noise = {k: float(getattr(self.settings, k)) for k in _NOISE}
-        if cp.noise != noise:
-            log.warning("the checkpoint was made with %s, now %s: the map continues with the "
-                        "new settings", cp.noise, noise)
-        self.estimator.restore(state, next_anonymous_id=cp.next_anonymous_id,
-                               linearisation=cp.linearisation)
-        self.order.resume(cp.positions)
-        _restore_counts(self.order.stats, state.diagnostics or {})
-        self.epoch, self._seq = state.epoch, state.seq
-        self._input_stamp = float(state.input_stamp or state.stamp)
-        self._origin_stamp = state.origin_stamp
-        self.resumed = True
-        log.info("resumed epoch %d at seq %d (input stamp %.3f, %d landmarks) from %s",
-                 state.epoch, state.seq, state.input_stamp, state.n,
-                 ckpt.checkpoint_path(directory, self.robot))
-        return state
-
-    def _checkpoint(self) -> ckpt.Checkpoint:
-        return ckpt.Checkpoint(
-            robot=self.robot, state=self._out.latest_bytes(),
-            positions=self.order.positions(),
-            next_anonymous_id=self.estimator.next_anonymous_id,
-            noise={k: float(getattr(self.settings, k)) for k in _NOISE},
-            linearisation=self.estimator.linearisation_points())
-
     def _maybe_checkpoint(self) -> None:
-        """A checkpoint if one is due — after the states it covers were put."""
-        if self._writer is not None and \
-                time.monotonic() - self._last_checkpoint >= self.settings.checkpoint_interval_s:
-            self._out.flush()
-            self._last_checkpoint = time.monotonic()
-            self._writer.submit(self._checkpoint())
+        if self.checkpoints is not None:
+            self.checkpoints.maybe_write(self._out)
 
     # -- the event logic ----------------------------------------------------------------
     def _header_of(self, state: SlamState) -> bytes:
@@ -371,8 +334,8 @@ class EstimatorService:
                     last = time.monotonic()
                     log.info("%s", self.status_line())
         finally:
-            if self._writer is not None:
-                self._writer.close(final=self._checkpoint())
+            if self.checkpoints is not None:
+                self.checkpoints.close(self._out)
 
     def summary(self) -> dict[str, object]:
         """What the service did (the final line at exit)."""
@@ -395,10 +358,3 @@ class EstimatorService:
                 "last_refused": None if last is None else dataclasses.asdict(last),
                 "bounds": bounds}
 
-
-def _restore_counts(stats: OrderStats, diagnostics: dict[str, float]) -> None:
-    """The input counts a checkpointed state carried (``inputs.*``), so they keep running."""
-    for name in INPUT_COUNTS:
-        value = diagnostics.get(f"inputs.{name}")
-        if value is not None:
-            setattr(stats, name, int(value))

@@ -95,6 +95,12 @@ class OrderStats:
     joined_late: int = 0  #: numbers a new source had published before we saw it
 
 
+#: the counts of :class:`OrderStats` the estimator reports, as the stop line,
+#: ``state?header``, ``slamlens status`` and a state's ``diagnostics`` (``inputs.NAME``)
+#: name them
+INPUT_COUNTS = ("duplicates", "late", "lost", "waited", "reordered", "joined_late")
+
+
 @dataclass
 class _Source:
     """One publishing session's place in the order."""

@@ -33,6 +33,21 @@ class ObserveReport:
         """Observations of known landmarks not applied because their NIS was above the gate."""
         return 0 if self.gated_ids is None else int(self.gated_ids.shape[0])
 
+    def state_fields(self, *, innovations: bool) -> dict[str, Any]:
+        """The :class:`~slamlens.common.messages.SlamState` fields this batch fills: the ids
+        observed and new, the gated observations if any, and with ``innovations`` each
+        update's ν and S."""
+        out: dict[str, Any] = {"observed_ids": self.observed_ids, "new_ids": self.new_ids}
+        if innovations:
+            out["innovation_ids"] = self.innovation_ids
+            out["innovations"] = self.innovations
+            out["innovation_covariances"] = self.innovation_covariances
+        if self.gated:
+            out["gated_ids"] = self.gated_ids
+            out["gated_observations"] = self.gated_observations
+            out["gated_nis"] = self.gated_nis
+        return out
+
 
 @dataclass(frozen=True)
 class Refusal:
@@ -55,7 +70,8 @@ def _frozen(values: Any, dtype: Any, shape: tuple[int, ...] | None = None) -> np
 
 @dataclass
 class BatchRecord:
-    """What one observation batch did so far (:meth:`Estimator.observe`)."""
+    """What one observation batch did so far (collected by
+    :class:`~slamlens.services.slam.observe_batch.BatchApplier`)."""
 
     observed: list[int] = field(default_factory=list)
     new: list[int] = field(default_factory=list)

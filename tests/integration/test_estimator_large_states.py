@@ -51,7 +51,7 @@ def _dense(service: EstimatorService) -> np.ndarray:
     triangles: independent of ``ekf.symmetric``)."""
     est = service.estimator
     N = 3 + 2 * est.n
-    lower = np.tril(est._L[:N, :N])
+    lower = np.tril(est.store.L[:N, :N])
     return lower + np.tril(lower, -1).T
 
 

@@ -114,7 +114,7 @@ def test_mahalanobis_all_equals_dense_oracle() -> None:
     est = mapped_estimator(rng, rounds=3)
     est.predict(v=0.3, w=0.2, dt=1.0, stamp=1.0)  # correlate pose and map
     z = (2.3, 0.4)
-    d2 = association.mahalanobis_all(est._x, est._L, est.n, z_range=z[0], z_bearing=z[1],
+    d2 = association.mahalanobis_all(est.store.x, est.store.L, est.n, z_range=z[0], z_bearing=z[1],
                                      var_range=SIG_R**2, var_bearing=SIG_B**2)
     for j in range(est.n):
         h, S = dense_S(est, j)
@@ -175,7 +175,7 @@ def test_ambiguous_observation_is_discarded_without_changing_state() -> None:
     # just inside the gate it is a match, just beyond the new-landmark threshold a new one
     for d2, kind in ((9.0, "match"), (20.0, "ambiguous"), (28.5, "new")):
         delta = math.sqrt(d2 / np.linalg.inv(S)[0, 0])
-        d = association.mahalanobis_all(est._x, est._L, est.n, z_range=h[0] + delta,
+        d = association.mahalanobis_all(est.store.x, est.store.L, est.n, z_range=h[0] + delta,
                                         z_bearing=h[1], var_range=SIG_R**2,
                                         var_bearing=SIG_B**2)
         decision = association.decide(d, association.Gates())
@@ -386,5 +386,5 @@ def test_covariance_buffers_are_recycled_only_when_nothing_holds_them() -> None:
         state = est.to_state(seq=2 + k, stamp=0.2 + 0.1 * k, step="predict")
         assert not np.shares_memory(state.covariance, view)
         del state
-    assert est._buffers.reused >= 5
+    assert est.published.buffers.reused >= 5
     assert np.array_equal(view, snapshot[:, 0:3])  # the view kept its buffer as it was

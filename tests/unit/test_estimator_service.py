@@ -134,8 +134,8 @@ def test_checkpoint_resume_continues_the_same_map_bit_for_bit(tmp_path,
     for t, (key, payload) in enumerate(inputs[:250]):
         first.ingest(_sample(key, payload, t))
     # "SIGKILL": no clean exit; what is on disk is whatever the writer last wrote
-    assert first._writer is not None
-    first._writer.close()
+    assert first.checkpoints is not None and first.checkpoints.writer is not None
+    first.checkpoints.writer.close()
     saved = ckpt.load(tmp_path, ROBOT)
     assert saved is not None
     at = SlamState.from_bytes(saved.state)
@@ -201,14 +201,14 @@ def test_the_worker_holds_no_state_of_a_burst_so_covariance_buffers_are_recycled
     # per map size at most two new buffers (the first state's, and one while the last
     # published state's is still held as the base of the next); every other one reused
     fresh = 2 * len(set(sizes))
-    assert service.estimator._buffers.reused >= len(inputs) - fresh, (fresh, sizes)
+    assert service.estimator.published.buffers.reused >= len(inputs) - fresh, (fresh, sizes)
 
 
 def _dense(est: Estimator) -> np.ndarray:
     """The textbook symmetric P from the estimator's lower-triangle storage (an oracle
     independent of ``ekf.symmetric``: numpy's own triangles)."""
     N = 3 + 2 * est.n
-    lower = np.tril(est._L[:N, :N])
+    lower = np.tril(est.store.L[:N, :N])
     return lower + np.tril(lower, -1).T
 
 
