@@ -130,6 +130,10 @@ CASES: dict[str, Case] = {
                  "play ready", "play stopped"),
     "foxglove": Case(lambda s: ["foxglove", "--robot", ROBOT, "--port", "0", *_bus(s)],
                      "foxglove ready", "foxglove stopped"),
+    "ros2": Case(lambda s: ["ros2", "--robot", ROBOT, "--from-ros", "estimate", *_bus(s)],
+                 "ros2 ready", "ros2 stopped"),
+    "rerun": Case(lambda s: ["rerun", "--robot", ROBOT, "--save", str(s.tmp / "scene.rrd"),
+                             *_bus(s)], "rerun ready", "rerun stopped"),
     "launch": Case(lambda s: ["launch", _launch_file(s)], "[launch] all 2 services ready",
                    "[launch] stopped: 2 services", launch=True),
 }
@@ -219,6 +223,7 @@ NOT_HERE = {
     "tune": "ends by itself", "calibrate": "ends by itself", "figures": "ends by itself",
     "certs": "ends by itself", "register": "ends by itself, within its --timeout",
     "status": "a refreshing table: no ready line and no final line",
+    "detect": "ends by itself (one pass over its images)",
     "demo": "a launch group behind a screen of its own (tests/system/test_demo.py)",
 }
 
