@@ -8,8 +8,9 @@ dropped on purpose: a backlog grows in the channel's queue (bounded by memory, c
 bus), and what a publisher's cache could not give back is counted ``lost``. Beside them the
 Foxglove channels (:mod:`.channels`). The open chunk is written out at least every
 ``flush_s``, so a recorder killed with SIGKILL leaves a file the MCAP readers read up to its
-last complete chunk; SIGINT/SIGTERM write what is queued (up to 1 s of it), the summary and
-the footer, and print a final line.
+last complete chunk; SIGINT/SIGTERM write what is queued (up to 1 s of it, the bytes only:
+the Foxglove channels get each key's newest), the summary and the footer, and print a final
+line.
 """
 
 from __future__ import annotations
@@ -97,6 +98,8 @@ class Recorder:
             for expr in self.expressions]
         self._closed = False
         self.unwritten = 0  #: samples still queued when the recorder was stopped
+        #: per key, the newest sample written at the stop without its Foxglove translation
+        self._undrawn: dict[str, tuple[bytes, int]] = {}
 
     # -- writing ----------------------------------------------------------------------
     def _channel_id(self, key: str) -> int:
@@ -128,8 +131,9 @@ class Recorder:
         self._writer.add_message(cid, log_time=log_ns, data=data, publish_time=publish_ns,
                                  sequence=seq & 0xFFFF_FFFF)
 
-    def write(self, sample: Sample) -> None:
-        """Write one sample (and the Foxglove messages it makes)."""
+    def write(self, sample: Sample, *, derive: bool = True) -> None:
+        """Write one sample (and the Foxglove messages it makes; with ``derive`` False only
+        the sample, its key's newest kept for the Foxglove translation at the close)."""
         with self._lock:
             if self._closed:
                 return
@@ -146,7 +150,10 @@ class Recorder:
             self.messages += 1
             self.bytes += len(sample.payload)
             self.per_key[sample.key] = self.per_key.get(sample.key, 0) + 1
-            if self.translator is not None:
+            if self.translator is not None and not derive:
+                self._undrawn[sample.key] = (sample.payload, log_ns)
+            elif self.translator is not None:
+                self._undrawn.pop(sample.key, None)
                 try:
                     derived = self.translator.feed(sample.key, sample.payload, log_ns)
                 except MessageError as exc:
@@ -177,12 +184,15 @@ class Recorder:
             sample = channel.recv(timeout=0.2)
             if sample is not None:
                 self.write(sample)
-        deadline = time.monotonic() + DRAIN_S  # what is queued already is still written
+        # what is queued already is still written, as recorded bytes only (cheap: a loaded
+        # machine may leave the Foxglove translation far behind); each key's newest is
+        # translated at the close, so the file's last scene is the last state's
+        deadline = time.monotonic() + DRAIN_S
         while channel.backlog and time.monotonic() < deadline:
             sample = channel.recv(timeout=0.0)
             if sample is None:
                 break
-            self.write(sample)
+            self.write(sample, derive=False)
 
     @property
     def lost(self) -> int:
@@ -221,6 +231,12 @@ class Recorder:
             if self._closed:
                 return
             if self.translator is not None:
+                for key, (payload, log_ns) in self._undrawn.items():
+                    try:
+                        self._write_derived(self.translator.feed(key, payload, log_ns))
+                    except MessageError as exc:
+                        self.bad.drop(message_of_key(key, self.prefix) or key,
+                                      f"{exc} (recorded as is, no Foxglove message)")
                 self._write_derived(self.translator.finish())
             self._closed = True
             self._writer.finish()

@@ -20,6 +20,7 @@ from scipy import stats
 
 from slamlens.common.geometry import wrap_angle
 from slamlens.common.messages import Observations, Odometry, SlamState, Truth
+from slamlens.services.slam.ekf import RefusedStepError
 from slamlens.services.slam.estimator import Estimator
 from slamlens.services.slam.settings import EstimatorSettings
 from slamlens.services.slam.sim import Simulator
@@ -34,6 +35,8 @@ class Run:
     steps: tuple[str, ...]  #: "predict" / "update" per event
     nees: np.ndarray  #: float64[T]
     states: tuple[SlamState, ...]  #: every state, when collected (else empty)
+    #: inputs the filter's guard refused (skipped, as the estimator service skips them)
+    refused: int = 0
 
     def nees_run(self) -> tuple[np.ndarray, np.ndarray]:
         return self.stamps, self.nees
@@ -59,7 +62,7 @@ def run(world: World, *, seed: int, settings: EstimatorSettings | None = None,
     steps: list[str] = []
     nees: list[float] = []
     states: list[SlamState] = []
-    seq = 0
+    seq = refused = 0
     pending: list[tuple[str, float]] = []
     if collect_states:
         states.append(est.to_state(seq=0, stamp=0.0, step="init"))
@@ -85,21 +88,23 @@ def run(world: World, *, seed: int, settings: EstimatorSettings | None = None,
             continue
         seq += 1
         report = None
-        if isinstance(event, Odometry):
-            est.predict(v=event.v, w=event.w, dt=event.dt, stamp=event.stamp)
-            step = "predict"
-        else:
-            assert isinstance(event, Observations)
-            report = est.observe(ids=event.ids, ranges=event.ranges, bearings=event.bearings,
-                                 stamp=event.stamp)
-            step = "update"
+        step = "predict" if isinstance(event, Odometry) else "update"
+        try:
+            if isinstance(event, Odometry):
+                est.predict(v=event.v, w=event.w, dt=event.dt, stamp=event.stamp)
+            else:
+                assert isinstance(event, Observations)
+                report = est.observe(ids=event.ids, ranges=event.ranges,
+                                     bearings=event.bearings, stamp=event.stamp)
+        except RefusedStepError:  # the service counts it and goes on: so does the run
+            refused += 1
         if collect_states:
             states.append(est.to_state(seq=seq, stamp=event.stamp, step=step, report=report))
         if event.stamp in truth_pose:
             score(step, event.stamp)
         else:
             pending.append((step, event.stamp))
-    return Run(np.array(stamps), tuple(steps), np.array(nees), tuple(states))
+    return Run(np.array(stamps), tuple(steps), np.array(nees), tuple(states), refused)
 
 
 @dataclass(frozen=True)

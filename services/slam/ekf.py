@@ -53,6 +53,9 @@ class RefusedStepError(EstimationError):
         super().__init__(detail)
         self.reason = reason  #: "non-finite" or "not-psd"
 
+    def __reduce__(self) -> tuple[type[RefusedStepError], tuple[str, str]]:
+        return type(self), (self.reason, str(self))  # picklable (a process pool's result)
+
 
 class GatedObservationError(EstimationError):
     """An observation of a known landmark whose NIS is above the gate. Nothing was written;
