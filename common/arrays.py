@@ -141,7 +141,7 @@ def decode_array(
     want = _DTYPES.get(dtype) or _DTYPES.setdefault(dtype, np.dtype(dtype))
     # the common case first (a well-formed map of the field's own dtype): checked in full,
     # in a few operations, without a copy — every state a consumer decodes goes this way
-    array = _well_formed(raw, want, dtype, shape)
+    array = well_formed(raw, want, dtype, shape)
     if array is not None:
         if finite and want.kind == "f" and array.size and not (
                 math.isfinite(float(array.sum())) or np.isfinite(array).all()):
@@ -166,8 +166,8 @@ def decode_array(
     return array
 
 
-def _well_formed(raw: Any, want: np.dtype, dtype: str,
-                 shape: Sequence[int | None]) -> np.ndarray | None:
+def well_formed(raw: Any, want: np.dtype, dtype: str,
+                shape: Sequence[int | None]) -> np.ndarray | None:
     """The array of a map of exactly the field's dtype, shape and data size (a view of
     its bytes), else None (the full checks decide)."""
     if type(raw) is not dict or raw.get("dtype") != dtype:

@@ -27,7 +27,7 @@ from slamlens.common.arrays import (
     decode_array,
     encode_array,
     frozen_array,
-    is_frozen_view,
+    well_formed,
 )
 from slamlens.common.errors import MessageError
 
@@ -224,22 +224,10 @@ class _Array(FieldKind):
     def decode_fast(self, spec: Spec, value: Any, wire_shape: tuple) -> Any:
         dtype = spec.dtype
         assert dtype is not None
-        # decode_array's own fast case; the caller sums float arrays for finiteness
-        if type(value) is not dict or value.get("dtype") != dtype.str:
-            return REJECT
-        shape, data = value.get("shape"), value.get("data")
-        if not (type(data) is bytes or is_frozen_view(data)) or type(shape) is not list \
-                or len(shape) != len(wire_shape):
-            return REJECT
-        count = 1
-        for d, w in zip(shape, wire_shape, strict=True):
-            if type(d) is not int or d < 0 or (w is not None and d != w):
-                return REJECT
-            count *= d
-        if len(data) != count * dtype.itemsize:
-            return REJECT
-        array = np.frombuffer(data, dtype=dtype)  # read-only: immutable bytes
-        return array if len(shape) == 1 else array.reshape(shape)
+        # decode_array's own fast case (read-only: a view of immutable bytes); the caller
+        # sums float arrays for finiteness
+        array = well_formed(value, dtype, dtype.str, wire_shape)
+        return REJECT if array is None else array
 
 
 class _Records(FieldKind):
