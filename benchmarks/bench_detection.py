@@ -29,11 +29,13 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "tests" / "unit"))
-
-from marker_render import PlacedMarker, render, true_corners  # noqa: E402
 
 from slamlens.common.geometry import make_T, rot_z  # noqa: E402
+from slamlens.services.harness.marker_render import (  # noqa: E402
+    PlacedMarker,
+    render,
+    true_corners,
+)
 from slamlens.services.registration.calibration import synthetic_calibration  # noqa: E402
 from slamlens.services.registration.markers import (  # noqa: E402
     DetectorTuning,

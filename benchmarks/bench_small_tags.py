@@ -4,7 +4,7 @@ library through pupil-apriltags), with and without the project's edge refinement
 Frames: 1280×720, an overhead camera 3 m up (hfov 84°) over a textured floor, 24 AprilTag
 36h11 markers per frame lying flat at random places and headings, 15–20 px a side (a
 ceiling camera over a large arena), blur σ 0.7 px and noise σ 2 grey levels
-(tests/unit/marker_render.py: an independent renderer; its corners are the truth). Also
+(services/harness/marker_render.py: an independent renderer; its corners are the truth). Also
 the shared real photo (13 tags of ~28 px; the C library's 12 detections of it are its
 reference). Configurations are timed round robin on each frame; the script prints, per
 configuration, markers found of those placed (recall), wrong ids, the corner error against
@@ -27,11 +27,13 @@ import numpy as np
 
 REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
-sys.path.insert(0, str(REPO / "tests" / "unit"))
-
-from marker_render import PlacedMarker, render, true_corners  # noqa: E402
 
 from slamlens.common.geometry import make_T, rot_z  # noqa: E402
+from slamlens.services.harness.marker_render import (  # noqa: E402
+    PlacedMarker,
+    render,
+    true_corners,
+)
 from slamlens.services.registration.apriltag3 import (  # noqa: E402
     AprilTagDetector,
     AprilTagTuning,

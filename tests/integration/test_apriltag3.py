@@ -3,7 +3,7 @@
 
 Oracles: the C library's published detections of the real photo (its ``.txt``, converted to
 OpenCV's order and pixels as docs/registration_vision.md says), and the corners of the
-independent test renderer (tests/unit/marker_render.py) for rendered 15-20 px tags.
+independent test renderer (services/harness/marker_render.py) for rendered 15-20 px tags.
 """
 
 from __future__ import annotations
@@ -53,7 +53,8 @@ def test_small_tags_all_found_with_accurate_corners() -> None:
     sys.path.insert(0, str(REPO / "benchmarks"))
     sys.path.insert(0, str(REPO / "tests" / "unit"))
     from bench_small_tags import CALIB, make_frame
-    from marker_render import true_corners
+
+    from slamlens.services.harness.marker_render import true_corners
 
     gray, placed = make_frame(0)
     truth = {p.marker_id: true_corners(p, CALIB.K) for p in placed}

@@ -208,24 +208,6 @@ def _estimates(n: int, k: int) -> list[dict]:
     return out
 
 
-def _estimates(n: int, k: int) -> list[dict]:
-    """SlamEstimate messages as the SDK publishes them (JSON lines), seq 0 … k−1."""
-    rng = np.random.default_rng(5)
-    out = []
-    for seq in range(k):
-        A = rng.normal(size=(3 + 2 * n, 3 + 2 * n))
-        out.append({"topic": "/robot1/slam/estimate", "type": "slamlens_msgs/msg/SlamEstimate",
-                    "fields": {"header": {"stamp": {"sec": 1_700_000_000 + seq,
-                                                    "nanosec": 250_000_000},
-                                          "frame_id": "map"},
-                               "seq": seq, "pose": {"x": rng.normal(), "y": rng.normal(),
-                                                    "theta": 0.5},
-                               "landmark_ids": (rng.permutation(n) + 6).tolist(),
-                               "landmarks": rng.normal(size=2 * n).tolist(),
-                               "covariance": (A @ A.T).reshape(-1).tolist()}})
-    return out
-
-
 def publisher(router: str, messages: Path, items: list[dict], path: Path,
               *args: str) -> Service:
     path.write_text("".join(json.dumps(i) + "\n" for i in items))

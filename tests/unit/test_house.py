@@ -132,6 +132,10 @@ def test_benchmarks_and_the_package_never_import_tests() -> None:
                      [node.module or ""] if isinstance(node, ast.ImportFrom) else [])
             if any(n == "tests" or n.startswith("tests.") for n in names):
                 found.append(f"{_rel(path)}:{node.lineno}")
+            # nor by putting a folder of tests/ on the import path
+            if isinstance(node, ast.Call) and "sys.path" in ast.unparse(node.func) \
+                    and "'tests'" in ast.unparse(node):  # (unparse quotes with ')
+                found.append(f"{_rel(path)}:{node.lineno} (sys.path)")
     assert not found, "imports of tests/ (use slamlens.services.harness):\n" + "\n".join(found)
 
 

@@ -1,5 +1,5 @@
 """Marker detection, marker pose, the registration chain and the board pose, on views
-rendered with known poses (tests/unit/marker_render.py: the oracle is the pose we render
+rendered with known poses (services/harness/marker_render.py: the oracle is the pose we render
 with), plus hand-computed transforms."""
 
 from __future__ import annotations
@@ -9,10 +9,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from marker_render import PlacedMarker, look_at, render, true_corners
 
 from slamlens.common.errors import ConfigError, GeometryError, SourceError
 from slamlens.common.geometry import T_from_pose2, invert_T, make_T, rot_z, rotation_angle_deg
+from slamlens.services.harness.marker_render import PlacedMarker, look_at, render, true_corners
 from slamlens.services.registration import markers
 from slamlens.services.registration.board import (
     BoardMarker,

@@ -53,6 +53,7 @@ def render(calib: CameraCalibration, markers: Sequence[PlacedMarker], *,
     K = calib.K.copy()
     K[:2, :2] *= S
     K[:2, 2] = (K[:2, 2] + 0.5) * S - 0.5  # same pixel-centre convention at S× resolution
+    canvas: np.ndarray  # float32 throughout
     if isinstance(background, np.ndarray):
         canvas = cv2.resize(background, (w, h), interpolation=cv2.INTER_LINEAR).astype(np.float32)
     else:
