@@ -11,14 +11,18 @@ its pixel centres sit at +0.5), then applies the project's edge refinement where
 (``DetectorTuning.corner_refinement``, "edges" by default; measured in
 ``benchmarks/bench_detection.py``).
 
-The C library has crashed at interpreter exit after many ``Detector`` objects were made
-and dropped: each thread keeps one per configuration (:func:`_library_detector`) for
-its whole life.
+The C library crashes when a ``Detector`` is destroyed while another thread detects (a
+thread-local detector freed at its thread's end did, in the test suite), and has crashed at
+interpreter exit after many were made and dropped: library detectors are never destroyed.
+A process-wide pool keeps them per configuration; a detection borrows one for its call and
+gives it back (:func:`_borrowed`), so there are only as many as detections ever ran at once.
 """
 
 from __future__ import annotations
 
+import contextlib
 import threading
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -39,7 +43,10 @@ FAMILIES = {"apriltag_16h5": "tag16h5", "apriltag_25h9": "tag25h9",
 #: OpenCV's corner order from the library's p[0..3] (which wrap the other way round)
 _TO_OPENCV = [1, 0, 3, 2]
 
-_local = threading.local()
+#: idle library detectors per (family, tuning); never destroyed (module docstring)
+_POOL: dict[tuple[str, Any], list[Any]] = {}
+_POOL_LOCK = threading.Lock()
+_MADE: list[Any] = []  #: every library detector made, kept alive for the process
 
 
 @dataclass(frozen=True)
@@ -63,21 +70,28 @@ def available() -> bool:
     return True
 
 
-def _library_detector(family: str, tuning: AprilTagTuning) -> Any:
-    """This thread's detector for ``family`` and ``tuning``, made once and kept."""
-    detectors: dict[tuple[str, AprilTagTuning], Any] | None = getattr(_local, "detectors",
-                                                                      None)
-    if detectors is None:
-        detectors = _local.detectors = {}
-    detector = detectors.get((family, tuning))
+@contextlib.contextmanager
+def _borrowed(family: str, tuning: AprilTagTuning) -> Iterator[Any]:
+    """An idle library detector for ``family`` and ``tuning`` (made if none is idle), for
+    this caller alone until it is given back."""
+    key = (family, tuning)
+    with _POOL_LOCK:
+        idle = _POOL.setdefault(key, [])
+        detector = idle.pop() if idle else None
     if detector is None:
         from pupil_apriltags import Detector
 
-        detector = detectors[(family, tuning)] = Detector(
+        detector = Detector(
             families=family, nthreads=1, quad_decimate=tuning.quad_decimate,
             quad_sigma=tuning.quad_sigma, refine_edges=int(tuning.refine_edges),
             decode_sharpening=tuning.decode_sharpening)
-    return detector
+        with _POOL_LOCK:
+            _MADE.append(detector)
+    try:
+        yield detector
+    finally:
+        with _POOL_LOCK:
+            _POOL[key].append(detector)
 
 
 class AprilTagDetector:
@@ -102,8 +116,8 @@ class AprilTagDetector:
 
     def raw(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The library's corners (k, 4, 2) in OpenCV's order and pixels, and the ids."""
-        found = _library_detector(self.family, self.library).detect(
-            np.ascontiguousarray(gray))
+        with _borrowed(self.family, self.library) as library:
+            found = library.detect(np.ascontiguousarray(gray))
         if not found:
             return np.zeros((0, 4, 2)), np.zeros(0, np.int64)
         corners = np.array([d.corners for d in found], np.float64)[:, _TO_OPENCV] - 0.5
