@@ -244,7 +244,11 @@ def _run_serial(args: argparse.Namespace) -> int:
     try:
         out = RobotPublisher(bus, keys=keys_from(args), robot=s.robot)
         announce(bus, args, "serial", _driver_status(out, {"now": "running"}), robot=s.robot)
-        print("serial ready", flush=True)
+        # Opening flushes the port's input (pyserial resets the buffer): open before saying
+        # ready, so every byte the robot sends after "serial ready" reaches the parser.
+        opened = link.open()
+        print("serial ready" + ("" if opened else f" (port {s.port} not open yet; retrying)"),
+              flush=True)
         for message in link.messages(stop):
             out.publish(message)
         print(f"serial stopped: published {json.dumps(out.counts)}, parser {link.stats}",
