@@ -1,14 +1,15 @@
 """Regenerate the Monte-Carlo NEES figures of docs/consistency.md.
 
 * ``docs/figures/nees.png``: the standard filter on the paper scenario's default run;
-* ``docs/figures/nees_linearisation.png`` (``--compare``): standard against FEJ
-  (``--linearisation fej``, docs/estimator.md) on the paper scenario (3 loops and 15) and a
+* ``docs/figures/nees_linearisation.png`` (``--compare``): standard, FEJ and OC
+  (``--linearisation fej|oc``, docs/estimator.md) on the paper scenario (3 loops and 15) and a
   long run of the large world (1000 landmarks, its 2 loops), each over ``--seeds`` seeds,
   with the χ² band; and the table of docs/consistency.md ("Linearisation"), printed.
 
 Run: ``.venv/bin/python docs/make_consistency_plot.py [--seeds 20]`` or ``… --compare
-[--seeds 50] [--processes 2] [--cache DIR]`` (about 40 min on 2 shared cores; the runs are
-cached in DIR, so a second call only draws).
+[--seeds 50] [--large-seeds 50] [--processes 2] [--cache DIR]`` (about 90 min on 2 cores,
+most of it the large world's 150 runs; the runs are cached in DIR, so a second call only
+draws).
 """
 
 from __future__ import annotations
@@ -41,7 +42,7 @@ from slamlens.services.slam.world import load_world  # noqa: E402
 #: (label, world, loops) of the comparison
 CASES = (("paper, 3 loops (54 s)", "paper", 3), ("paper, 15 loops (272 s)", "paper", 15),
          ("large, 2 loops (880 s, n = 1000)", "large", 2))
-LINEARISATIONS = ("standard", "fej")
+LINEARISATIONS = ("standard", "fej", "oc")
 #: the mean leaves the band "for good" when it stays out this many events in a row
 OUT_RUN = 50
 
@@ -111,7 +112,8 @@ def compare(seeds: int, processes: int, cache: Path | None, output: Path,
     for ax, (label, world, loops) in zip(axes, CASES, strict=True):
         n = large_seeds if world == "large" and large_seeds else seeds
         band = None
-        for linearisation, colour in zip(LINEARISATIONS, ("tab:red", "tab:blue"), strict=True):
+        colours = ("tab:red", "tab:blue", "tab:purple")
+        for linearisation, colour in zip(LINEARISATIONS, colours, strict=True):
             mc = runs_of(world, loops, linearisation, n, processes, cache)
             band = (mc.lower, mc.upper)
             shown = np.clip(mc.mean_nees, 1e-2, 1e6)
@@ -146,13 +148,13 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, default=None,
                         help="seeds per run (20; 50 with --compare)")
     parser.add_argument("--compare", action="store_true",
-                        help="standard against FEJ: nees_linearisation.png and the table")
+                        help="standard, FEJ and OC: nees_linearisation.png and the table")
     parser.add_argument("--processes", type=int, default=min(2, os.cpu_count() or 1))
     parser.add_argument("--cache", default="", metavar="DIR",
                         help="keep the runs of --compare here (and reuse them)")
     parser.add_argument("--large-seeds", type=int, default=None,
                         help="--compare: seeds of the large world's run (default: --seeds; "
-                             "a run there costs minutes)")
+                             "a run there costs about a minute of one core)")
     parser.add_argument("--output", default="")
     args = parser.parse_args()
     figures = REPO / "docs" / "figures"

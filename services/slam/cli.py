@@ -27,6 +27,7 @@ from slamlens.common.errors import ConfigError
 from slamlens.common.progress import count_bar, enabled, time_bar
 from slamlens.common.status import Report, announce, counts_of
 from slamlens.services.slam.settings import (
+    LINEARISATIONS,
     EstimatorSettings,
     ReplaySettings,
     SerialSettings,
@@ -307,7 +308,7 @@ def _run_tune(args: argparse.Namespace) -> int:
         step = "scoring the robot left out" if number == 0 else f"pass {number}"
         return bar(f"tune ({what}) {step} (σ × {scale:.3f})", total)
 
-    linearisations = [lin for lin in ("standard", "fej") if s.linearisation in (lin, "both")]
+    linearisations = [lin for lin in LINEARISATIONS if s.linearisation in (lin, "all")]
     notes: list[str] = []
     cv: crossval.CrossValidation | None = None
     pool = ProcessPoolExecutor(s.jobs) if s.jobs > 1 and len(runs) > 1 else None

@@ -280,11 +280,15 @@ def predict(x: np.ndarray, L: np.ndarray, n: int, *, v: float, w: float, dt: flo
         pm[:, 1] += fb * theta_col
 
 
+Row = tuple[float, float, float]  #: one row of H on the robot (∂/∂x, ∂/∂y, ∂/∂θ)
+
+
 def update(x: np.ndarray, L: np.ndarray, n: int, j: int, *, z_range: float,
            z_bearing: float, var_range: float, var_bearing: float,
            ws: Workspace, gate: float = 0.0, guard: Guard | None = None,
            defer: bool = False,
-           at: tuple[float, float, float, float] | None = None
+           at: tuple[float, float, float, float] | None = None,
+           null: tuple[float, float, float, float] | None = None
            ) -> tuple[float, float, float, float, float]:
     """The update with one observation of landmark ``j`` (0-based state order), in place.
 
@@ -311,15 +315,18 @@ def update(x: np.ndarray, L: np.ndarray, n: int, j: int, *, z_range: float,
     """
     N = 3 + 2 * n
     a = 3 + 2 * j
-    nu_r, nu_b, ux, uy, gx, gy = _innovation(x, a, j, z_range, z_bearing, at)
-    wt = _gain_rows(L, N, a, ws, ux, uy, gx, gy)
-    w0x, w0y, w0m, w0n = float(wt[0, 0]), float(wt[0, 1]), float(wt[0, a]), float(wt[0, a + 1])
+    nu_r, nu_b, h0, h1 = _innovation(x, a, j, z_range, z_bearing, at)
+    if null is not None:
+        h0, h1 = _constrained(h0, null), _constrained(h1, null)
+    wt = _gain_rows(L, N, a, ws, h0, h1)
+    w0x, w0y, w0t = float(wt[0, 0]), float(wt[0, 1]), float(wt[0, 2])
+    w0m, w0n = float(wt[0, a]), float(wt[0, a + 1])
     w1x, w1y, w1t = float(wt[1, 0]), float(wt[1, 1]), float(wt[1, 2])
     w1m, w1n = float(wt[1, a]), float(wt[1, a + 1])
     # S = H (P Hᵀ) + R; the off-diagonal is taken from one side only: S is symmetric exactly.
-    s00 = ux * (w0m - w0x) + uy * (w0n - w0y) + var_range
-    s01 = ux * (w1m - w1x) + uy * (w1n - w1y)
-    s11 = gx * (w1n - w1y) - gy * (w1m - w1x) - w1t + var_bearing
+    s00 = h0[0] * (w0x - w0m) + h0[1] * (w0y - w0n) + h0[2] * w0t + var_range
+    s01 = h0[0] * (w1x - w1m) + h0[1] * (w1y - w1n) + h0[2] * w1t
+    s11 = h1[0] * (w1x - w1m) + h1[1] * (w1y - w1n) + h1[2] * w1t + var_bearing
     i00, i10, i11 = _inverse_cholesky(s00, s01, s11, j)
     vt = ws.vt[:, :N]
     np.multiply(wt[0], i00, out=vt[0])
@@ -351,10 +358,10 @@ def update(x: np.ndarray, L: np.ndarray, n: int, j: int, *, z_range: float,
 
 def _innovation(x: np.ndarray, a: int, j: int, z_range: float, z_bearing: float,
                 at: tuple[float, float, float, float] | None
-                ) -> tuple[float, float, float, float, float, float]:
-    """(ν_r, ν_φ) at the latest estimates and H's four numbers (ux, uy, gx, gy): H = [Hv | Hm]
-    on columns (x, y, θ, mx, my) with Hv = [[−ux, −uy, 0], [gy, −gx, −1]], Hm = −Hv[:, :2],
-    evaluated at the latest estimates or at ``at``."""
+                ) -> tuple[float, float, Row, Row]:
+    """(ν_r, ν_φ) at the latest estimates and H's robot rows h0, h1 (range, bearing), each
+    (∂/∂x, ∂/∂y, ∂/∂θ): H = [Hv | Hm] on columns (x, y, θ, mx, my) with Hm = −Hv[:, :2],
+    Hv = [[−ux, −uy, 0], [gy, −gx, −1]], evaluated at the latest estimates or at ``at``."""
     x0, x1, theta = float(x[0]), float(x[1]), float(x[2])
     dx, dy = float(x[a]) - x0, float(x[a + 1]) - x1
     q = dx * dx + dy * dy
@@ -370,11 +377,20 @@ def _innovation(x: np.ndarray, a: int, j: int, z_range: float, z_bearing: float,
             raise SingularInnovationError(f"landmark {j}'s first estimate is at the robot's "
                                           "propagated position: H undefined")
         r = math.sqrt(q)
-    return nu_r, nu_b, dx / r, dy / r, dx / q, dy / q
+    return nu_r, nu_b, (-dx / r, -dy / r, 0.0), (dy / q, -dx / q, -1.0)
 
 
-def _gain_rows(L: np.ndarray, N: int, a: int, ws: Workspace, ux: float, uy: float,
-               gx: float, gy: float) -> np.ndarray:
+def _constrained(h: Row, null: tuple[float, float, float, float]) -> Row:
+    """OC-EKF: the row of H nearest to ``h`` (Frobenius) with h N = 0, N the unobservable
+    directions at ``null`` = (robot x, y, landmark x, y). h = [a, b, c, −a, −b] is already
+    blind to translation; what remains is the rotation u' = [Dy/2, −Dx/2, 1, −Dy/2, Dx/2]
+    (D = landmark − robot) made orthogonal to translation: h* = h − (h·u'/u'·u') u'."""
+    dx, dy = null[2] - null[0], null[3] - null[1]
+    alpha = (h[2] + h[0] * dy - h[1] * dx) / (1.0 + 0.5 * (dx * dx + dy * dy))
+    return h[0] - 0.5 * alpha * dy, h[1] + 0.5 * alpha * dx, h[2] - alpha
+
+
+def _gain_rows(L: np.ndarray, N: int, a: int, ws: Workspace, h0: Row, h1: Row) -> np.ndarray:
     """Wᵀ = H P (2×N, in ``ws.wt``) from the five columns of P that H touches (through the
     downdates held back in ``ws``: P = L − Σ V Vᵀ)."""
     cols = ws.cols
@@ -386,8 +402,8 @@ def _gain_rows(L: np.ndarray, N: int, a: int, ws: Workspace, ux: float, uy: floa
         cols[:, :N] -= held[:, [0, 1, 2, a, a + 1]].T @ held[:, :N]
     h5 = ws.h5
     # H = [Hv | Hm] on columns (x, y, θ, mx, my); Hm = −Hv[:, :2].
-    h5[0, 0], h5[0, 1], h5[0, 2], h5[0, 3], h5[0, 4] = -ux, -uy, 0.0, ux, uy
-    h5[1, 0], h5[1, 1], h5[1, 2], h5[1, 3], h5[1, 4] = gy, -gx, -1.0, -gy, gx
+    h5[0, 0], h5[0, 1], h5[0, 2], h5[0, 3], h5[0, 4] = h0[0], h0[1], h0[2], -h0[0], -h0[1]
+    h5[1, 0], h5[1, 1], h5[1, 2], h5[1, 3], h5[1, 4] = h1[0], h1[1], h1[2], -h1[0], -h1[1]
     wt = ws.wt[:, :N]
     np.matmul(h5, cols[:, :N], out=wt)  # Wᵀ = H P (2×N)
     return wt

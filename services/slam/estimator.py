@@ -205,8 +205,9 @@ class Estimator:
     def diagnostics(self) -> dict[str, float]:
         """Running counts published in every state (docs/protocol.md ``diagnostics``):
         ``gated``, ``refused_updates`` (S not PD) and ``refused.<reason>`` per reason; and
-        ``linearisation.fej`` = 1 when the Jacobians are FEJ's (the monitor then holds the
-        filter to FEJ's theorems: docs/monitor.md)."""
+        ``linearisation.fej`` = 1 when the filter keeps FEJ's linearisation points and
+        unobservable directions (``fej`` and ``oc``: the monitor then holds it to their
+        theorems, docs/monitor.md)."""
         out = self.checks.diagnostics()
         if self.store.fej is not None:
             out["linearisation.fej"] = 1.0

@@ -16,6 +16,11 @@ so that, with N(k) = [I₂, J p̂(k|k−1); 0, 1; I₂, J ℓ₁; …; I₂, J �
 ℓᵢ the first estimates), F(k) N(k) = N(k+1), H(k) N(k) = 0 and the new landmark's rows are
 Gv N(k): the three directions of N — global translation and rotation — stay unobservable.
 
+``--linearisation oc`` (Observability-Constrained Jacobians) keeps the same points, Fx, Gv
+and so the same N, but evaluates each update's H at the latest estimates and projects it
+onto H N = 0 (:func:`slamlens.services.slam.ekf.update`'s ``null``): nearer the truth than
+a first estimate when that has drifted far.
+
 This module keeps those points (O(1) per step, 2 floats per landmark) and carries them
 through checkpoints. No I/O.
 """
@@ -27,9 +32,9 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from slamlens.common.errors import EstimationError
-from slamlens.services.slam.settings import FEJ, LINEARISATIONS, STANDARD
+from slamlens.services.slam.settings import FEJ, LINEARISATIONS, OC, STANDARD
 
-__all__ = ["FEJ", "LINEARISATIONS", "STANDARD", "FirstEstimates", "fused"]
+__all__ = ["FEJ", "LINEARISATIONS", "OC", "STANDARD", "FirstEstimates", "fused"]
 
 
 class FirstEstimates:

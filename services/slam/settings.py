@@ -18,8 +18,8 @@ from slamlens.common.errors import ConfigError
 NONE, MAP_UPDATE, CROSS_COVARIANCE = "none", "map-update", "cross-covariance"
 FAULT_KINDS = (NONE, MAP_UPDATE, CROSS_COVARIANCE)
 #: where the estimator's Jacobians are evaluated (services/slam/linearisation.py)
-STANDARD, FEJ = "standard", "fej"
-LINEARISATIONS = (STANDARD, FEJ)
+STANDARD, FEJ, OC = "standard", "fej", "oc"
+LINEARISATIONS = (STANDARD, FEJ, OC)
 
 
 def check_fault(kind: str, feature_ids: tuple[int, ...], magnitude: float | None) -> None:
@@ -161,9 +161,9 @@ class TuneSettings:
     gate_chi2: float = setting(13.82, doc="innovation gate written into the profile (χ²₂ "
                                           "99.9 %); 0 = none", min=0.0)
     linearisation: str = setting(
-        "both", doc="the estimator's linearisation to fit for: standard, fej, or both = fit "
-                    "each and choose by the robots left out (by the fit itself with one "
-                    "robot or --no-cross-validate)", choices=(STANDARD, FEJ, "both"))
+        "all", doc="the estimator's linearisation to fit for: standard, fej, oc, or all = "
+                   "fit each and choose by the robots left out (by the fit itself with one "
+                   "robot or --no-cross-validate)", choices=(*LINEARISATIONS, "all"))
     cross_validate: bool = setting(
         True, doc="leave each robot out in turn: fit on the others, score it (NEES, landmark "
                   "RMSE after a rigid fit), report, and choose the linearisation by that; "
@@ -245,7 +245,10 @@ class EstimatorSettings:
                       "(estimator.md); fej = First-Estimates Jacobians (the robot's propagated "
                       "estimate, each landmark's first estimate), so global translation and "
                       "rotation stay unobservable and the filter does not grow overconfident "
-                      "in the map's heading (docs/estimator.md)", choices=LINEARISATIONS)
+                      "in the map's heading; oc = Observability-Constrained Jacobians (each "
+                      "H at the latest estimates, made blind to FEJ's unobservable "
+                      "directions: the same guarantee with Jacobians nearer the truth) "
+                      "(docs/estimator.md)", choices=LINEARISATIONS)
     # -- opt-in motion noise (not the standard model; all 0 = the standard model exactly) --
     sigma_distance: float = setting(
         0.0, doc="opt-in, not the standard model: along-track noise growing with the distance "

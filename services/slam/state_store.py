@@ -17,7 +17,7 @@ import numpy as np
 
 from slamlens.common.messages import SlamState
 from slamlens.services.slam import ekf
-from slamlens.services.slam.linearisation import FEJ, FirstEstimates
+from slamlens.services.slam.linearisation import FEJ, OC, FirstEstimates
 from slamlens.services.slam.settings import EstimatorSettings
 
 log = logging.getLogger("slamlens.estimator")
@@ -40,7 +40,9 @@ class StateStore:
         self.L[0:3, 0:3] = np.diag([float(s) ** 2 for s in settings.initial_pose_sigma])
         #: the FEJ linearisation points (None: the standard EKF, Jacobians at the estimates)
         self.fej = (FirstEstimates(self.x[0], self.x[1])
-                    if settings.linearisation == FEJ else None)
+                    if settings.linearisation in (FEJ, OC) else None)
+        #: OC-EKF: H at the estimates, projected so that it leaves N (of ``fej``) unobserved
+        self.oc = settings.linearisation == OC
         self.n = 0  #: landmarks in the map
         self.ids: list[int] = []  #: landmark ids in state order
         self.index: dict[int, int] = {}  #: landmark id → state order
@@ -59,7 +61,12 @@ class StateStore:
 
     def update_point(self, j: int) -> Any:
         """Where an update of landmark ``j`` is linearised: FEJ's point, or None."""
-        return None if self.fej is None else self.fej.update_point(j)
+        return None if self.fej is None or self.oc else self.fej.update_point(j)
+
+    def null_point(self, j: int) -> Any:
+        """OC-EKF: (robot x, y, landmark x, y) of the unobservable directions H must leave
+        alone for an update of landmark ``j``; None otherwise."""
+        return self.fej.update_point(j) if self.oc and self.fej is not None else None
 
     def flush(self) -> None:
         """Apply the downdates held back by a batch's updates (ekf.update ``defer``):
