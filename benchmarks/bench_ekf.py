@@ -3,7 +3,7 @@ dense textbook EKF measured in the same run.
 
     .venv/bin/python benchmarks/bench_ekf.py           # full run (about a minute)
     .venv/bin/python benchmarks/bench_ekf.py --quick   # smoke run (a few seconds)
-    .venv/bin/python benchmarks/bench_ekf.py --fej-only   # FEJ / standard at n = 15, 100, 1000
+    .venv/bin/python benchmarks/bench_ekf.py --fej-only   # FEJ, OC / standard at n = 15, 100, 1000
 
 Targets (docs/estimator.md): update at n = 1000 ≤ 1.3× the streaming floor (one read + one
 write of an N×N float64 matrix, timed as ``np.add(A, 0.0, out=A)`` on a contiguous array);
@@ -190,13 +190,14 @@ def batch_text(n: int, rng: np.random.Generator, *, reps: int, batch: int = 4) -
 
 
 def fej_text(n: int, *, reps: int, rounds: int = 7) -> str:
-    """FEJ against the standard linearisation (docs/estimator.md, "Linearisation"): the
-    same map built by both, then one ``Estimator.predict`` + ``observe`` of one landmark
-    (the whole path: bookkeeping, input checks, guard) timed for each, interleaved in
-    rounds so that load from other work hits both alike. Medians of the rounds' medians,
+    """FEJ and OC against the standard linearisation (docs/estimator.md, "Linearisation"):
+    the same map built by each, then one ``Estimator.predict`` + ``observe`` of one
+    landmark (the whole path: bookkeeping, input checks, guard) timed for each, interleaved
+    in rounds so that load from other work hits all alike. Medians of the rounds' medians,
     in CPU time of this thread (a descheduled thread's wait is not the kernel's cost)."""
+    lins = ("standard", "fej", "oc")
     ests = {lin: mapped_estimator(n, np.random.default_rng(n), settings=EstimatorSettings(
-        linearisation=lin)) for lin in ("standard", "fej")}
+        linearisation=lin)) for lin in lins}
     ids = np.array([0], dtype=np.int64)
 
     def step(est: Estimator) -> Callable[[], None]:
@@ -209,16 +210,19 @@ def fej_text(n: int, *, reps: int, rounds: int = 7) -> str:
                         stamp=1.0)
         return go
 
-    times: dict[str, list[float]] = {"standard": [], "fej": []}
+    times: dict[str, list[float]] = {lin: [] for lin in lins}
     for _ in range(rounds):
         for lin, est in ests.items():
             times[lin].append(median_us(step(est), max(3, reps // rounds),
                                         clock=time.thread_time_ns))
-    std, fej = (statistics.median(times[k]) for k in ("standard", "fej"))
-    ratios = [f / s for s, f in zip(times["standard"], times["fej"], strict=True)]
-    return (f"FEJ vs standard at n = {n}: Estimator predict+update {std:.1f} µs standard, "
-            f"{fej:.1f} µs fej (thread CPU), ratio {fej / std:.3f} (per round "
-            f"{min(ratios):.3f}–{max(ratios):.3f})")
+    med = {lin: statistics.median(times[lin]) for lin in lins}
+    parts = []
+    for lin in ("fej", "oc"):
+        ratios = [f / s for s, f in zip(times["standard"], times[lin], strict=True)]
+        parts.append(f"{med[lin]:.1f} µs {lin} (ratio {med[lin] / med['standard']:.3f}, per "
+                     f"round {min(ratios):.3f}–{max(ratios):.3f})")
+    return (f"FEJ, OC vs standard at n = {n}: Estimator predict+update (thread CPU) "
+            f"{med['standard']:.1f} µs standard, " + ", ".join(parts))
 
 
 def row_text(r: dict[str, float]) -> str:
@@ -257,7 +261,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sizes", default="15,100,500,1000", help="landmark counts n")
     parser.add_argument("--rows-only", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--fej-only", action="store_true",
-                        help="only the FEJ / standard cost ratio (at n = 15, 100, 1000)")
+                        help="only the FEJ / standard and OC / standard cost ratios (at "
+                             "n = 15, 100, 1000)")
     args = parser.parse_args(argv)
     sizes = [int(v) for v in args.sizes.split(",")]
     rng = np.random.default_rng(0)

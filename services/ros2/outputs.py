@@ -96,25 +96,33 @@ class PathTrack:
 
     def __init__(self, max_points: int) -> None:
         self.max_points = max_points
-        self._rows: list[tuple[float, float, float, float]] = []  #: stamp, x, y, θ
+        #: stamp, x, y, θ of the first ``_count`` rows: an array kept, so that a state's
+        #: path and markers cost O(1) conversions, not one per point
+        self._rows = np.empty((2 * max_points + 1, 4))
+        self._count = 0
         self._map: tuple[int, int] | None = None
 
     def add(self, state: SlamState) -> None:
         last, self._map = self._map, (state.epoch, state.seq)
         if last is not None and (state.epoch != last[0] or state.seq < last[1]):
-            self._rows = []
+            self._count = 0
         x, y, theta = (float(v) for v in state.pose)
-        if not self._rows or self._rows[-1][1:3] != (x, y):
-            self._rows.append((float(state.stamp), x, y, theta))
-            if len(self._rows) > 2 * self.max_points:
-                self._rows = self._rows[::2]
+        n = self._count
+        if n and self._rows[n - 1, 1] == x and self._rows[n - 1, 2] == y:
+            return
+        self._rows[n] = (float(state.stamp), x, y, theta)
+        self._count = n = n + 1
+        if n > 2 * self.max_points:
+            kept = self._rows[0:n:2].copy()
+            self._rows[:len(kept)] = kept
+            self._count = len(kept)
 
     def xy(self) -> np.ndarray:
-        return np.array([r[1:3] for r in self._rows], dtype=float).reshape(-1, 2)
+        return self._rows[:self._count, 1:3].copy()
 
     def path(self, stamp: float) -> bytes:
         """The ``nav_msgs/msg/Path`` (header stamped ``stamp``)."""
-        rows = np.array(self._rows, dtype=float).reshape(-1, 4)
+        rows = self._rows[:self._count]
         w = Writer()
         w.header(stamp_ns(stamp), MAP_FRAME)
         w.u32(len(rows))
