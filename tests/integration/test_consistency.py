@@ -1,7 +1,7 @@
 """The estimator against independent statistics on the real simulator.
 
 * Consistency: Monte-Carlo NEES of the robot pose over 20 seeds, the paper scenario's
-  default run, against the two-sided 95 % χ²(3M)/M band (standard and FEJ linearisation).
+  default run, against the two-sided 95 % χ²(3M)/M band (standard, FEJ and OC).
 * The covariance theorem (docs/monitor.md): on a correct run every P_d is non-increasing across
   every event (Loewner order); on a faulty run the pairs containing faulty features grow.
 """
@@ -19,9 +19,9 @@ from slamlens.services.slam.world import load_world
 WORLD = load_world("paper")
 
 
-@pytest.mark.parametrize("linearisation", ["standard", "fej"])
+@pytest.mark.parametrize("linearisation", ["standard", "fej", "oc"])
 def test_monte_carlo_nees_inside_chi2_band(linearisation: str) -> None:
-    # FEJ (docs/estimator.md) is held to the same: consistent where the standard filter is
+    # FEJ and OC (docs/estimator.md) are held to the same: consistent where the standard is
     # (the heavy comparison, 50 seeds and the large world: docs/make_consistency_plot.py)
     mc = monte_carlo(WORLD, range(20), linearisation=linearisation)
     assert mc.seeds == 20 and len(mc.mean_nees) > 1000

@@ -4,7 +4,7 @@ N(k)ᵀ P(k)⁻¹ N(k) in global x, y and rotation must never grow.
 Oracles: N rebuilt here from the states (the robot at the last predict state's pose, each
 landmark at its estimate in the first state that has it) and I computed with a dense
 inverse; a planted compass (an absolute heading fused into P) whose information gain is
-known in closed form; the real estimator on the paper world, standard and FEJ.
+known in closed form; the real estimator on the paper world, standard, FEJ and OC.
 """
 
 from __future__ import annotations
@@ -82,6 +82,18 @@ def test_fej_never_breaks_it_and_the_statistics_follow_the_dense_oracle(fej_stat
     for h in healths[100::97]:  # σ of the global heading from I⁻¹, against the dense I
         expected = math.degrees(math.sqrt(np.linalg.inv(dense[h.seq])[2, 2]))
         assert h.statistics["unobservable_heading_sd_deg"] == pytest.approx(expected, rel=1e-6)
+
+
+def test_oc_is_held_to_the_same_theorem_and_keeps_it() -> None:
+    """OC (H at the estimates, projected onto H N = 0) declares FEJ's points: the monitor
+    holds it to the check, which never fires, and its growth stays at rounding."""
+    states = states_of("oc")
+    assert all(s.diagnostics.get("linearisation.fej") == 1.0 for s in states[1:])
+    healths = check_all(states)
+    assert not any(h.violations for h in healths)
+    growth = [h.statistics["unobservable_growth"] for h in healths
+              if "unobservable_growth" in h.statistics]
+    assert len(growth) > 1000 and max(growth) < 1e-9
 
 
 def test_a_standard_ekf_gains_spurious_information_reported_as_its_size(
