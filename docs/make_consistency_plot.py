@@ -59,9 +59,11 @@ def one(args: tuple[str, int, int, str]) -> tuple[np.ndarray, np.ndarray]:
 
 
 def runs_of(world: str, loops: int, linearisation: str, seeds: int, processes: int,
-            cache: Path | None) -> MonteCarlo:
+            cache: Path | None, cached_only: bool = False
+            ) -> tuple[MonteCarlo, list[tuple[np.ndarray, np.ndarray]]]:
     """The runs of seeds 0 … seeds−1, each kept in ``cache`` as it finishes (a second call,
-    or one cut short and started again, computes only the seeds it lacks)."""
+    or one cut short and started again, computes only the seeds it lacks; with
+    ``cached_only`` it computes none and uses the seeds the cache holds)."""
     def path(seed: int) -> Path | None:
         return None if cache is None else cache / f"{world}-{loops}-{linearisation}-{seed}.npz"
 
@@ -72,7 +74,7 @@ def runs_of(world: str, loops: int, linearisation: str, seeds: int, processes: i
         if p is not None and p.exists():
             data = np.load(p)
             runs[seed] = (data["stamps"], data["nees"])
-        else:
+        elif not cached_only:
             todo.append(seed)
     with ProcessPoolExecutor(processes) as pool:
         futures = {pool.submit(one, (world, loops, seed, linearisation)): seed
@@ -83,7 +85,14 @@ def runs_of(world: str, loops: int, linearisation: str, seeds: int, processes: i
             p = path(seed)
             if p is not None:
                 np.savez(p, stamps=runs[seed][0], nees=runs[seed][1])
-    return combine([runs[s] for s in range(seeds)])
+    kept = [runs[s] for s in sorted(runs)]
+    return combine(kept), kept
+
+
+def non_finite_seeds(runs: list[tuple[np.ndarray, np.ndarray]]) -> int:
+    """Seeds whose NEES became non-finite after the first second (P_vv no longer
+    invertible: the filter broke down)."""
+    return sum(bool(np.any(~np.isfinite(nees) & (stamps > 1.0))) for stamps, nees in runs)
 
 
 def first_out(mc: MonteCarlo, run_length: int = OUT_RUN) -> float | None:
@@ -104,31 +113,33 @@ def fifths(mc: MonteCarlo) -> list[float]:
 
 
 def compare(seeds: int, processes: int, cache: Path | None, output: Path,
-            large_seeds: int | None = None) -> None:
+            large_seeds: int | None = None, cached_only: bool = False) -> None:
     fig, axes = plt.subplots(len(CASES), 1, figsize=(9, 3.3 * len(CASES)), dpi=100)
-    print("| run | linearisation | events inside the band | time average | mean per fifth "
-          "of the run | leaves the band for good (≥ 50 events) at |")
-    print("|---|---|---|---|---|---|")
+    print("| run | linearisation | seeds (non-finite) | events inside the band | time average "
+          "| mean per fifth of the run | leaves the band for good (≥ 50 events) at |")
+    print("|---|---|---|---|---|---|---|")
     for ax, (label, world, loops) in zip(axes, CASES, strict=True):
         n = large_seeds if world == "large" and large_seeds else seeds
         band = None
         colours = ("tab:red", "tab:blue", "tab:purple")
         for linearisation, colour in zip(LINEARISATIONS, colours, strict=True):
-            mc = runs_of(world, loops, linearisation, n, processes, cache)
+            mc, kept = runs_of(world, loops, linearisation, n, processes, cache, cached_only)
             band = (mc.lower, mc.upper)
             shown = np.clip(mc.mean_nees, 1e-2, 1e6)
             ax.semilogy(mc.stamps, shown, lw=0.7, color=colour,
-                        label=f"{linearisation}: {100 * mc.fraction_inside:.0f} % inside")
+                        label=f"{linearisation} ({mc.seeds} seeds): "
+                              f"{100 * mc.fraction_inside:.0f} % inside")
             out = first_out(mc)
             where = "never" if out is None else f"{out:.1f} s"
-            print(f"| {label} | {linearisation} | {100 * mc.fraction_inside:.1f} % | "
+            print(f"| {label} | {linearisation} | {mc.seeds} ({non_finite_seeds(kept)}) | "
+                  f"{100 * mc.fraction_inside:.1f} % | "
                   f"{_fmt(float(np.nanmean(mc.mean_nees)))} | "
                   f"{', '.join(_fmt(v) for v in fifths(mc))} | {where} |", flush=True)
         assert band is not None
         ax.axhspan(*band, color="tab:green", alpha=0.18,
-                   label=f"95 % χ² band [{band[0]:.2f}, {band[1]:.2f}] ({n} seeds)")
+                   label=f"95 % χ² band [{band[0]:.2f}, {band[1]:.2f}] (last line's seeds)")
         ax.axhline(3.0, color="k", lw=0.6, ls=":")
-        ax.set_title(f"{label}: mean robot-pose NEES over {n} seeds", fontsize=10)
+        ax.set_title(f"{label}: mean robot-pose NEES over the seeds", fontsize=10)
         ax.set_xlabel("time (s)")
         ax.set_ylabel("NEES (log)")
         ax.legend(loc="upper left", fontsize=8)
@@ -155,6 +166,9 @@ def main() -> None:
     parser.add_argument("--large-seeds", type=int, default=None,
                         help="--compare: seeds of the large world's run (default: --seeds; "
                              "a run there costs about a minute of one core)")
+    parser.add_argument("--cached-only", action="store_true",
+                        help="--compare: draw from the runs --cache holds, computing none "
+                             "(each row says how many seeds it has)")
     parser.add_argument("--output", default="")
     args = parser.parse_args()
     figures = REPO / "docs" / "figures"
@@ -163,7 +177,8 @@ def main() -> None:
         if cache is not None:
             cache.mkdir(parents=True, exist_ok=True)
         compare(args.seeds or 50, args.processes, cache,
-                Path(args.output or figures / "nees_linearisation.png"), args.large_seeds)
+                Path(args.output or figures / "nees_linearisation.png"), args.large_seeds,
+                args.cached_only)
         return
     output = args.output or str(figures / "nees.png")
     mc = monte_carlo(load_world("paper"), range(args.seeds or 20))
