@@ -297,7 +297,9 @@ def update(x: np.ndarray, L: np.ndarray, n: int, j: int, *, z_range: float,
     K ν = V (L_S⁻¹ ν): the downdate is a symmetric rank-2 dsyrk on the lower triangle.
     H is evaluated at the latest estimates, or with ``at`` = (robot x, y, landmark x, y) at
     those points (FEJ: the robot's propagated position and the landmark's first estimate);
-    the innovation ν = z − h(x̂) is always the latest estimates'.
+    with ``null`` = (robot x, y, landmark x, y) it is then moved the least onto H N = 0, N
+    the unobservable directions at those points (OC, :func:`_constrained`); the innovation
+    ν = z − h(x̂) is always the latest estimates'.
 
     Returns the innovation and its covariance ``(ν_r, ν_φ, S_rr, S_rφ, S_φφ)`` before the
     update. Raises :class:`SingularInnovationError` without touching the state when
