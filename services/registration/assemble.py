@@ -156,12 +156,14 @@ def real_source(settings: RegistrationSettings,
 
 def detector_for(settings: RegistrationSettings, *, moving: bool
                  ) -> MarkerDetector | AprilTagDetector | WindowedDetector:
-    """One camera's detector: a fixed camera's looks only around the last markers between
-    full frames (``detect_full_every``); a moving camera's over every whole frame."""
+    """One camera's detector: it looks only around the last markers between full frames,
+    every ``detect_full_every``-th frame for a fixed camera, ``detect_full_every_moving``-th
+    for a head-mounted one (markers come into its view all the time)."""
     detector = make_detector(settings.detector, settings.dictionary)
-    if moving or settings.detect_full_every <= 1:
+    full_every = settings.detect_full_every_moving if moving else settings.detect_full_every
+    if full_every <= 1:
         return detector
-    return WindowedDetector(detector, full_every=settings.detect_full_every)
+    return WindowedDetector(detector, full_every=full_every)
 
 
 def build_service(bus: Bus, keys: Keys, settings: RegistrationSettings) -> RegistrationService:

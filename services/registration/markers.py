@@ -444,6 +444,7 @@ class WindowedDetector:
         self.window_frames = 0  #: frames detected in windows only
         self.fallbacks = 0  #: frames whose windows lost a marker: detected whole again
         self._last: list[Detection] = []
+        self._shape: tuple[int, ...] = ()  #: the last frame's shape (a new size: whole)
         self._since_full = 0
         #: after a fallback, frames detected whole before windows are tried again (doubling
         #: while they keep failing: a marker moving faster than its window costs a wasted
@@ -480,7 +481,8 @@ class WindowedDetector:
         """As :meth:`MarkerDetector.detect`: markers sorted by id then x then y."""
         tuning = self.detector.tuning
         if (not self._last or self._since_full + 1 >= self.full_every
-                or tuning.downscale > 1.0 or self._skip > 0):
+                or tuning.downscale > 1.0 or self._skip > 0
+                or image.shape[:2] != self._shape):
             self._skip = max(0, self._skip - 1)
             return self._full(image)
         gray = to_gray(image)
@@ -507,6 +509,7 @@ class WindowedDetector:
     def _full(self, image: np.ndarray, gray: np.ndarray | None = None) -> list[Detection]:
         detections = self.detector.detect(image if gray is None else gray)
         self._last = detections
+        self._shape = image.shape[:2]
         self._since_full = 0
         self.full_frames += 1
         return detections

@@ -73,8 +73,12 @@ class RegistrationSettings:
     detect_full_every: int = setting(
         15, doc="a fixed camera looks over the whole image every this many frames and, in "
                 "between, only around the markers of the last frame (the same detections: "
-                "docs/registration.md, \"Detection windows\"); 1 = every frame whole; a "
-                "head-mounted camera always looks over the whole image", min=1, group=_CAMERA)
+                "docs/registration.md, \"Detection windows\"); 1 = every frame whole",
+        min=1, group=_CAMERA)
+    detect_full_every_moving: int = setting(
+        3, doc="as --detect-full-every, for a head-mounted camera (markers come into its "
+               "view all the time: a new one is found at most this many frames later); "
+               "1 = every frame whole", min=1, group=_CAMERA)
     fourcc: str = setting("", doc="a USB camera's pixel format, four characters (MJPG: most "
                                   "give 1280x720 at 30 Hz only compressed); empty = its "
                                   "default", metavar="CODE", group=_CAMERA)

@@ -376,7 +376,10 @@ def test_head_mounted_stereo_follows_the_moving_cameras(make_client, run_service
         dt, dr = pose_error(pose.T_world_from_camera, T_wc)
         assert dt < 0.02 and dr < DEG
     assert service.pipelines[1].stats.tracked == 0  # one tracked stream per robot
-    assert "detected_in_windows" not in service.summary()["cameras"][names[0]]  # moving: whole
+    # moving: the whole image at least every detect_full_every_moving-th frame
+    counts = service.summary()["cameras"][names[0]]
+    detected = counts["detected_whole"] + counts["detected_in_windows"]
+    assert detected > 10 and counts["detected_whole"] >= detected // 3, counts
 
 
 def test_cli_process_publishes_and_stops_cleanly_on_sigterm(router_endpoint,

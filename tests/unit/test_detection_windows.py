@@ -104,3 +104,46 @@ def test_a_marker_faster_than_its_window_costs_a_window_at_most_now_and_then() -
     # lost at frames 1, 3, 6, 11, 20, 36, 52: 7, against 59 without the backoff
     assert 3 <= windowed.fallbacks <= 8, windowed.fallbacks
     assert windowed.full_frames >= 60 - 8 - windowed.fallbacks
+
+
+def test_a_head_mounted_walk_finds_each_marker_as_the_whole_image_does() -> None:
+    """The AR page's test walk (a head-mounted camera circling the arena, every other frame
+    as the page sends them), windowed as a moving camera is: every marker a window finds is
+    the whole image's, bit for bit; what the windows miss is only a marker new in view, and
+    it is found within ``full_every`` frames."""
+    from slamlens.services.harness.ar_video import render_walk
+
+    settings = RegistrationSettings(source="synthetic", mode="head-mounted")
+    video = render_walk(40, arc_deg=60.0)
+    full = MarkerDetector()
+    windowed = assemble.detector_for(settings, moving=True)
+    assert isinstance(windowed, WindowedDetector)
+    assert windowed.full_every == settings.detect_full_every_moving == 3
+    missing_for = {}  # marker id → frames in a row the windows missed it
+    found = want_total = 0
+    for k, image in enumerate(video.frames[::2]):
+        want = {d.marker_id: d for d in full.detect(image)}
+        got = {d.marker_id: d for d in windowed.detect(image)}
+        assert set(got) <= set(want), f"frame {k}: {set(got) - set(want)} not in the image"
+        for marker_id, d in got.items():
+            assert d == want[marker_id], f"frame {k} marker {marker_id}"
+        for marker_id in want:
+            missing_for[marker_id] = 0 if marker_id in got else missing_for.get(marker_id, 0) + 1
+            assert missing_for[marker_id] < windowed.full_every, (k, marker_id)
+        found += len(got)
+        want_total += len(want)
+    assert want_total >= 2 * len(video.frames[::2])  # the board is in view
+    assert windowed.window_frames >= len(video.frames[::2]) // 2
+    assert found >= 0.9 * want_total
+
+
+def test_a_frame_of_another_size_is_detected_whole() -> None:
+    camera = _camera(PAPER)
+    image = camera.render(robot_pose=np.array([0.5, 0.5, 0.0]))
+    windowed = WindowedDetector(MarkerDetector(), full_every=10)
+    windowed.detect(image)
+    windowed.detect(image)
+    assert (windowed.full_frames, windowed.window_frames) == (1, 1)
+    half = image[::2, ::2].copy()
+    assert windowed.detect(half) == MarkerDetector().detect(half)
+    assert windowed.full_frames == 2
