@@ -59,7 +59,12 @@ def measure(page, seconds: float) -> dict[str, float]:
     elapsed = time.monotonic() - t0
     lat = page.evaluate("window.slamlensAr.latencies") or [float("nan")]
     over = page.evaluate("window.slamlensAr.overlayLatencies") or [float("nan")]
-    return {"fps": (end[0] - start[0]) / elapsed, "overlay_fps": (end[1] - start[1]) / elapsed,
+    timings = page.evaluate("window.slamlensAr.timings")[-200:]
+    parts = {part: statistics.median(t[part] for t in timings) if timings else float("nan")
+             for part in ("encode", "server", "draw", "show")}
+    notes = page.evaluate("window.slamlensAr.notes")
+    return {"parts": parts, "notes": notes, "fps": (end[0] - start[0]) / elapsed,
+            "overlay_fps": (end[1] - start[1]) / elapsed,
             "latency_ms": statistics.median(lat[-200:]),
             "overlay_latency_ms": statistics.median(over[-200:]),
             "overlay_p90_ms": float(np.percentile(over[-200:], 90))}
@@ -84,7 +89,7 @@ def offsets(page, video, samples: int = 6) -> list[float]:
 
 
 def run(label: str, video, *, calibrated: bool, registration: bool, seconds: float,
-        with_offsets: bool) -> None:
+        with_offsets: bool, query: str = "") -> None:
     endpoint = free_tcp_endpoint()
     router = open_bus(router_settings([endpoint]))
     buses = []
@@ -102,14 +107,18 @@ def run(label: str, video, *, calibrated: bool, registration: bool, seconds: flo
                                  calibrated=calibrated, registration=registration,
                                  limits=limits)
             rig = next(rig_iter)
-            p, browser, page, _errors = open_ar_page(rig.y4m, rig.url)
+            p, browser, page, _errors = open_ar_page(rig.y4m, rig.url, query=query)
             try:
                 result = measure(page, seconds)
                 line = (f"{label:28s} {result['fps']:5.1f} fps answered, "
                         f"{result['overlay_fps']:5.1f} with the overlay; latency median "
                         f"{result['latency_ms']:6.1f} ms, overlay "
                         f"{result['overlay_latency_ms']:6.1f} ms "
-                        f"(p90 {result['overlay_p90_ms']:.0f})")
+                        f"(p90 {result['overlay_p90_ms']:.0f}); "
+                        + ", ".join(f"{k} {v:.1f}" for k, v in result["parts"].items()
+                                    if np.isfinite(v)))
+                if registration and result["notes"]:
+                    line += f"; without an overlay (since the start): {result['notes']}"
                 if with_offsets:
                     found = offsets(page, video)
                     line += (f"; cones from the truth median {np.median(found):.2f} px, "
@@ -131,15 +140,24 @@ def run(label: str, video, *, calibrated: bool, registration: bool, seconds: flo
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=20.0)
+    parser.add_argument("--inflight", type=int, default=0,
+                        help="the page's frames in flight (its ?inflight=; 0: its default)")
+    parser.add_argument("--only", choices=("baseline", "calibrated", "default"),
+                        help="one run only")
     args = parser.parse_args()
+    query = f"&inflight={args.inflight}" if args.inflight else ""
     video = render_walk(48, arc_deg=60.0)
-    print("1280x720, n = 15, all pairs; medians over the window", flush=True)
-    run("baseline (no registration)", video, calibrated=True, registration=False,
-        seconds=args.seconds, with_offsets=False)
-    run("AR, calibrated", video, calibrated=True, registration=True, seconds=args.seconds,
-        with_offsets=True)
-    run("AR, default phone model", video, calibrated=False, registration=True,
-        seconds=args.seconds, with_offsets=True)
+    print("1280x720, n = 15, all pairs; medians over the window"
+          + (f"; {args.inflight} frames in flight" if args.inflight else ""), flush=True)
+    if args.only in (None, "baseline"):
+        run("baseline (no registration)", video, calibrated=True, registration=False,
+            seconds=args.seconds, with_offsets=False, query=query)
+    if args.only in (None, "calibrated"):
+        run("AR, calibrated", video, calibrated=True, registration=True,
+            seconds=args.seconds, with_offsets=True, query=query)
+    if args.only in (None, "default"):
+        run("AR, default phone model", video, calibrated=False, registration=True,
+            seconds=args.seconds, with_offsets=True, query=query)
 
 
 if __name__ == "__main__":

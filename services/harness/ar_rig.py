@@ -104,7 +104,8 @@ def start_rig(make_client, router_endpoint: str, tmp_path: Path, video: Video, *
             stop(service_proc)
 
 
-def open_ar_page(y4m: Path, url: str, *, camera: str = "phone-test") -> tuple[Any, ...]:
+def open_ar_page(y4m: Path, url: str, *, camera: str = "phone-test",
+                 query: str = "") -> tuple[Any, ...]:
     """Chromium with the video as its camera, on the AR page; (playwright, browser, page)."""
     from playwright.sync_api import sync_playwright
 
@@ -118,7 +119,7 @@ def open_ar_page(y4m: Path, url: str, *, camera: str = "phone-test") -> tuple[An
     page = browser.new_context(viewport={"width": 1400, "height": 900}).new_page()
     errors: list[str] = []
     page.on("pageerror", lambda exc: errors.append(str(exc)))
-    page.goto(f"{url}/ar?camera={camera}")
+    page.goto(f"{url}/ar?camera={camera}{query}")
     page.wait_for_function("window.slamlensAr && window.slamlensAr.camera", timeout=15000)
     return p, browser, page, errors
 

@@ -80,13 +80,17 @@ class ArResult:
     jpeg: bytes
 
 
-@dataclasses.dataclass(frozen=True, eq=False)
+@dataclasses.dataclass(eq=False)
 class _Sent:
     seq: int
     stamp: float  #: the frame's stamp on the bus (wall clock at receipt, unique)
     jpeg: bytes
     received: float  #: time.monotonic() at receipt
     tag: Any  #: what the page said of it (echoed back)
+    #: the decoded picture, made while its registration is on its way (None: not yet, or
+    #: the JPEG does not decode — then ``undecodable``)
+    image: np.ndarray | None = None
+    undecodable: bool = False
 
 
 class ArSession:
@@ -185,6 +189,7 @@ class ArSession:
                 found = registered.pop(frame.stamp, None)
                 late = time.monotonic() - frame.received > self.hub.limits.wait_s
                 if found is None and newest < frame.stamp and not late:
+                    self._decode_waiting()  # while its registration is on its way
                     break  # its registration may still come
                 with self._lock:
                     if self._frames and self._frames[0] is frame:
@@ -192,6 +197,15 @@ class ArSession:
                 self._answer(frame, found)
             for stamp in [s for s in registered if s < newest]:  # frames already answered
                 del registered[stamp]
+
+    def _decode_waiting(self) -> None:
+        """Decode the frames waiting for their registration (at most KEPT_FRAMES), so that
+        drawing starts as soon as a registration comes."""
+        with self._lock:
+            waiting = [f for f in self._frames if f.image is None and not f.undecodable]
+        for frame in waiting:
+            frame.image = cv2.imdecode(np.frombuffer(frame.jpeg, np.uint8), cv2.IMREAD_COLOR)
+            frame.undecodable = frame.image is None
 
     def _answer(self, frame: _Sent, found: tuple[Registration, float] | None) -> None:
         t0 = time.perf_counter()
@@ -226,7 +240,9 @@ class ArSession:
 
     def _draw(self, frame: _Sent, reg: Registration, received: float
               ) -> tuple[bytes, str, int | None]:
-        image = cv2.imdecode(np.frombuffer(frame.jpeg, np.uint8), cv2.IMREAD_COLOR)
+        image = frame.image
+        if image is None and not frame.undecodable:
+            image = cv2.imdecode(np.frombuffer(frame.jpeg, np.uint8), cv2.IMREAD_COLOR)
         if image is None:
             return frame.jpeg, "the frame does not decode", None
         picture, why = self.hub.api.draw_over(image, reg, received, self.robot,

@@ -111,7 +111,7 @@ class ArRoutes:
             self.refusals.drop(f"web {exc.kind}", f"409 {request.path} from {request.remote}: "
                                f"{exc}")
             return _json({"error": str(exc)}, status=409)
-        ws = web.WebSocketResponse(heartbeat=20.0,
+        ws = web.WebSocketResponse(heartbeat=20.0, compress=False,
                                    max_msg_size=self.hub.limits.max_frame_bytes + MAX_TEXT)
         sender: asyncio.Task[None] | None = None
         try:

@@ -103,7 +103,8 @@ class Streams:
     async def websocket(self, request: web.Request) -> web.StreamResponse:
         watch = _Watch(self._api, self._client(request))
         watch.current()  # no room for its view: 503 instead of the upgrade
-        ws = web.WebSocketResponse(heartbeat=20.0, max_msg_size=MAX_WS_MESSAGE)
+        ws = web.WebSocketResponse(heartbeat=20.0, max_msg_size=MAX_WS_MESSAGE,
+                                   compress=False)
         try:
             await ws.prepare(request)
         except BaseException:

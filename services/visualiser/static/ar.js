@@ -5,7 +5,6 @@
 
 const LAYERS = ["robot", "path", "features", "lines", "ellipsoids", "legend", "labels", "health",
                 "rejected"];
-const MAX_INFLIGHT = 2;  // frames sent and not answered yet (flow control)
 const STALE_MS = 3000;  // a frame unanswered this long is given up
 
 function randomId(bytes) {
@@ -28,6 +27,8 @@ const client = (() => {
 const ar = window.slamlensAr = {
   client, camera: null, robot: null, sent: 0, answered: 0, overlays: 0, refused: 0,
   latencies: [], overlayLatencies: [], last: null, errors: 0, cameraError: null,
+  timings: [],  // per answer with an overlay: ms taking+encoding, in the viewer, decoding+showing
+  notes: {},  // why answers came without an overlay: note → how many
   width: 0, height: 0, settings: null,
 };
 
@@ -38,7 +39,10 @@ const video = $("camera");
 const grab = document.createElement("canvas");
 const gctx = grab.getContext("2d");
 const params = new URLSearchParams(location.search);
+// frames sent and not answered yet (flow control): ?inflight=1…4, 2 by default
+const MAX_INFLIGHT = Math.min(4, Math.max(1, Number(params.get("inflight")) || 2));
 const inflight = new Map();  // tag → performance.now() when its frame was taken
+const sentAt = new Map();  // tag → performance.now() when its frame went on the socket
 let socket = null;
 let header = null;
 let nextTag = 1;
@@ -161,6 +165,7 @@ async function send() {
   if (!blob || !socket || socket.readyState !== WebSocket.OPEN) { inflight.delete(tag); return; }
   socket.send(JSON.stringify({tag}));
   socket.send(blob);
+  sentAt.set(tag, performance.now());
   ar.sent += 1;
   ar.width = w;
   ar.height = h;
@@ -168,7 +173,9 @@ async function send() {
 
 function pump() {
   const now = performance.now();
-  for (const [tag, t] of inflight) if (now - t > STALE_MS) inflight.delete(tag);
+  for (const [tag, t] of inflight) {
+    if (now - t > STALE_MS) { inflight.delete(tag); sentAt.delete(tag); }
+  }
   if (!fresh || !socket || socket.readyState !== WebSocket.OPEN || !video.videoWidth) return;
   if (inflight.size >= MAX_INFLIGHT) return;
   send();
@@ -180,7 +187,7 @@ function connect() {
   const query = new URLSearchParams({client, camera: ar.camera, robot: ar.robot || ""});
   socket = new WebSocket(`${scheme}://${location.host}/ar/ws?${query}`);
   socket.binaryType = "blob";
-  socket.onopen = () => { inflight.clear(); $("arstatus").textContent = `camera ${ar.camera}`; };
+  socket.onopen = () => { inflight.clear(); sentAt.clear(); $("arstatus").textContent = `camera ${ar.camera}`; };
   socket.onmessage = onMessage;
   socket.onclose = () => {
     $("arstatus").textContent = `camera ${ar.camera}: not connected (is the name taken, ` +
@@ -195,6 +202,7 @@ async function onMessage(event) {
     if (message.refused !== undefined) {
       ar.refused += 1;
       inflight.delete(message.tag);
+      sentAt.delete(message.tag);
       showError(`frame refused: ${message.refused}`);
       pump();
     } else {
@@ -204,6 +212,7 @@ async function onMessage(event) {
   }
   const meta = header;
   header = null;
+  const arrived = performance.now();
   const bitmap = await createImageBitmap(event.data);
   if (view.width !== bitmap.width || view.height !== bitmap.height) {
     view.width = bitmap.width;
@@ -216,12 +225,20 @@ async function onMessage(event) {
   view.dataset.answered = String(ar.answered);
   if (meta) {
     const taken = inflight.get(meta.tag);
+    const sent = sentAt.get(meta.tag);
     inflight.delete(meta.tag);
+    sentAt.delete(meta.tag);
     ar.last = meta;
     if (meta.overlay) ar.overlays += 1;
+    else ar.notes[meta.note] = (ar.notes[meta.note] || 0) + 1;
     if (taken !== undefined) {
       ar.latencies.push(shown - taken);
       if (meta.overlay) ar.overlayLatencies.push(shown - taken);
+      if (meta.overlay && sent !== undefined) {
+        ar.timings.push({encode: sent - taken, server: meta.server_ms, draw: meta.draw_ms,
+                         show: shown - arrived, total: shown - taken});
+        if (ar.timings.length > 600) ar.timings.shift();
+      }
       if (ar.latencies.length > 600) ar.latencies.shift();
       if (ar.overlayLatencies.length > 600) ar.overlayLatencies.shift();
     }
