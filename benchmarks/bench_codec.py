@@ -6,6 +6,11 @@ landmarks: ``to_bytes`` and ``from_bytes`` (the fast decoding path, and the full
 ``msgpack.packb`` / ``msgpack.unpackb`` of the same wire map (the floor a codec cannot beat:
 slamlens validates every field on top). Run it on two checkouts to compare them.
 
+Then the n = 1000 state's ``wire_parts`` into Zenoh shared memory (``ShmPool.wrap``, a
+large array part copied a megabyte at a time) against the same parts each turned into
+``bytes`` whole first (the baseline, in the same run), three buffers kept alive as a
+subscriber or a cache would.
+
     python benchmarks/bench_codec.py [--repeats 7]
 """
 
@@ -73,7 +78,45 @@ def main() -> int:
         unpack = _time(lambda p=payload: msgpack.unpackb(p, raw=False), loops, args.repeats)
         print(f"{name:20s} {enc:10.2f} {pack:8.2f} {enc / pack:6.2f}  {dec:10.2f} {full:9.2f} "
               f"{unpack:8.2f} {dec / unpack:6.2f}")
+    shm_ms, whole_ms = _shm(_state(1000), args.repeats)
+    print(f"SlamState n=1000 into shared memory: {shm_ms:.1f} ms chunked, {whole_ms:.1f} ms "
+          f"through whole bytes copies (ratio {shm_ms / whole_ms:.2f}; medians)")
     return 0
+
+
+def _shm(state: SlamState, repeats: int, loops: int = 40) -> tuple[float, float]:
+    """Median ms of ShmPool.wrap(wire_parts) and of the whole-bytes baseline, interleaved."""
+    import zenoh
+    from zenoh import shm
+
+    from slamlens.common.zenoh_publishing import ShmPool
+
+    parts = state.wire_parts()
+    size = sum(len(p) for p in parts)
+    pool = ShmPool()
+    provider = shm.ShmProvider.default_backend(1 << 30)
+
+    def whole() -> object:
+        buf = provider.alloc(size, shm.GarbageCollect())
+        offset = 0
+        for part in parts:
+            data = part if isinstance(part, (bytes, bytearray)) else bytes(part)
+            buf[offset:offset + len(data)] = data
+            offset += len(data)
+        return zenoh.ZBytes(buf)
+
+    runs: dict[str, list[float]] = {"chunked": [], "whole": []}
+    for _ in range(repeats):
+        for name, fn in (("chunked", lambda: pool.wrap(parts)), ("whole", whole)):
+            kept: list[object] = []
+            times = []
+            for _ in range(loops):
+                start = time.perf_counter()
+                kept.append(fn())
+                times.append(time.perf_counter() - start)
+                del kept[:-3]
+            runs[name].append(statistics.median(times[loops // 2:]) * 1e3)
+    return statistics.median(runs["chunked"]), statistics.median(runs["whole"])
 
 
 if __name__ == "__main__":

@@ -266,8 +266,9 @@ def test_large_payloads_go_through_shared_memory_on_one_host(router_endpoint) ->
         payloads[2] = b"head" + payloads[2][4:-4] + b"tail"
         pub.put(payloads[0])
         pub.put(bytearray(payloads[1]))
-        # in parts (Message.wire_parts): written one after the other into one buffer
-        pub.put([b"head", bytearray(payloads[2][4:-4]), memoryview(b"tail")])
+        # in parts (Message.wire_parts): written one after the other into one buffer; a
+        # large memoryview (an array's) is copied a chunk at a time, not a whole chunk long
+        pub.put([b"head", memoryview(payloads[2])[4:-4], memoryview(b"tail")])
         for ch in (got_local, got_remote):
             received = [ch.recv(timeout=20.0) for _ in payloads]
             assert [s.payload if s else None for s in received] == payloads
