@@ -12,12 +12,17 @@ A real router process and a real ``slamlens ros2`` process for each part.
     same state (``services/recorder/scene.py``, the other 3D exporter).
 (b) **Import**, target ≥ 20 states per second, each equal to the ROS message to the last
     bit: ``slamlens_msgs/msg/SlamEstimate`` of an n = 1000 map (32 MB; CDR from rosbags,
-    key and attachment as rmw_zenoh writes them) is put at 25 per second; the SlamStates
-    coming out of the bridge are timed as they arrive and compared with the messages
-    afterwards. The baseline in the same run: the same payloads relayed through the same
-    router by a bare subscriber that republishes them (the transport's own rate).
+    key and attachment as rmw_zenoh writes them), numbered and built before anything is
+    timed, put at 25 per second after 10 untimed ones (pools made, pages first touched) —
+    as bytes over TCP, and from shared memory as an rmw_zenoh publisher with shared memory
+    on puts them (``--put``). The rate: distinct SlamStates out of the bridge from the
+    first timed put to the last arrival; the bridge's CPU per estimate (``/proc``); the
+    states compared with the messages after the run. The baseline in the same run: the
+    same payloads relayed through the same router by a bare subscriber that republishes
+    them (the transport's own rate).
 
-Run: ``.venv/bin/python benchmarks/bench_ros2.py [--windows 10] [--estimates 40]``
+Run: ``.venv/bin/python benchmarks/bench_ros2.py [--windows 10] [--estimates 50]
+[--only export|import] [--put bytes|shm|both]``
 """
 
 from __future__ import annotations
@@ -40,6 +45,7 @@ from slamlens.common.keys import Keys  # noqa: E402
 from slamlens.common.messages import SlamState  # noqa: E402
 from slamlens.common.scene3d import SceneSettings  # noqa: E402
 from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus  # noqa: E402
+from slamlens.common.zenoh_publishing import ShmPool  # noqa: E402
 from slamlens.services.recorder.scene import scene_update  # noqa: E402
 from slamlens.services.ros2.markers import MarkerExport  # noqa: E402
 from slamlens.services.ros2.outputs import PathTrack, pose_with_covariance, transform  # noqa: E402
@@ -165,12 +171,30 @@ def _estimate_payload(n: int) -> tuple[bytes, int]:
     return payload, 4 + 16  # header: stamp 8, "map" 8; seq is the next 8-aligned uint64
 
 
-def import_rate(count: int, n: int = 1000, rate: float = 25.0) -> dict[str, float]:
+WARMUP = 10  #: estimates put before the timed ones
+
+
+def _numbered(payload: bytes, seq_at: int, count: int) -> list[bytes]:
+    """``count`` copies of ``payload`` with seq 0, 1, … (made before anything is timed)."""
+    out = []
+    for k in range(count):
+        data = bytearray(payload)
+        data[seq_at:seq_at + 8] = np.uint64(k).tobytes()
+        out.append(bytes(data))
+    return out
+
+
+def import_rate(count: int, n: int = 1000, rate: float = 25.0, *, shm: bool = False
+                ) -> dict[str, float]:
+    """Bridge and bare relay, ``count`` estimates each put at ``rate``; with ``shm`` they
+    are put from shared memory (as an rmw_zenoh publisher with shared memory on)."""
     payload, seq_at = _estimate_payload(n)
     size = 3 + 2 * n
     cov = payload[len(payload) - 8 * size * size:]  # the last field: the covariance
     end = len(payload) - 8 * size * size - 8  # before it: a count and 4 bytes of padding
     lms = payload[end - 16 * n:end]
+    payloads = _numbered(payload, seq_at, count)
+    pool = ShmPool(pool_bytes=(count + 4) * len(payload)) if shm else None
     endpoint = free_tcp_endpoint()
     router = _spawn("router", "--listen", endpoint)
     _wait_line(router, "router ready")
@@ -180,33 +204,39 @@ def import_rate(count: int, n: int = 1000, rate: float = 25.0) -> dict[str, floa
     bus = open_bus(BusSettings(connect=(endpoint,)))
     key = (f"0/{ROBOT}/slam/estimate/slamlens_msgs::msg::dds_::SlamEstimate_/"
            f"{ros_type(ESTIMATE, 'jazzy').hash}")
-    seqs: set[int] = set()
-    equal = [0]
 
-    def same_state(data: bytes) -> None:  # the verifier, off Zenoh's threads
-        state = SlamState.from_bytes(data)
-        seqs.add(state.seq)
-        equal[0] += (state.covariance.tobytes() == cov and state.landmarks.tobytes() == lms
-                     and state.landmark_ids.tolist() == list(range(6, 6 + n)))
+    def state_seq(data: bytes) -> tuple[int, object]:
+        state = SlamState.from_bytes(data, check_symmetry=False)
+        return state.seq, state
 
-    relay_key = f"0/{ROBOT}/relay/in"
-    originals: set[bytes] = set()
+    def same_state(state: SlamState) -> bool:  # afterwards, not while timing
+        return (state.covariance.tobytes() == cov and state.landmarks.tobytes() == lms
+                and state.landmark_ids.tolist() == list(range(6, 6 + n)))
 
-    def same_bytes(data: bytes) -> None:
-        equal[0] += data[:seq_at] + data[seq_at + 8:] in originals
+    def relay_seq(data: bytes) -> tuple[int, object]:
+        return int(np.frombuffer(data, np.uint64, 1, seq_at)[0]), data
 
     try:
         assert bus.wait_for_subscriber(key, timeout=30)
-        bridged = _timed(bus, key, KEYS.state(ROBOT), payload, seq_at, count, rate, same_state)
-        bridge_equal, equal[0] = equal[0], 0
-        originals.add(payload[:seq_at] + payload[seq_at + 8:])
-        relay = _Relay(bus, relay_key, f"0/{ROBOT}/relay/out")
-        relayed = _timed(bus, relay_key, f"0/{ROBOT}/relay/out", payload, seq_at, count, rate,
-                         same_bytes)
+        cpu0 = _cpu(bridge.pid)
+        bridged = _timed(bus, key, KEYS.state(ROBOT), payloads, rate, state_seq, pool)
+        cpu_s = _cpu(bridge.pid) - cpu0
+        bridged_seqs = set(bridged["kept"])
+        timed = {k: v for k, v in bridged["kept"].items() if k >= WARMUP}
+        bridge_equal = sum(same_state(x) for x in timed.values())
+        bridged["kept"].clear()
+        relay = _Relay(bus, f"0/{ROBOT}/relay/in", f"0/{ROBOT}/relay/out")
+        relayed = _timed(bus, f"0/{ROBOT}/relay/in", f"0/{ROBOT}/relay/out", payloads, rate,
+                         relay_seq, pool)
         relay.close()
-        return {"bridge_per_s": bridged[0], "received": bridged[1], "bit_equal": bridge_equal,
-                "distinct": len(seqs), "relay_per_s": relayed[0], "relay_received": relayed[1],
-                "relay_equal": equal[0]}
+        relay_equal = sum(data == payloads[k] for k, data in relayed["kept"].items()
+                          if k >= WARMUP)
+        imported = len(bridged_seqs)
+        return {"bridge_per_s": bridged["per_s"], "received": bridged["received"],
+                "cpu_ms": 1e3 * cpu_s / max(1, imported),
+                "bit_equal": bridge_equal, "distinct": len(timed),
+                "relay_per_s": relayed["per_s"], "relay_received": relayed["received"],
+                "relay_equal": relay_equal}
     finally:
         bus.close()
         for proc in (bridge, router):
@@ -238,69 +268,86 @@ class _Relay:
         self.thread.join(2)
 
 
-def _timed(bus, key: str, out_key: str, payload: bytes, seq_at: int, count: int,  # noqa: ANN001
-           rate: float, verify) -> tuple[float, int]:  # noqa: ANN001
-    """Put ``count`` payloads (seq 0, 1 …) at ``rate`` on ``key``; the rate they came out
-    on ``out_key`` (arrival times taken in the callback, payloads verified by a worker)."""
+def _timed(bus, key: str, out_key: str, payloads: list[bytes], rate: float,  # noqa: ANN001
+           seq_of, pool: ShmPool | None = None, warmup: int = WARMUP) -> dict:  # noqa: ANN001
+    """Put ``payloads`` (seq 0, 1, …) at ``rate`` on ``key`` (from shared memory with
+    ``pool``, wrapped before timing); the rate those after the first ``warmup`` came out on
+    ``out_key`` (the first ones pay for pools being made and pages first touched), arrival
+    times taken in the callback. A worker copies each payload out of Zenoh's buffer at once
+    and reads its seq; it ends when the last one put has come (the bridge may skip older
+    ones for it, never the newest)."""
     attachment = np.int64(1).tobytes() + np.int64(time.time_ns()).tobytes() + bytes([16]) \
         + bytes(16)
+    outs = payloads if pool is None else [pool.wrap(p) for p in payloads]
     arrivals: list[float] = []
     waiting: list = []
+    kept: dict[int, object] = {}
     cond = threading.Condition()
+    last = len(payloads) - 1
 
     def on_sample(_key: str, fetch) -> None:  # noqa: ANN001
         with cond:
-            arrivals.append(time.monotonic())
-            waiting.append(fetch)
+            waiting.append((time.monotonic(), fetch))
             cond.notify_all()
 
-    def verifier() -> None:
-        done = 0
-        while done < count:
+    def worker() -> None:
+        while last not in kept:
             with cond:
-                if not cond.wait_for(lambda: waiting, timeout=60):
+                if not cond.wait_for(lambda: waiting, timeout=120):
                     return
-                fetch = waiting.pop(0)
-            verify(fetch())
-            done += 1
+                arrived, fetch = waiting.pop(0)
+            seq, value = seq_of(fetch())
+            kept[seq] = value
+            if seq >= warmup:
+                arrivals.append(arrived)
 
     sub = bus.subscribe_lazy(out_key, on_sample)
-    worker = threading.Thread(target=verifier, daemon=True)
-    worker.start()
-    data = bytearray(payload)
+    thread = threading.Thread(target=worker, daemon=True)
+    thread.start()
     t0 = time.monotonic()
-    for k in range(count):
-        data[seq_at:seq_at + 8] = np.uint64(k).tobytes()
+    for k, out in enumerate(outs):
         time.sleep(max(0.0, t0 + k / rate - time.monotonic()))
-        bus.session.put(key, bytes(data), attachment=attachment)
-    with cond:
-        cond.wait_for(lambda: len(arrivals) >= count, timeout=120)
-    worker.join(300)
+        bus.session.put(key, out, attachment=attachment)
+    timed_from = t0 + warmup / rate  # when the first timed one was put
+    thread.join(300)  # ends on the last payload's arrival (or 120 s without any)
     sub.undeclare()
-    if len(arrivals) < 2:
-        return 0.0, len(arrivals)
-    return (len(arrivals) - 1) / (arrivals[-1] - arrivals[0]), len(arrivals)
+    # distinct payloads out per second, from the first timed put to the last arrival
+    per_s = len(arrivals) / (max(arrivals) - timed_from) if arrivals else 0.0
+    return {"per_s": per_s, "received": len(arrivals), "kept": kept}
 
 
 def main() -> None:
     parser = argparse.ArgumentParser()
     parser.add_argument("--windows", type=int, default=10)
-    parser.add_argument("--estimates", type=int, default=40)
+    parser.add_argument("--estimates", type=int, default=50,
+                        help=f"estimates timed (after {WARMUP} untimed)")
+    parser.add_argument("--only", choices=("export", "import"), help="one part only")
+    parser.add_argument("--put", choices=("bytes", "shm", "both"), default="both",
+                        help="how the estimates are put: as bytes over TCP, from shared "
+                             "memory, or both in turn")
     args = parser.parse_args()
-    ros_ms, fox_ms = in_process()
-    print(f"in process, one state (n = 50, all pairs, 2000-pose path): ROS 2 messages "
-          f"{ros_ms:.2f} ms CPU, Foxglove scene {fox_ms:.2f} ms CPU (medians)")
-    e = export(args.windows)
-    print(f"(a) export at 20 states/s, n = 50 all pairs: bridge {e['ms_per_state']:.2f} ms CPU "
-          f"per state (median of {args.windows} windows of 20; {e['min']:.2f}–{e['max']:.2f}), "
-          f"idle baseline {e['idle_ms_per_s']:.2f} ms/s subtracted; {e['exported']} of "
-          f"{e['put']} states drawn (the rest skipped for newer ones); target ≤ 5 ms")
-    r = import_rate(args.estimates)
-    print(f"(b) import n = 1000 SlamEstimate put at 25/s: {r['bridge_per_s']:.1f} states/s out "
-          f"of the bridge, {r['received']} of {args.estimates} put, {r['bit_equal']} bit-equal "
-          f"to the message ({r['distinct']} distinct seqs); the same payloads relayed bare "
-          f"through the router: {r['relay_per_s']:.1f}/s ({r['relay_received']} received, "
-          f"{r['relay_equal']} equal); target ≥ 20/s")
+    if args.only != "import":
+        ros_ms, fox_ms = in_process()
+        print(f"in process, one state (n = 50, all pairs, 2000-pose path): ROS 2 messages "
+              f"{ros_ms:.2f} ms CPU, Foxglove scene {fox_ms:.2f} ms CPU (medians)")
+        e = export(args.windows)
+        print(f"(a) export at 20 states/s, n = 50 all pairs: bridge {e['ms_per_state']:.2f} ms "
+              f"CPU per state (median of {args.windows} windows of 20; "
+              f"{e['min']:.2f}–{e['max']:.2f}), idle baseline {e['idle_ms_per_s']:.2f} ms/s "
+              f"subtracted; {e['exported']} of {e['put']} states drawn (the rest skipped for "
+              "newer ones); target ≤ 5 ms")
+    if args.only != "export":
+        for shm, how in ((False, "as bytes (TCP)"), (True, "in shared memory")):
+            if args.put != "both" and shm != (args.put == "shm"):
+                continue
+            r = import_rate(args.estimates + WARMUP, shm=shm)
+            print(f"(b) import n = 1000 SlamEstimate put at 25/s {how}: "
+                  f"{r['bridge_per_s']:.1f} states/s out of the bridge, {r['received']} of "
+                  f"{args.estimates} put, bridge CPU {r['cpu_ms']:.1f} ms per estimate, "
+                  f"{r['bit_equal']} bit-equal to the message "
+                  f"({r['distinct']} distinct seqs); the same payloads relayed bare through "
+                  f"the router: {r['relay_per_s']:.1f}/s ({r['relay_received']} received, "
+                  f"{r['relay_equal']} equal); target ≥ 20/s", flush=True)
     print(f"load average during the run: {os.getloadavg()[0]:.1f} on {os.cpu_count()} cores")
 
 
