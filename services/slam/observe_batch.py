@@ -73,7 +73,7 @@ class BatchApplier:
                 out = ekf.update(store.x, store.L, store.n, j, z_range=z_r, z_bearing=z_b,
                                  var_range=var_r, var_bearing=self.noise.var_b, ws=store.ws,
                                  gate=self.innovation_gate, guard=self.guard, defer=True,
-                                 at=store.update_point(j), null=store.null_point(j))
+                                 **store.linearisation(j))
         except ekf.GatedObservationError as exc:
             self.checks.gated += 1
             batch.gated.append((lid, z_r, z_b, exc.nis))

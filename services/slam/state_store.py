@@ -59,14 +59,15 @@ class StateStore:
         """Where the robot's Jacobians are evaluated: FEJ's point, or None (the estimate)."""
         return None if self.fej is None else self.fej.robot
 
-    def update_point(self, j: int) -> Any:
-        """Where an update of landmark ``j`` is linearised: FEJ's point, or None."""
-        return None if self.fej is None or self.oc else self.fej.update_point(j)
-
-    def null_point(self, j: int) -> Any:
-        """OC-EKF: (robot x, y, landmark x, y) of the unobservable directions H must leave
-        alone for an update of landmark ``j``; None otherwise."""
-        return self.fej.update_point(j) if self.oc and self.fej is not None else None
+    def linearisation(self, j: int) -> dict[str, Any]:
+        """How an update of landmark ``j`` is linearised, as ekf.update's keywords: FEJ's
+        point (robot x, y, landmark x, y) as ``at`` — H evaluated there —, for the OC-EKF
+        the same point as ``null`` — the unobservable directions H must leave alone —, and
+        nothing for the standard EKF (H at the latest estimates)."""
+        if self.fej is None:
+            return {}
+        point = self.fej.update_point(j)
+        return {"null": point} if self.oc else {"at": point}
 
     def flush(self) -> None:
         """Apply the downdates held back by a batch's updates (ekf.update ``defer``):

@@ -60,19 +60,28 @@ class DenseFej:
 
     def observe(self, lid: int, z: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
         if lid not in self.ids:
-            self._initialise(lid, z)
+            self.initialise(lid, z)
             return None
-        j = self.ids.index(lid)
-        x, N = self.x, self.x.size
+        return self.update(self.ids.index(lid), z)
+
+    def jacobian(self, j: int) -> np.ndarray:
+        """H (2 × N) of landmark j's measurement, at the first estimates."""
+        a = 3 + 2 * j
+        e = self.first[j] - self.robot_point
+        q = float(e @ e)
+        r = math.sqrt(q)
+        H = np.zeros((2, self.x.size))
+        H[:, 0:3] = [[-e[0] / r, -e[1] / r, 0.0], [e[1] / q, -e[0] / q, -1.0]]
+        H[:, a:a + 2] = [[e[0] / r, e[1] / r], [-e[1] / q, e[0] / q]]
+        return H
+
+    def update(self, j: int, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The EKF update with landmark j's measurement z (H from :meth:`jacobian`)."""
+        x = self.x
         a = 3 + 2 * j
         d = x[a:a + 2] - x[:2]
         h = np.array([math.hypot(*d), math.atan2(d[1], d[0]) - x[2]])
-        e = self.first[j] - self.robot_point  # H at the first estimates
-        q = float(e @ e)
-        r = math.sqrt(q)
-        H = np.zeros((2, N))
-        H[:, 0:3] = [[-e[0] / r, -e[1] / r, 0.0], [e[1] / q, -e[0] / q, -1.0]]
-        H[:, a:a + 2] = [[e[0] / r, e[1] / r], [-e[1] / q, e[0] / q]]
+        H = self.jacobian(j)
         nu = z - h
         nu[1] = wrap(nu[1])
         S = H @ self.P @ H.T + np.diag([SIG_R ** 2, SIG_B ** 2])
@@ -83,7 +92,7 @@ class DenseFej:
         self.P = 0.5 * (P + P.T)
         return nu, S
 
-    def _initialise(self, lid: int, z: np.ndarray) -> None:
+    def initialise(self, lid: int, z: np.ndarray) -> None:
         x, N = self.x, self.x.size
         r, phi = z
         al = x[2] + phi

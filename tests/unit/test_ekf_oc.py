@@ -18,6 +18,7 @@ import pytest
 from slamlens.services.slam import ekf
 from slamlens.services.slam.estimator import Estimator
 from slamlens.services.slam.settings import EstimatorSettings
+from tests.unit.test_ekf_fej import DenseFej
 
 SIG_V, SIG_W, SIG_R, SIG_B = 0.08, 0.06, 0.05, 0.02
 RTOL = 1e-10
@@ -52,29 +53,12 @@ def jacobian(f, x: np.ndarray, eps: float = 1e-7) -> np.ndarray:
     return np.column_stack(cols)
 
 
-class DenseOc:
-    """A dense OC-EKF: F and Gv at FEJ's points, H at the estimates projected onto H N = 0."""
+class DenseOc(DenseFej):
+    """A dense OC-EKF: DenseFej's F, Gv and points, and H at the estimates projected onto
+    H N = 0 (the only difference: :meth:`jacobian`)."""
 
     def __init__(self) -> None:
-        self.x = np.zeros(3)
-        self.P = P0.copy()
-        self.robot_point = self.x[:2].copy()
-        self.first: list[np.ndarray] = []
-        self.ids: list[int] = []
-
-    def predict(self, v: float, w: float, dt: float) -> None:
-        x, N = self.x, self.x.size
-        new = x.copy()
-        new[0] += v * dt * math.cos(x[2])
-        new[1] += v * dt * math.sin(x[2])
-        new[2] = wrap(x[2] + w * dt)
-        F = np.eye(N)
-        F[0:2, 2] = rot(new[:2] - self.robot_point)
-        G = np.zeros((N, 2))
-        G[0, 0], G[1, 0], G[2, 1] = dt * math.cos(x[2]), dt * math.sin(x[2]), dt
-        self.P = F @ self.P @ F.T + G @ np.diag([SIG_V ** 2, SIG_W ** 2]) @ G.T
-        self.x = new
-        self.robot_point = new[:2].copy()
+        super().__init__(np.zeros(3), P0)
 
     def constrained_h(self, j: int) -> tuple[np.ndarray, list[int]]:
         """H on the five columns (x, y, θ, mx, my) it touches, and those columns."""
@@ -85,43 +69,11 @@ class DenseOc:
                        np.column_stack([np.eye(2), rot(self.first[j])])])
         return H - H @ U @ np.linalg.pinv(U), cols
 
-    def update(self, j: int, z: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        N = self.x.size
+    def jacobian(self, j: int) -> np.ndarray:
         h5, cols = self.constrained_h(j)
-        H = np.zeros((2, N))
+        H = np.zeros((2, self.x.size))
         H[:, cols] = h5
-        a = 3 + 2 * j
-        nu = z - h_at(self.x[:2], self.x[a:a + 2], self.x[2])
-        nu[1] = wrap(nu[1])
-        S = H @ self.P @ H.T + np.diag([SIG_R ** 2, SIG_B ** 2])
-        K = self.P @ H.T @ np.linalg.inv(S)
-        self.x = self.x + K @ nu
-        self.x[2] = wrap(self.x[2])
-        P = self.P - K @ S @ K.T
-        self.P = 0.5 * (P + P.T)
-        return nu, S
-
-    def initialise(self, lid: int, z: np.ndarray) -> None:
-        x, N = self.x, self.x.size
-        r, phi = z
-        al = x[2] + phi
-        m = x[:2] + r * np.array([math.cos(al), math.sin(al)])
-        Y = np.zeros((N + 2, N + 2))
-        Y[:N, :N] = np.eye(N)
-        Y[N:, 0:2] = np.eye(2)
-        Y[N:, 2] = rot(m - self.robot_point)
-        Y[N:, N:] = [[math.cos(al), -r * math.sin(al)], [math.sin(al), r * math.cos(al)]]
-        big = np.zeros((N + 2, N + 2))
-        big[:N, :N], big[N:, N:] = self.P, np.diag([SIG_R ** 2, SIG_B ** 2])
-        self.x = np.concatenate([x, m])
-        self.P = Y @ big @ Y.T
-        self.first.append(m.copy())
-        self.ids.append(lid)
-
-    def null_space(self) -> np.ndarray:
-        rows = [np.column_stack([np.eye(2), rot(self.robot_point)]), np.array([[0.0, 0, 1]])]
-        rows += [np.column_stack([np.eye(2), rot(f)]) for f in self.first]
-        return np.vstack(rows)
+        return H
 
 
 def settings(linearisation: str = "oc") -> EstimatorSettings:
