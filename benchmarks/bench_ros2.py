@@ -13,16 +13,17 @@ A real router process and a real ``slamlens ros2`` process for each part.
 (b) **Import**, target ≥ 20 states per second, each equal to the ROS message to the last
     bit: ``slamlens_msgs/msg/SlamEstimate`` of an n = 1000 map (32 MB; CDR from rosbags,
     key and attachment as rmw_zenoh writes them), numbered and built before anything is
-    timed, put at 25 per second after 10 untimed ones (pools made, pages first touched) —
-    as bytes over TCP, and from shared memory as an rmw_zenoh publisher with shared memory
-    on puts them (``--put``). The rate: distinct SlamStates out of the bridge from the
-    first timed put to the last arrival; the bridge's CPU per estimate (``/proc``); the
-    states compared with the messages after the run. The baseline in the same run: the
-    same payloads relayed through the same router by a bare subscriber that republishes
-    them (the transport's own rate).
+    timed — put as bytes over TCP, and from shared memory as an rmw_zenoh publisher with
+    shared memory on puts them (``--put``). 10 untimed ones first; once the last of them
+    came out (the bridge's pool made, pages first touched) 50 at ``--rate`` (25/s). The
+    rate: distinct SlamStates out of the bridge from the first timed put to the last
+    arrival; the bridge's CPU per estimate (``/proc``) over the same time; the states
+    compared with the messages after the run. The baseline in the same run: the same
+    payloads relayed through the same router by a bare subscriber that republishes them
+    (the transport's own rate).
 
 Run: ``.venv/bin/python benchmarks/bench_ros2.py [--windows 10] [--estimates 50]
-[--only export|import] [--put bytes|shm|both]``
+[--only export|import] [--put bytes|shm|both] [--rate 25]``
 """
 
 from __future__ import annotations
@@ -218,10 +219,10 @@ def import_rate(count: int, n: int = 1000, rate: float = 25.0, *, shm: bool = Fa
 
     try:
         assert bus.wait_for_subscriber(key, timeout=30)
-        cpu0 = _cpu(bridge.pid)
-        bridged = _timed(bus, key, KEYS.state(ROBOT), payloads, rate, state_seq, pool)
-        cpu_s = _cpu(bridge.pid) - cpu0
-        bridged_seqs = set(bridged["kept"])
+        cpu0: list[float] = []
+        bridged = _timed(bus, key, KEYS.state(ROBOT), payloads, rate, state_seq, pool,
+                         on_timed=lambda: cpu0.append(_cpu(bridge.pid)))
+        cpu_s = _cpu(bridge.pid) - cpu0[0]
         timed = {k: v for k, v in bridged["kept"].items() if k >= WARMUP}
         bridge_equal = sum(same_state(x) for x in timed.values())
         bridged["kept"].clear()
@@ -231,7 +232,7 @@ def import_rate(count: int, n: int = 1000, rate: float = 25.0, *, shm: bool = Fa
         relay.close()
         relay_equal = sum(data == payloads[k] for k, data in relayed["kept"].items()
                           if k >= WARMUP)
-        imported = len(bridged_seqs)
+        imported = bridged["received"]  # the timed ones the bridge took (not skipped)
         return {"bridge_per_s": bridged["per_s"], "received": bridged["received"],
                 "cpu_ms": 1e3 * cpu_s / max(1, imported),
                 "bit_equal": bridge_equal, "distinct": len(timed),
@@ -269,13 +270,14 @@ class _Relay:
 
 
 def _timed(bus, key: str, out_key: str, payloads: list[bytes], rate: float,  # noqa: ANN001
-           seq_of, pool: ShmPool | None = None, warmup: int = WARMUP) -> dict:  # noqa: ANN001
-    """Put ``payloads`` (seq 0, 1, …) at ``rate`` on ``key`` (from shared memory with
-    ``pool``, wrapped before timing); the rate those after the first ``warmup`` came out on
-    ``out_key`` (the first ones pay for pools being made and pages first touched), arrival
-    times taken in the callback. A worker copies each payload out of Zenoh's buffer at once
-    and reads its seq; it ends when the last one put has come (the bridge may skip older
-    ones for it, never the newest)."""
+           seq_of, pool: ShmPool | None = None, warmup: int = WARMUP,  # noqa: ANN001
+           on_timed=lambda: None) -> dict:  # noqa: ANN001
+    """Put ``payloads`` (seq 0, 1, …) on ``key`` (from shared memory with ``pool``, wrapped
+    before timing): the first ``warmup`` at ``rate``, then — once the last of them came out
+    on ``out_key`` and was taken (pools made, pages first touched) — ``on_timed()`` and the
+    others at ``rate``: the rate those came out, arrival times taken in the callback. A
+    worker copies each payload out of Zenoh's buffer at once and reads its seq; it ends when
+    the last one put has come (the bridge may skip older ones for it, never the newest)."""
     attachment = np.int64(1).tobytes() + np.int64(time.time_ns()).tobytes() + bytes([16]) \
         + bytes(16)
     outs = payloads if pool is None else [pool.wrap(p) for p in payloads]
@@ -297,18 +299,27 @@ def _timed(bus, key: str, out_key: str, payloads: list[bytes], rate: float,  # n
                     return
                 arrived, fetch = waiting.pop(0)
             seq, value = seq_of(fetch())
-            kept[seq] = value
-            if seq >= warmup:
-                arrivals.append(arrived)
+            with cond:
+                kept[seq] = value
+                if seq >= warmup:
+                    arrivals.append(arrived)
+                cond.notify_all()
+
+    def put_at_rate(batch: list) -> float:
+        t0 = time.monotonic()
+        for k, out in enumerate(batch):
+            time.sleep(max(0.0, t0 + k / rate - time.monotonic()))
+            bus.session.put(key, out, attachment=attachment)
+        return t0
 
     sub = bus.subscribe_lazy(out_key, on_sample)
     thread = threading.Thread(target=worker, daemon=True)
     thread.start()
-    t0 = time.monotonic()
-    for k, out in enumerate(outs):
-        time.sleep(max(0.0, t0 + k / rate - time.monotonic()))
-        bus.session.put(key, out, attachment=attachment)
-    timed_from = t0 + warmup / rate  # when the first timed one was put
+    put_at_rate(outs[:warmup])
+    with cond:  # the newest warm-up one out and taken: nothing of the warm-up in flight
+        cond.wait_for(lambda: warmup - 1 in kept and not waiting, timeout=120)
+    on_timed()
+    timed_from = put_at_rate(outs[warmup:])
     thread.join(300)  # ends on the last payload's arrival (or 120 s without any)
     sub.undeclare()
     # distinct payloads out per second, from the first timed put to the last arrival
@@ -322,6 +333,8 @@ def main() -> None:
     parser.add_argument("--estimates", type=int, default=50,
                         help=f"estimates timed (after {WARMUP} untimed)")
     parser.add_argument("--only", choices=("export", "import"), help="one part only")
+    parser.add_argument("--rate", type=float, default=25.0,
+                        help="estimates put a second (import)")
     parser.add_argument("--put", choices=("bytes", "shm", "both"), default="both",
                         help="how the estimates are put: as bytes over TCP, from shared "
                              "memory, or both in turn")
@@ -340,8 +353,8 @@ def main() -> None:
         for shm, how in ((False, "as bytes (TCP)"), (True, "in shared memory")):
             if args.put != "both" and shm != (args.put == "shm"):
                 continue
-            r = import_rate(args.estimates + WARMUP, shm=shm)
-            print(f"(b) import n = 1000 SlamEstimate put at 25/s {how}: "
+            r = import_rate(args.estimates + WARMUP, rate=args.rate, shm=shm)
+            print(f"(b) import n = 1000 SlamEstimate put at {args.rate:g}/s {how}: "
                   f"{r['bridge_per_s']:.1f} states/s out of the bridge, {r['received']} of "
                   f"{args.estimates} put, bridge CPU {r['cpu_ms']:.1f} ms per estimate, "
                   f"{r['bit_equal']} bit-equal to the message "
