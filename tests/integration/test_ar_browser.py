@@ -64,6 +64,13 @@ def test_ar_page_registers_and_draws_the_features_on_the_truth(rig: ArRig) -> No
                                                    timeout=10).read())
         cams = status["ar"]["cameras"]
         assert [c["camera"] for c in cams] == ["phone-test"] and cams[0]["overlays"] >= 10
+        # where each overlaid answer's time went, by the page's clock: the parts fit inside
+        # the whole (the viewer's own time, drawing included, within frame → shown)
+        timings = page.evaluate("window.slamlensAr.timings")
+        assert len(timings) >= 10
+        for t in timings:
+            assert 0 <= t["draw"] <= t["server"] and t["encode"] >= 0 and t["show"] >= 0, t
+            assert t["encode"] + t["server"] + t["show"] <= t["total"] + 1.0, t
         assert errors == []
     finally:
         browser.close()
