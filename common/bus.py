@@ -99,9 +99,11 @@ class BurstPuts:
     Outside :meth:`burst` every :meth:`put` goes out at once. Inside it, payloads under
     ``below_bytes`` wait — at most ``limit`` of them — and go out in order when the limit
     is reached, at :meth:`flush`, or when the burst ends; a larger one first sends what
-    waits, then itself. ``sent(tag)`` says which payload is out: before its own put for one
-    sent at once, after the group's puts (with the group's last tag) for held ones, so
-    whatever ``sent`` publishes (the answer to a ``get``) never runs ahead of the puts.
+    waits, then itself. ``sent(tag)`` says which payload is going out, just before its
+    put, for every payload: whatever ``sent`` publishes (the answer to a ``get``) is the
+    payload being put or the last one put — never older than one a subscriber has
+    received (a client that saw state N and then asks gets N or later), never one still
+    waiting in the burst.
     """
 
     def __init__(self, publisher: Publisher, *, limit: int, sent: Callable[[Any], None],
@@ -138,9 +140,9 @@ class BurstPuts:
         """Put what waits, back to back, in order."""
         held = self._held
         if held:
-            for payload, _tag in held:
+            for payload, tag in held:
+                self._sent(tag)
                 self._publisher.put(payload)
-            self._sent(held[-1][1])
             held.clear()
 
 

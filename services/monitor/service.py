@@ -77,7 +77,7 @@ class MonitorService:
         #: rest of the process's CPU is Zenoh's (receiving, queueing, publishing)
         self.worker_cpu_s = 0.0
         self._publisher = bus.publisher(keys.health(robot), cache=HEALTH_CACHE)
-        #: a burst's Healths put back to back; a get answers with the last one put
+        #: a burst's Healths put back to back; a get answers with the one being put, or the last
         self._puts = BurstPuts(self._publisher, limit=BURST_HEALTHS, sent=self._now_gettable)
         # one ordered queue for what it checks, each key subscribed on its own (the router
         # sends nothing else: not the estimator's inputs, not our own health)

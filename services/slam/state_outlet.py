@@ -9,7 +9,8 @@ to back when it has been applied, so Zenoh sends them in a few batches instead o
 each (a put on an idle link costs the publisher several times the CPU of one in a batch,
 ``benchmarks/bench_put.py``). A state waits at most for the rest of its burst, and only when
 inputs queue up — in real time every burst is one input. Large states (a big map's, through
-shared memory) go out at once. A ``get`` never answers with a state that has not been put.
+shared memory) go out at once. A ``get`` answers with the state being put or the last one
+put: never one older than a subscriber has received, never one still waiting in a burst.
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ class StateOutlet:
         self._header_of = header
         self._lock = threading.Lock()
         self._publisher = bus.publisher(key, cache=cache, cache_bytes=cache_bytes)
-        #: a burst's small states put back to back; a get answers with the last one put
+        #: a burst's small states put back to back; a get answers with the one being put
         self._puts = BurstPuts(self._publisher, limit=BURST_STATES, sent=self._now_gettable,
                                below_bytes=BURST_BELOW_BYTES)
         #: the latest state's encoding in parts (a large map's covariance not copied: it
