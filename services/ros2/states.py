@@ -57,7 +57,7 @@ class StatePublisher:
                                 "epoch": message.epoch, "input_stamp": message.input_stamp,
                                 "n": message.n, "origin_stamp": message.origin_stamp},
                                use_bin_type=True)
+        with self._lock:  # gettable before it is put: a get never answers older than a
+            self._latest, self._header = parts, header  # state a subscriber has seen
         self._publisher.put(parts)
-        with self._lock:
-            self._latest, self._header = parts, header
         self.counts["SlamState"] += 1

@@ -177,3 +177,25 @@ def test_a_rosbag2_of_inputs_and_one_of_estimates(tmp_path: Path, storage: str) 
         Bag(str(tmp_path / "est"), robot="robot1", what="inputs")
     with pytest.raises(SourceError, match="not a rosbag2"):
         Bag(str(tmp_path), robot="robot1", what="inputs")
+
+
+def test_an_imported_state_is_gettable_as_soon_as_a_subscriber_has_it() -> None:
+    """The bridge's states on the bus: a get made as a state is received answers that very
+    state, never the previous one."""
+    from slamlens.common.inprocess_bus import InProcessBus
+    from slamlens.common.keys import Keys
+    from slamlens.services.ros2.states import StatePublisher
+
+    keys = Keys("t")
+    bus = InProcessBus()
+    out = StatePublisher(bus, keys=keys, robot="r")
+    seen: list[tuple[int, int]] = []  # (seq received, seq a get answers with then)
+
+    def on_state(_key: str, payload: bytes) -> None:
+        got = bus.get(keys.state("r"))[0].payload
+        seen.append((SlamState.from_bytes(payload).seq, SlamState.from_bytes(got).seq))
+
+    bus.subscribe(keys.state("r"), on_state)
+    for seq in (1, 2, 3):
+        out.publish(slam_state(estimate(4, seq=seq, seed=seq), "r"))
+    assert seen == [(1, 1), (2, 2), (3, 3)]
