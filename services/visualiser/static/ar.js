@@ -41,8 +41,8 @@ const gctx = grab.getContext("2d");
 const params = new URLSearchParams(location.search);
 // frames sent and not answered yet (flow control): ?inflight=1…4, 2 by default
 const MAX_INFLIGHT = Math.min(4, Math.max(1, Number(params.get("inflight")) || 2));
-const inflight = new Map();  // tag → performance.now() when its frame was taken
-const sentAt = new Map();  // tag → performance.now() when its frame went on the socket
+// tag → {taken, sent}: performance.now() when its frame was taken, and went on the socket
+const inflight = new Map();
 let socket = null;
 let header = null;
 let nextTag = 1;
@@ -157,7 +157,8 @@ async function send() {
   const h = Math.round(vh * w / vw) & ~1;
   if (grab.width !== w || grab.height !== h) { grab.width = w; grab.height = h; }
   const tag = nextTag++;
-  inflight.set(tag, performance.now());
+  const times = {taken: performance.now(), sent: undefined};
+  inflight.set(tag, times);
   fresh = false;
   gctx.drawImage(video, 0, 0, w, h);
   const quality = Number($("sendquality").value) || 0.8;
@@ -165,7 +166,7 @@ async function send() {
   if (!blob || !socket || socket.readyState !== WebSocket.OPEN) { inflight.delete(tag); return; }
   socket.send(JSON.stringify({tag}));
   socket.send(blob);
-  sentAt.set(tag, performance.now());
+  times.sent = performance.now();
   ar.sent += 1;
   ar.width = w;
   ar.height = h;
@@ -173,9 +174,7 @@ async function send() {
 
 function pump() {
   const now = performance.now();
-  for (const [tag, t] of inflight) {
-    if (now - t > STALE_MS) { inflight.delete(tag); sentAt.delete(tag); }
-  }
+  for (const [tag, t] of inflight) if (now - t.taken > STALE_MS) inflight.delete(tag);
   if (!fresh || !socket || socket.readyState !== WebSocket.OPEN || !video.videoWidth) return;
   if (inflight.size >= MAX_INFLIGHT) return;
   send();
@@ -187,7 +186,7 @@ function connect() {
   const query = new URLSearchParams({client, camera: ar.camera, robot: ar.robot || ""});
   socket = new WebSocket(`${scheme}://${location.host}/ar/ws?${query}`);
   socket.binaryType = "blob";
-  socket.onopen = () => { inflight.clear(); sentAt.clear(); $("arstatus").textContent = `camera ${ar.camera}`; };
+  socket.onopen = () => { inflight.clear(); $("arstatus").textContent = `camera ${ar.camera}`; };
   socket.onmessage = onMessage;
   socket.onclose = () => {
     $("arstatus").textContent = `camera ${ar.camera}: not connected (is the name taken, ` +
@@ -202,7 +201,6 @@ async function onMessage(event) {
     if (message.refused !== undefined) {
       ar.refused += 1;
       inflight.delete(message.tag);
-      sentAt.delete(message.tag);
       showError(`frame refused: ${message.refused}`);
       pump();
     } else {
@@ -224,10 +222,8 @@ async function onMessage(event) {
   ar.answered += 1;
   view.dataset.answered = String(ar.answered);
   if (meta) {
-    const taken = inflight.get(meta.tag);
-    const sent = sentAt.get(meta.tag);
+    const {taken, sent} = inflight.get(meta.tag) || {};
     inflight.delete(meta.tag);
-    sentAt.delete(meta.tag);
     ar.last = meta;
     if (meta.overlay) ar.overlays += 1;
     else ar.notes[meta.note] = (ar.notes[meta.note] || 0) + 1;
