@@ -1,0 +1,241 @@
+"""What MRCLAM dataset 6's odometry and range errors are, against its ground truth — the
+measurements behind docs/consistency.md, "Why the NIS is low on real data".
+
+1. **Odometry.** Over windows of T seconds, the heading change the ground truth shows minus
+   the one the commanded turn rates integrate to: its mean per second (a turn-rate bias)
+   and its variance per second (constant in T for white noise, growing for correlated).
+2. **Range.** Every sighting of a landmark against the range the ground truth gives (both
+   poses from Vicon): the error's standard deviation, and the part that changes between
+   consecutive sightings of one landmark less than a second apart (sd of their difference
+   / √2): the rest persists from one sighting to the next.
+3. **A range calibration, left out.** The range error regressed on the sighting's geometry
+   on four robots, applied to the fifth: the standard deviation left on the fifth.
+4. ``--evaluate``: the estimator (offline, each robot with its left-out profile
+   benchmarks/profiles/without-robotK.toml) as shipped, with each robot's own turn-rate bias
+   removed from its odometry (an oracle: it uses the truth), with the sensor σ scaled down
+   until the mean NIS is near 2, and with the left-out range
+   calibration applied (the range σ then the sd it leaves on the four, constant): pose
+   NEES, NIS (mean, median, share of the monitor's 50-innovation windows outside its band)
+   and the map's shape (landmark RMSE after a rigid fit).
+
+Run: ``.venv/bin/python benchmarks/mrclam_errors.py [--evaluate]`` (≈ 20 s; ``--evaluate``
+≈ 1.5 min on 2 cores).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+from collections.abc import Callable, Iterator
+from concurrent.futures import ProcessPoolExecutor
+from dataclasses import replace
+from pathlib import Path
+
+import numpy as np
+from scipy.stats import chi2
+
+from slamlens.common.config import load_settings
+from slamlens.common.errors import EstimationError
+from slamlens.common.messages import Observations, Odometry
+from slamlens.services.harness.mrclam_pipeline import DATA
+from slamlens.services.slam.estimator import Estimator
+from slamlens.services.slam.mrclam import MrclamRun, load_mrclam
+from slamlens.services.slam.scoring import Scorer, TruthTrack
+from slamlens.services.slam.settings import EstimatorSettings
+
+REPO = Path(__file__).resolve().parents[1]
+ROBOTS = (1, 2, 3, 4, 5)
+WINDOWS_S = (0.25, 1.0, 4.0, 32.0)
+GROSS_M = 0.5  #: range errors beyond this are gross (misreads), left out of the statistics
+CONSECUTIVE_S = 1.0  #: sightings of one landmark this close are "consecutive"
+#: geometric terms of a range calibration: name → column of (range r, bearing b)
+TERMS: dict[str, Callable[[np.ndarray, np.ndarray], np.ndarray]] = {
+    "1": lambda r, b: np.ones_like(r), "r": lambda r, b: r, "r²": lambda r, b: r * r,
+    "b": lambda r, b: b, "b²": lambda r, b: b * b, "r·b²": lambda r, b: r * b * b}
+CALIBRATIONS = {"off-axis (b², r·b²)": ("b²", "r·b²"),
+                "full (1, r, r², b, b², r·b²)": ("1", "r", "r²", "b", "b²", "r·b²")}
+NIS_WINDOW = 50
+SENSOR_KEYS = ("sigma_range", "sigma_bearing", "sigma_range_per_m")
+#: the sensor σ scaled down until the mean NIS is near 2 (the profile's give 0.6–1.5)
+SENSOR_SCALE = 0.35
+#: the monitor's NIS band (docs/monitor.md): χ²(2·50)/50 at two-sided α = 1e-6
+NIS_BAND = tuple(float(q) / NIS_WINDOW for q in chi2.ppf([5e-7, 1 - 5e-7], 2 * NIS_WINDOW))
+
+
+def _wrap(a: np.ndarray | float) -> np.ndarray | float:
+    return (np.asarray(a) + math.pi) % (2 * math.pi) - math.pi
+
+
+def heading_errors(run: MrclamRun, truth: TruthTrack) -> dict[float, np.ndarray]:
+    """Per window length T: truth heading change − commanded one, windows half overlapping."""
+    odo = [m for m in run.events(truth=False) if isinstance(m, Odometry)]
+    stamps = np.array([m.stamp for m in odo])
+    turned = np.cumsum([m.w * m.dt for m in odo])  #: through each step's end (its stamp)
+    poses = [truth.pose_at(s) for s in stamps]
+    step = float(np.median([m.dt for m in odo]))
+    out: dict[float, np.ndarray] = {}
+    for T in WINDOWS_S:
+        n = max(1, round(T / step))
+        errs = [float(_wrap(poses[j][2] - poses[i][2] - (turned[j] - turned[i])))
+                for i in range(0, len(odo) - n, max(1, n // 2)) for j in (i + n,)
+                if poses[i] is not None and poses[j] is not None]
+        out[T] = np.array(errs)
+    return out
+
+
+def range_errors(run: MrclamRun, truth: TruthTrack) -> np.ndarray:
+    """Rows (stamp, landmark id, range, bearing, range − true range) of every sighting of a
+    landmark with truth, gross errors left out."""
+    where = dict(zip(truth.landmark_ids.tolist(), truth.landmarks.tolist(), strict=True))
+    rows = []
+    for m in run.events(truth=False):
+        pose = truth.pose_at(m.stamp) if isinstance(m, Observations) else None
+        if pose is None:
+            continue
+        for lid, r, b in zip(m.ids, m.ranges, m.bearings, strict=True):
+            if lid in where:
+                true_r = math.hypot(where[lid][0] - pose[0], where[lid][1] - pose[1])
+                rows.append((m.stamp, lid, r, b, r - true_r))
+    table = np.array(rows)
+    return table[np.abs(table[:, 4]) < GROSS_M]
+
+
+def changing_sd(table: np.ndarray, errors: np.ndarray) -> float:
+    """sd of the error's change between consecutive sightings of one landmark, / √2."""
+    diffs = []
+    for lid in np.unique(table[:, 1]):
+        mine = table[:, 1] == lid
+        close = np.diff(table[mine, 0]) < CONSECUTIVE_S
+        diffs.append(np.diff(errors[mine])[close])
+    return float(np.concatenate(diffs).std() / math.sqrt(2))
+
+
+def design(table: np.ndarray, terms: tuple[str, ...]) -> np.ndarray:
+    return np.column_stack([TERMS[t](table[:, 2], table[:, 3]) for t in terms])
+
+
+def fit_calibration(tables: list[np.ndarray], terms: tuple[str, ...]) -> np.ndarray:
+    """Least-squares coefficients of ``terms`` for the range error of ``tables``."""
+    both = np.concatenate(tables)
+    coef, *_ = np.linalg.lstsq(design(both, terms), both[:, 4], rcond=None)
+    return coef
+
+
+def left_sd(tables: list[np.ndarray], terms: tuple[str, ...], coef: np.ndarray) -> float:
+    """The range error's sd on ``tables`` once calibrated: the range σ that goes with it."""
+    both = np.concatenate(tables)
+    return float((both[:, 4] - design(both, terms) @ coef).std())
+
+
+def report_errors(runs: dict[int, MrclamRun]) -> dict[int, np.ndarray]:
+    """Print parts 1–3; the range tables by robot."""
+    tables = {}
+    print(f"odometry: truth − commanded heading change over T s (windows {WINDOWS_S} s)")
+    for k, run in runs.items():
+        truth = TruthTrack.from_mrclam(run)
+        errs = heading_errors(run, truth)
+        rates = "  ".join(f"{np.var(errs[T]) / T:.4f}" for T in WINDOWS_S)
+        bias = float(np.mean(errs[4.0]) / 4.0)
+        print(f"  robot {k}: turn-rate bias {bias:+.4f} rad/s; variance per s {rates} rad²/s")
+        tables[k] = range_errors(run, truth)
+    print("range: error against the truth; the part that changes between consecutive "
+          f"sightings (< {CONSECUTIVE_S:g} s apart) of one landmark")
+    for k, t in tables.items():
+        print(f"  robot {k}: {t.shape[0]} sightings, sd {t[:, 4].std():.3f} m, "
+              f"changing {changing_sd(t, t[:, 4]):.3f} m, mean {t[:, 4].mean():+.3f} m")
+    for name, terms in CALIBRATIONS.items():
+        print(f"range calibration {name}, fitted on the other four robots, sd left:")
+        for k, t in tables.items():
+            coef = fit_calibration([tables[j] for j in tables if j != k], terms)
+            left = t[:, 4] - design(t, terms) @ coef
+            print(f"  robot {k}: {t[:, 4].std():.3f} → {left.std():.3f} m "
+                  f"(mean {left.mean():+.3f}, changing {changing_sd(t, left):.3f})")
+    return tables
+
+
+def _inputs(run: MrclamRun, turn_bias: float, calibration: tuple[tuple[str, ...], np.ndarray]
+            | None) -> Iterator[Odometry | Observations]:
+    for m in run.events(truth=False):
+        if isinstance(m, Odometry):
+            yield replace(m, w=m.w + turn_bias) if turn_bias else m
+        elif calibration is not None:
+            terms, coef = calibration
+            r, b = np.asarray(m.ranges, float), np.asarray(m.bearings, float)
+            table = np.column_stack([np.zeros_like(r), np.zeros_like(r), r, b])
+            yield replace(m, ranges=r - design(table, terms) @ coef)
+        else:
+            yield m
+
+
+def evaluate(robot: int, variant: str, turn_bias: float,
+             calibration: tuple[tuple[str, ...], np.ndarray] | None,
+             sigma_range: float | None, sensor_scale: float = 1.0) -> str:
+    """One offline run of ``robot`` with its left-out profile (with ``sigma_range`` its
+    range σ, the range-dependent terms off; every sensor σ × ``sensor_scale``); a table
+    row."""
+    run = load_mrclam(DATA, robot)
+    settings = load_settings(EstimatorSettings,
+                             REPO / f"benchmarks/profiles/without-robot{robot}.toml")
+    if sigma_range is not None:
+        settings = replace(settings, sigma_range=sigma_range, sigma_range_per_m=0.0,
+                           sigma_range_off_axis=0.0)
+    settings = replace(settings, **{key: getattr(settings, key) * sensor_scale
+                                    for key in SENSOR_KEYS})
+    est = Estimator(replace(settings, robot=run.robot))
+    scorer = Scorer(TruthTrack.from_mrclam(run), robot=run.robot)
+    for m in _inputs(run, turn_bias, calibration):
+        try:
+            if isinstance(m, Odometry):
+                est.predict(v=m.v, w=m.w, dt=m.dt, stamp=m.stamp)
+            else:
+                rep = est.observe(ids=m.ids, ranges=m.ranges, bearings=m.bearings,
+                                  stamp=m.stamp)
+                scorer.add_innovations(rep.innovations, rep.innovation_covariances)
+        except EstimationError:
+            continue
+        scorer.add(m.stamp, est.pose, est.pose_covariance)
+    e = scorer.finish(est.landmark_ids, est.landmarks, est.diagnostics())
+    nis = e.nis if e.nis is not None else np.zeros(0)
+    windows = nis[: nis.size // NIS_WINDOW * NIS_WINDOW].reshape(-1, NIS_WINDOW).mean(axis=1)
+    outside = float(np.mean((windows < NIS_BAND[0]) | (windows > NIS_BAND[1])))
+    return (f"  robot {robot}  {variant:<28} NEES {e.nees_mean:6.2f}  NIS mean "
+            f"{e.nis_mean:4.2f} median {float(np.median(nis)):4.2f} (1.39)  windows outside "
+            f"{outside:4.0%}  map {e.landmark_rmse_rigid:.3f} m")
+
+
+def report_filter(runs: dict[int, MrclamRun], tables: dict[int, np.ndarray]) -> None:
+    """Print part 4 (two processes)."""
+    jobs = []
+    for k, run in runs.items():
+        bias = float(np.mean(heading_errors(run, TruthTrack.from_mrclam(run))[4.0]) / 4.0)
+        jobs += [(k, "left-out profile", 0.0, None, None, 1.0),
+                 (k, f"sensor σ × {SENSOR_SCALE}", 0.0, None, None, SENSOR_SCALE),
+                 (k, "turn-rate bias removed", bias, None, None, 1.0)]
+        for name, terms in CALIBRATIONS.items():
+            others = [tables[j] for j in tables if j != k]
+            coef = fit_calibration(others, terms)
+            jobs.append((k, "ranges calibrated, " + name.split()[0], 0.0, (terms, coef),
+                         left_sd(others, terms, coef), 1.0))
+    print(f"the filter, each robot with its left-out profile (NIS windows of {NIS_WINDOW}, "
+          f"band [{NIS_BAND[0]:.2f}, {NIS_BAND[1]:.2f}]; map: landmark RMSE after a rigid "
+          "fit)")
+    with ProcessPoolExecutor(2) as pool:
+        for row in pool.map(evaluate, *zip(*jobs, strict=True)):
+            print(row, flush=True)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--evaluate", action="store_true",
+                        help="also run the estimator with the corrections (≈ 1.5 min)")
+    args = parser.parse_args(argv)
+    runs = {k: load_mrclam(DATA, k) for k in ROBOTS}
+    tables = report_errors(runs)
+    if args.evaluate:
+        report_filter(runs, tables)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
