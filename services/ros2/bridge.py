@@ -109,7 +109,8 @@ class Ros2Bridge:
     def _declare_imports(self) -> None:
         s = self.s
         if s.from_ros == "estimate":
-            self.sink = StatePublisher(self.bus, keys=self.keys, robot=s.robot)
+            self.sink = StatePublisher(self.bus, keys=self.keys, robot=s.robot,
+                                        dropped=lambda: self.drops.total)
             self._subscribe({s.topic("slam/estimate"): (SLAM_ESTIMATE,),
                              s.topic("slam/pose"): (POSE_COV, ODOMETRY)})
         else:

@@ -10,13 +10,13 @@ and Foxglove work on it unchanged (docs/protocol.md).
 from __future__ import annotations
 
 import threading
-from typing import Any
+from collections.abc import Callable
 
-import msgpack
-
-from slamlens.common.bus import Bus, joined
+from slamlens.common.bus import Bus
 from slamlens.common.keys import Keys
 from slamlens.common.messages import Message, SlamState
+from slamlens.common.state_header import state_header
+from slamlens.common.state_outlet import StateOutlet
 
 #: states kept for subscribers that recover what they missed, and the memory they may hold
 STATE_CACHE = 1000
@@ -24,40 +24,32 @@ STATE_CACHE_BYTES = 256 << 20
 
 
 class StatePublisher:
-    """Publishes one robot's SlamStates (module docstring); ``publish`` from one thread."""
+    """Publishes one robot's SlamStates (module docstring); ``publish`` from one thread.
 
-    def __init__(self, bus: Bus, *, keys: Keys, robot: str) -> None:
+    Through the estimator's own :class:`~slamlens.common.state_outlet.StateOutlet`, each
+    state put as it comes (an imported estimate is one input); the ``?header`` counts are
+    the publisher's: ``dropped`` what ``dropped()`` says, the input-order counts 0 (it has
+    no input order)."""
+
+    def __init__(self, bus: Bus, *, keys: Keys, robot: str,
+                 dropped: Callable[[], int] = lambda: 0) -> None:
         self.robot = robot
         self.counts = {"SlamState": 0}
-        self._lock = threading.Lock()
-        self._latest: Any = None
-        self._header: bytes | None = None
-        self._publisher = bus.publisher(keys.state(robot), cache=STATE_CACHE,
-                                        cache_bytes=STATE_CACHE_BYTES)
-        bus.answer(keys.state(robot), self._on_query)
+        self._dropped = dropped
+        self._out = StateOutlet(bus, keys.state(robot), cache=STATE_CACHE,
+                                cache_bytes=STATE_CACHE_BYTES, header=self._header_of)
+        self._open = False
         bus.declare_alive(keys.estimator_alive(robot))
 
-    def _on_query(self, key: str, payload: bytes | None, parameters: str) -> Any:
-        with self._lock:
-            latest, header = self._latest, self._header
-        if "header" in parameters.split(";"):
-            return header
-        if isinstance(latest, list):
-            latest = joined(latest)
-            with self._lock:
-                self._latest = latest
-        return latest
+    def _header_of(self, state: SlamState) -> bytes:
+        return state_header(state, {"dropped": self._dropped()})
 
     def publish(self, message: Message, stop: threading.Event | None = None) -> None:
         if not isinstance(message, SlamState):
             return
-        parts = message.wire_parts()
-        header = msgpack.packb({"schema": 1, "robot": message.robot, "seq": message.seq,
-                                "stamp": message.stamp, "step": message.step,
-                                "epoch": message.epoch, "input_stamp": message.input_stamp,
-                                "n": message.n, "origin_stamp": message.origin_stamp},
-                               use_bin_type=True)
-        with self._lock:  # gettable before it is put: a get never answers older than a
-            self._latest, self._header = parts, header  # state a subscriber has seen
-        self._publisher.put(parts)
+        if self._open:
+            self._out.publish(message)
+        else:  # the first: a get is answered from now on
+            self._out.open(message)
+            self._open = True
         self.counts["SlamState"] += 1

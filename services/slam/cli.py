@@ -142,8 +142,8 @@ def _finish(name: str, out: Any, stop: threading.Event, wall: float) -> None:
 
 def _run_estimator(args: argparse.Namespace) -> int:
     one_blas_thread()
+    from slamlens.common.state_header import INPUT_COUNTS
     from slamlens.services.slam.estimator_service import EstimatorService
-    from slamlens.services.slam.input_order import INPUT_COUNTS
 
     settings = settings_from_args(EstimatorSettings, args)
     stop = stop_event()

@@ -16,11 +16,12 @@ import time
 from collections.abc import Mapping
 
 from slamlens.common.messages import SlamState
+from slamlens.common.state_header import INPUT_COUNTS
+from slamlens.common.state_outlet import StateOutlet
 from slamlens.services.slam import checkpoint as ckpt
 from slamlens.services.slam.estimator import Estimator
-from slamlens.services.slam.input_order import INPUT_COUNTS, InputOrder, OrderStats
+from slamlens.services.slam.input_order import InputOrder, OrderStats
 from slamlens.services.slam.settings import EstimatorSettings
-from slamlens.services.slam.state_outlet import StateOutlet
 
 log = logging.getLogger("slamlens.estimator")
 

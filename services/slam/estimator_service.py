@@ -7,7 +7,7 @@ back from the drivers' caches, and what cannot come back is reported (sample-mis
 detection). Its Zenoh callback only queues the sample; one worker thread decodes, puts the
 inputs in publication order exactly once (:mod:`slamlens.services.slam.input_order`) and
 applies them. After every event applied it publishes one ``SlamState``
-(:mod:`slamlens.services.slam.state_outlet`: an advanced publisher with a cache, the answer to
+(:mod:`slamlens.common.state_outlet`: an advanced publisher with a cache, the answer to
 a ``get``, a burst's states put back to back). A liveliness token announces the estimator.
 
 Epochs: a map started from scratch gets a new ``epoch`` (the wall-clock nanoseconds at its
@@ -27,7 +27,6 @@ import time
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 
-import msgpack
 import numpy as np
 
 from slamlens.common.bus import Bus, Sample
@@ -35,11 +34,12 @@ from slamlens.common.drops import DropCounter
 from slamlens.common.errors import EstimationError, MessageError
 from slamlens.common.keys import Keys
 from slamlens.common.messages import Observations, Odometry, SlamState
+from slamlens.common.state_header import INPUT_COUNTS, state_header
+from slamlens.common.state_outlet import StateOutlet
 from slamlens.services.slam.ekf import RefusedStepError
 from slamlens.services.slam.estimator import Estimator
 from slamlens.services.slam.estimator_checkpoints import Checkpoints
 from slamlens.services.slam.input_order import (
-    INPUT_COUNTS,
     Input,
     InputOrder,
     Missed,
@@ -47,7 +47,6 @@ from slamlens.services.slam.input_order import (
 )
 from slamlens.services.slam.plausibility import ImplausibleInputError
 from slamlens.services.slam.settings import EstimatorSettings
-from slamlens.services.slam.state_outlet import StateOutlet
 
 log = logging.getLogger("slamlens.estimator")
 
@@ -145,13 +144,7 @@ class EstimatorService:
     def _header_of(self, state: SlamState) -> bytes:
         """``get state?header``'s answer: what a driver paces on, not the map (and the
         service's counters)."""
-        return msgpack.packb({"schema": 1, "robot": state.robot, "seq": state.seq,
-                              "stamp": state.stamp, "step": state.step,
-                              "epoch": state.epoch, "input_stamp": state.input_stamp,
-                              "n": state.n,
-                              "origin_stamp": state.origin_stamp,
-                              "dropped": self.drops.total, **self.input_counts()},
-                             use_bin_type=True)
+        return state_header(state, {"dropped": self.drops.total, **self.input_counts()})
 
     def latest_bytes(self) -> bytes:
         """The latest state published, as bytes."""

@@ -84,7 +84,8 @@ class Missed:
 
 @dataclass
 class OrderStats:
-    """What the ordering did (counters the estimator reports everywhere)."""
+    """What the ordering did (counters the estimator reports everywhere; all but
+    ``released`` by the names of :data:`slamlens.common.state_header.INPUT_COUNTS`)."""
 
     released: int = 0
     duplicates: int = 0  #: inputs already applied, discarded
@@ -93,12 +94,6 @@ class OrderStats:
     late: int = 0  #: inputs that arrived after their place in the order had passed
     waited: int = 0  #: inputs the merge of several sources released after a quiet source
     joined_late: int = 0  #: numbers a new source had published before we saw it
-
-
-#: the counts of :class:`OrderStats` the estimator reports, as the stop line,
-#: ``state?header``, ``slamlens status`` and a state's ``diagnostics`` (``inputs.NAME``)
-#: name them
-INPUT_COUNTS = ("duplicates", "late", "lost", "waited", "reordered", "joined_late")
 
 
 @dataclass

@@ -17,12 +17,12 @@ from slamlens.common.bus import Sample
 from slamlens.common.inprocess_bus import InProcessBus
 from slamlens.common.keys import Keys
 from slamlens.common.messages import Observations, Odometry, SlamState
+from slamlens.common.state_outlet import BURST_STATES
 from slamlens.services.slam import checkpoint as ckpt
 from slamlens.services.slam.estimator import Estimator
 from slamlens.services.slam.estimator_service import EstimatorService
 from slamlens.services.slam.settings import EstimatorSettings
 from slamlens.services.slam.sim import Simulator
-from slamlens.services.slam.state_outlet import BURST_STATES
 from slamlens.services.slam.world import load_world
 
 KEYS = Keys("t")

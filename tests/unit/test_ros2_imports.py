@@ -199,3 +199,35 @@ def test_an_imported_state_is_gettable_as_soon_as_a_subscriber_has_it() -> None:
     for seq in (1, 2, 3):
         out.publish(slam_state(estimate(4, seq=seq, seed=seq), "r"))
     assert seen == [(1, 1), (2, 2), (3, 3)]
+
+
+def test_an_imported_states_header_names_every_count_of_the_contract() -> None:
+    """``get state?header`` on the bridge's states: the state's header fields and every
+    count the contract names — ``dropped`` the bridge's, the input-order counts 0."""
+    import msgpack
+
+    from slamlens.common.inprocess_bus import InProcessBus
+    from slamlens.common.keys import Keys
+    from slamlens.common.state_header import INPUT_COUNTS
+    from slamlens.services.ros2.states import StatePublisher
+
+    keys = Keys("t")
+    bus = InProcessBus()
+    out = StatePublisher(bus, keys=keys, robot="r", dropped=lambda: 7)
+    for seq in (1, 2):
+        out.publish(slam_state(estimate(4, seq=seq, seed=seq), "r"))
+    head = msgpack.unpackb(bus.get(keys.state("r") + "?header")[0].payload)
+    state = SlamState.from_bytes(bus.get(keys.state("r"))[0].payload)
+    assert head["seq"] == state.seq == 2
+    assert (head["robot"], head["n"], head["epoch"]) == ("r", state.n, state.epoch)
+    assert head["dropped"] == 7
+    assert {name: head[name] for name in INPUT_COUNTS} == dict.fromkeys(INPUT_COUNTS, 0)
+
+
+def test_the_input_order_counts_every_count_a_header_names() -> None:
+    from dataclasses import fields
+
+    from slamlens.common.state_header import INPUT_COUNTS
+    from slamlens.services.slam.input_order import OrderStats
+
+    assert set(INPUT_COUNTS) <= {f.name for f in fields(OrderStats)}

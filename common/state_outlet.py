@@ -1,4 +1,5 @@
-"""Where the estimator's states go out: their publisher, and the answer to a ``get``.
+"""Where an estimator's states go out: their publisher, and the answer to a ``get`` (the
+estimator service's, and the ROS 2 bridge's for an estimate it imports).
 
 Every state is put through an advanced publisher with a cache (congestion control drop: a
 slow subscriber never slows the estimator), and the latest one put is what a ``get`` on the
@@ -28,7 +29,6 @@ BURST_STATES = 32
 #: states of this size and up are put at once (a batch holds 64 kB; a large map's states
 #: go through shared memory, and holding them back would only hold their memory)
 BURST_BELOW_BYTES = 32 << 10
-
 
 class StateOutlet:
     """Publishes states on ``key`` and answers a ``get`` on it with the latest put."""
