@@ -15,18 +15,21 @@ standard EKF). Each kernel also takes ``at``, the point of a First-Estimates-Jac
 (Huang, Mourikis & Roumeliotis 2010; docs/estimator.md): the robot's *propagated* position
 p̂(k|k−1) and, for an update, the landmark's *first* estimate. The mean is always moved by
 the models at the latest estimates; only F, H and the initialisation Jacobian change, in
-the same closed forms, at the same cost.
+the same closed forms, at the same cost. :func:`update` may iterate (``iterations``: the
+iterated EKF, :mod:`slamlens.services.slam.ekf_iterated`), relinearising at its estimate.
 """
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import partial
 
 import numpy as np
 
 from slamlens.common.errors import EstimationError
 from slamlens.common.geometry import wrap_angle
+from slamlens.services.slam import ekf_iterated
 from slamlens.services.slam.ekf_storage import (
     SyrkArgs,
     downdate_lower,
@@ -288,8 +291,8 @@ def update(x: np.ndarray, L: np.ndarray, n: int, j: int, *, z_range: float,
            ws: Workspace, gate: float = 0.0, guard: Guard | None = None,
            defer: bool = False,
            at: tuple[float, float, float, float] | None = None,
-           null: tuple[float, float, float, float] | None = None
-           ) -> tuple[float, float, float, float, float]:
+           null: tuple[float, float, float, float] | None = None,
+           iterations: int = 1) -> tuple[float, float, float, float, float]:
     """The update with one observation of landmark ``j`` (0-based state order), in place.
 
     Never builds H: it touches 5 columns of P. With W = P Hᵀ (N×2) and S = L_S L_Sᵀ
@@ -317,29 +320,20 @@ def update(x: np.ndarray, L: np.ndarray, n: int, j: int, *, z_range: float,
     """
     N = 3 + 2 * n
     a = 3 + 2 * j
-    nu_r, nu_b, h0, h1 = _innovation(x, a, j, z_range, z_bearing, at)
+    prior = (float(x[0]), float(x[1]), float(x[2]), float(x[a]), float(x[a + 1]))
+    nu_r, nu_b, h0, h1 = _innovation(prior, j, z_range, z_bearing, at)
     if null is not None:
         h0, h1 = _constrained(h0, null), _constrained(h1, null)
-    wt = _gain_rows(L, N, a, ws, h0, h1)
-    w0x, w0y, w0t = float(wt[0, 0]), float(wt[0, 1]), float(wt[0, 2])
-    w0m, w0n = float(wt[0, a]), float(wt[0, a + 1])
-    w1x, w1y, w1t = float(wt[1, 0]), float(wt[1, 1]), float(wt[1, 2])
-    w1m, w1n = float(wt[1, a]), float(wt[1, a + 1])
-    # S = H (P Hᵀ) + R; the off-diagonal is taken from one side only: S is symmetric exactly.
-    s00 = h0[0] * (w0x - w0m) + h0[1] * (w0y - w0n) + h0[2] * w0t + var_range
-    s01 = h0[0] * (w1x - w1m) + h0[1] * (w1y - w1n) + h0[2] * w1t
-    s11 = h1[0] * (w1x - w1m) + h1[1] * (w1y - w1n) + h1[2] * w1t + var_bearing
-    i00, i10, i11 = _inverse_cholesky(s00, s01, s11, j)
-    vt = ws.vt[:, :N]
-    np.multiply(wt[0], i00, out=vt[0])
-    np.multiply(wt[0], i10, out=vt[1])
-    vt[1] += i11 * wt[1]
-    u0 = i00 * nu_r
-    u1 = i10 * nu_r + i11 * nu_b
+    s00, s01, s11, (i00, i10, i11) = _gain(L, N, a, ws, h0, h1, var_range, var_bearing, j)
+    u0, u1 = i00 * nu_r, i10 * nu_r + i11 * nu_b
     if gate > 0.0:
         nis = u0 * u0 + u1 * u1  # νᵀ S⁻¹ ν = ‖L_S⁻¹ ν‖²
         if not nis <= gate:
             raise GatedObservationError(nis, (nu_r, nu_b, s00, s01, s11))
+    if iterations > 1 and at is None:  # FEJ's H does not move: nothing to iterate
+        u0, u1 = _iterated((u0, u1), (h0, h1), (i00, i10, i11), iterations, prior, j,
+                           (z_range, z_bearing), (var_range, var_bearing), null, L, N, ws)
+    vt = ws.vt[:, :N]
     m = ws.deferred
     xs = x[:N]
     if guard is not None:
@@ -358,14 +352,15 @@ def update(x: np.ndarray, L: np.ndarray, n: int, j: int, *, z_range: float,
     return nu_r, nu_b, s00, s01, s11
 
 
-def _innovation(x: np.ndarray, a: int, j: int, z_range: float, z_bearing: float,
-                at: tuple[float, float, float, float] | None
+def _innovation(point: tuple[float, float, float, float, float], j: int, z_range: float,
+                z_bearing: float, at: tuple[float, float, float, float] | None
                 ) -> tuple[float, float, Row, Row]:
-    """(ν_r, ν_φ) at the latest estimates and H's robot rows h0, h1 (range, bearing), each
-    (∂/∂x, ∂/∂y, ∂/∂θ): H = [Hv | Hm] on columns (x, y, θ, mx, my) with Hm = −Hv[:, :2],
-    Hv = [[−ux, −uy, 0], [gy, −gx, −1]], evaluated at the latest estimates or at ``at``."""
-    x0, x1, theta = float(x[0]), float(x[1]), float(x[2])
-    dx, dy = float(x[a]) - x0, float(x[a + 1]) - x1
+    """(ν_r, ν_φ) at ``point`` = (robot x, y, θ, landmark x, y) and H's robot rows h0, h1
+    (range, bearing), each (∂/∂x, ∂/∂y, ∂/∂θ): H = [Hv | Hm] on columns (x, y, θ, mx, my)
+    with Hm = −Hv[:, :2], Hv = [[−ux, −uy, 0], [gy, −gx, −1]], evaluated at ``point`` or at
+    ``at``."""
+    x0, x1, theta, mx, my = point
+    dx, dy = mx - x0, my - x1
     q = dx * dx + dy * dy
     if not q > 0.0 or not math.isfinite(q):
         raise SingularInnovationError(f"landmark {j} is at the robot's position: h undefined")
@@ -380,6 +375,68 @@ def _innovation(x: np.ndarray, a: int, j: int, z_range: float, z_bearing: float,
                                           "propagated position: H undefined")
         r = math.sqrt(q)
     return nu_r, nu_b, (-dx / r, -dy / r, 0.0), (dy / q, -dx / q, -1.0)
+
+
+def _gain(L: np.ndarray, N: int, a: int, ws: Workspace, h0: Row, h1: Row, var_range: float,
+          var_bearing: float, j: int
+          ) -> tuple[float, float, float, tuple[float, float, float]]:
+    """S = H P Hᵀ + R (s00, s01, s11), L_S⁻¹ = [[i00, 0], [i10, i11]] (the last three) and
+    Vᵀ = (W L_S⁻ᵀ)ᵀ = L_S⁻¹ H P in ``ws.vt``."""
+    wt = _gain_rows(L, N, a, ws, h0, h1)
+    w0x, w0y, w0t = float(wt[0, 0]), float(wt[0, 1]), float(wt[0, 2])
+    w0m, w0n = float(wt[0, a]), float(wt[0, a + 1])
+    w1x, w1y, w1t = float(wt[1, 0]), float(wt[1, 1]), float(wt[1, 2])
+    w1m, w1n = float(wt[1, a]), float(wt[1, a + 1])
+    # S = H (P Hᵀ) + R; the off-diagonal is taken from one side only: S is symmetric exactly.
+    s00 = h0[0] * (w0x - w0m) + h0[1] * (w0y - w0n) + h0[2] * w0t + var_range
+    s01 = h0[0] * (w1x - w1m) + h0[1] * (w1y - w1n) + h0[2] * w1t
+    s11 = h1[0] * (w1x - w1m) + h1[1] * (w1y - w1n) + h1[2] * w1t + var_bearing
+    i00, i10, i11 = _inverse_cholesky(s00, s01, s11, j)
+    vt = ws.vt[:, :N]
+    np.multiply(wt[0], i00, out=vt[0])
+    np.multiply(wt[0], i10, out=vt[1])
+    vt[1] += i11 * wt[1]
+    return s00, s01, s11, (i00, i10, i11)
+
+
+def _iterated(u: tuple[float, float], h: tuple[Row, Row],
+              inv: tuple[float, float, float], iterations: int,
+              prior: tuple[float, float, float, float, float], j: int, z: tuple[float, float],
+              var: tuple[float, float], null: tuple[float, float, float, float] | None,
+              L: np.ndarray, N: int, ws: Workspace) -> tuple[float, float]:
+    """The iterated update (:mod:`~slamlens.services.slam.ekf_iterated`) from the EKF's
+    ``u`` (its H rows ``h``, its L_S⁻¹ ``inv``; its Vᵀ in ``ws.vt``): the u of the last
+    linearisation (at the fixed point, or the lowest J found), its Vᵀ in ``ws.vt``.
+    OC (``null``): the iteration finds the MAP point with h's own Jacobians, and the
+    update is then linearised there with H made blind to the unobservable directions."""
+    a = 3 + 2 * j
+    vt = ws.vt[:, :N]
+    five = [0, 1, 2, a, a + 1]
+
+    def landing(u0: float, u1: float, h0: Row, h1: Row,
+                i: tuple[float, float, float]) -> ekf_iterated.Landing:
+        y0, y1 = i[0] * u0 + i[1] * u1, i[2] * u1  # y = S⁻¹ν = L_S⁻ᵀ u
+        return ekf_iterated.Landing(u0, u1, u0 * vt[0, five] + u1 * vt[1, five],
+                                    ekf_iterated.g_of(h0, h1, y0, y1))
+
+    def relinearise(step: np.ndarray, constrain: bool = False) -> ekf_iterated.Landing:
+        x0, x1, th, mx, my = (p + float(d) for p, d in zip(prior, step, strict=True))
+        nu_r, nu_b, h0, h1 = _innovation((x0, x1, th, mx, my), j, z[0], z[1], None)
+        if constrain and null is not None:
+            h0, h1 = _constrained(h0, null), _constrained(h1, null)
+        dx, dy = float(step[0] - step[3]), float(step[1] - step[4])
+        nu_r += h0[0] * dx + h0[1] * dy + h0[2] * float(step[2])  # carried back to x̂:
+        nu_b += h1[0] * dx + h1[1] * dy + h1[2] * float(step[2])  # ν = z − h(xᵢ) + H(xᵢ − x̂)
+        *_, i = _gain(L, N, a, ws, h0, h1, var[0], var[1], j)
+        return landing(i[0] * nu_r, i[1] * nu_r + i[2] * nu_b, h0, h1, i)
+
+    cost_at = partial(ekf_iterated.cost, prior, z_range=z[0], z_bearing=z[1],
+                      var_range=var[0], var_bearing=var[1])
+    first = landing(u[0], u[1], h[0], h[1], inv) if null is None else relinearise(np.zeros(5))
+    out = ekf_iterated.iterate(first, relinearise, cost_at, iterations)
+    if null is not None:  # OC: the update linearised at the MAP point, H made blind there
+        out = relinearise(out.step, constrain=True)
+    return out.u0, out.u1
 
 
 def _constrained(h: Row, null: tuple[float, float, float, float]) -> Row:
@@ -529,16 +586,9 @@ def initialise(x: np.ndarray, L: np.ndarray, n: int, *, z_range: float, z_bearin
     x[N + 1] = my
 
 
-def check_finite_inputs(**values: float) -> None:
-    """Raise EstimationError naming the first non-finite value (NaN/inf would poison P)."""
-    for name, value in values.items():
-        if not math.isfinite(value):
-            raise EstimationError(f"{name} must be finite, got {value!r}")
-
-
 __all__ = [
     "GatedObservationError", "Guard", "RefusedStepError", "SingularInnovationError",
-    "MAX_DEFERRED", "SyrkArgs", "Workspace", "check_finite_inputs", "downdate_lower", "flush",
+    "MAX_DEFERRED", "SyrkArgs", "Workspace", "downdate_lower", "flush",
     "initialise", "inverse_observation", "inverse_observation_jacobians", "lower_from_symmetric",
     "motion", "motion_jacobians", "observation_jacobians", "observe", "predict",
     "robot_rows_into", "symmetric", "symmetric_after_predict", "update", "wrap_angle",

@@ -50,7 +50,8 @@ class Estimator:
         self._batches = BatchApplier(
             self.store, self.checks, self.noise,
             gates=association.Gates(settings.gate_chi2, settings.new_landmark_chi2),
-            innovation_gate=float(settings.innovation_gate_chi2), guard=self._guard)
+            innovation_gate=float(settings.innovation_gate_chi2), guard=self._guard,
+            iterations=settings.update_iterations)
 
     # -- read-only views ---------------------------------------------------------------
     @property

@@ -11,13 +11,13 @@ counted by reason and the last refusal kept (docs/estimator.md); the counts are 
 from __future__ import annotations
 
 import logging
+import math
 from collections import Counter
 from collections.abc import Mapping
 from typing import Any
 
 from slamlens.common.errors import EstimationError
 from slamlens.common.messages import SlamState
-from slamlens.services.slam import ekf
 from slamlens.services.slam.observe_report import Refusal
 from slamlens.services.slam.plausibility import (
     Bounds,
@@ -31,6 +31,13 @@ from slamlens.services.slam.settings import EstimatorSettings
 log = logging.getLogger("slamlens.estimator")
 
 Batch = tuple[list[int], list[float], list[float]]
+
+
+def check_finite_inputs(**values: float) -> None:
+    """Raise EstimationError naming the first non-finite value (NaN/inf would poison P)."""
+    for name, value in values.items():
+        if not math.isfinite(value):
+            raise EstimationError(f"{name} must be finite, got {value!r}")
 
 
 def odometry_text(v: float, w: float, dt: float) -> str:
@@ -64,7 +71,7 @@ class InputChecks:
     def odometry(self, *, v: float, w: float, dt: float, stamp: float) -> None:
         """Raise EstimationError for NaN or dt < 0, :class:`ImplausibleInputError`
         (counted) for a step outside a bound."""
-        ekf.check_finite_inputs(v=v, w=w, dt=dt, stamp=stamp)
+        check_finite_inputs(v=v, w=w, dt=dt, stamp=stamp)
         if dt < 0:
             raise EstimationError(f"dt must be ≥ 0, got {dt!r}")
         try:

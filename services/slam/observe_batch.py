@@ -27,13 +27,15 @@ class BatchApplier:
     """Applies observation batches to ``store``'s map with the model's noise."""
 
     def __init__(self, store: StateStore, checks: InputChecks, noise: NoiseModel, *,
-                 gates: association.Gates, innovation_gate: float, guard: ekf.Guard) -> None:
+                 gates: association.Gates, innovation_gate: float, guard: ekf.Guard,
+                 iterations: int = 1) -> None:
         self.store = store
         self.checks = checks
         self.noise = noise
         self.gates = gates  #: the association thresholds
         self.innovation_gate = innovation_gate  #: χ² on a known landmark's NIS
         self.guard = guard
+        self.iterations = iterations  #: Gauss-Newton steps of each update (iterated EKF)
 
     def apply(self, ids: list[int], ranges: list[float], bearings: list[float],
               stamp: float) -> BatchRecord:
@@ -73,6 +75,7 @@ class BatchApplier:
                 out = ekf.update(store.x, store.L, store.n, j, z_range=z_r, z_bearing=z_b,
                                  var_range=var_r, var_bearing=self.noise.var_b, ws=store.ws,
                                  gate=self.innovation_gate, guard=self.guard, defer=True,
+                                 iterations=self.iterations,
                                  **store.linearisation(j))
         except ekf.GatedObservationError as exc:
             self.checks.gated += 1

@@ -249,6 +249,13 @@ class EstimatorSettings:
                       "H at the latest estimates, made blind to FEJ's unobservable "
                       "directions: the same guarantee with Jacobians nearer the truth) "
                       "(docs/estimator.md)", choices=LINEARISATIONS)
+    update_iterations: int = setting(
+        1, doc="the iterated EKF: at most this many linearisations of each update, each at "
+               "the estimate the last one gave (a step that would raise the update's cost "
+               "halved back), until one lands within 1e-9 of where it was taken; 1 = the "
+               "EKF. For wide priors (long blind stretches, loop closures); fej: no effect, "
+               "its H does not move (docs/estimator.md)",
+        min=1, max=100)
     # -- opt-in motion noise (not the standard model; all 0 = the standard model exactly) --
     sigma_distance: float = setting(
         0.0, doc="opt-in, not the standard model: along-track noise growing with the distance "
