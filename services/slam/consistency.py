@@ -42,12 +42,13 @@ class Run:
         return self.stamps, self.nees
 
 
-def world_settings(world: World, *, linearisation: str = "standard") -> EstimatorSettings:
+def world_settings(world: World, *, linearisation: str = "standard",
+                   update_iterations: int = 1) -> EstimatorSettings:
     """The estimator settings whose noise is exactly the world's (a consistent filter)."""
     return EstimatorSettings(
         sigma_v=world.noise.sigma_v, sigma_w=world.noise.sigma_w,
         sigma_range=world.noise.sigma_range, sigma_bearing=world.noise.sigma_bearing,
-        linearisation=linearisation)
+        linearisation=linearisation, update_iterations=update_iterations)
 
 
 def run(world: World, *, seed: int, settings: EstimatorSettings | None = None,
@@ -134,9 +135,11 @@ class MonteCarlo:
 
 
 def monte_carlo(world: World, seeds: Iterable[int], *, loops: int | None = None,
-                confidence: float = 0.95, linearisation: str = "standard") -> MonteCarlo:
+                confidence: float = 0.95, linearisation: str = "standard",
+                update_iterations: int = 1) -> MonteCarlo:
     """Average NEES over ``seeds``; the band is the two-sided ``confidence`` χ²(3M)/M band."""
-    settings = world_settings(world, linearisation=linearisation)
+    settings = world_settings(world, linearisation=linearisation,
+                              update_iterations=update_iterations)
     return combine([run(world, seed=s, loops=loops, settings=settings).nees_run()
                     for s in seeds], confidence=confidence)
 
