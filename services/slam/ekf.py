@@ -302,7 +302,8 @@ def update(x: np.ndarray, L: np.ndarray, n: int, j: int, *, z_range: float,
     those points (FEJ: the robot's propagated position and the landmark's first estimate);
     with ``null`` = (robot x, y, landmark x, y) it is then moved the least onto H N = 0, N
     the unobservable directions at those points (OC, :func:`_constrained`); the innovation
-    ν = z − h(x̂) is always the latest estimates'.
+    ν = z − h(x̂) is always the latest estimates'. With ``iterations`` > 1 (and no ``at``)
+    the update is relinearised at its own estimate up to that many times (:func:`_iterated`).
 
     Returns the innovation and its covariance ``(ν_r, ν_φ, S_rr, S_rφ, S_φφ)`` before the
     update. Raises :class:`SingularInnovationError` without touching the state when
