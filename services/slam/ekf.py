@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from functools import partial
 
 import numpy as np
 
@@ -420,9 +419,12 @@ def _iterated(u: tuple[float, float], h: tuple[Row, Row],
         return ekf_iterated.Landing(u0, u1, u0 * vt[0, five] + u1 * vt[1, five],
                                     ekf_iterated.g_of(h0, h1, y0, y1))
 
-    def relinearise(step: np.ndarray, constrain: bool = False) -> ekf_iterated.Landing:
+    def residual(step: np.ndarray) -> tuple[float, float, Row, Row]:  # z − h there, and H
         x0, x1, th, mx, my = (p + float(d) for p, d in zip(prior, step, strict=True))
-        nu_r, nu_b, h0, h1 = _innovation((x0, x1, th, mx, my), j, z[0], z[1], None)
+        return _innovation((x0, x1, th, mx, my), j, z[0], z[1], None)
+
+    def relinearise(step: np.ndarray, constrain: bool = False) -> ekf_iterated.Landing:
+        nu_r, nu_b, h0, h1 = residual(step)
         if constrain and null is not None:
             h0, h1 = _constrained(h0, null), _constrained(h1, null)
         dx, dy = float(step[0] - step[3]), float(step[1] - step[4])
@@ -431,8 +433,9 @@ def _iterated(u: tuple[float, float], h: tuple[Row, Row],
         *_, i = _gain(L, N, a, ws, h0, h1, var[0], var[1], j)
         return landing(i[0] * nu_r, i[1] * nu_r + i[2] * nu_b, h0, h1, i)
 
-    cost_at = partial(ekf_iterated.cost, prior, z_range=z[0], z_bearing=z[1],
-                      var_range=var[0], var_bearing=var[1])
+    def cost_at(step: np.ndarray, g: np.ndarray) -> float:
+        return ekf_iterated.cost(step, g, residual(step)[:2], var[0], var[1])
+
     first = landing(u[0], u[1], h[0], h[1], inv) if null is None else relinearise(np.zeros(5))
     out = ekf_iterated.iterate(first, relinearise, cost_at, iterations)
     if null is not None:  # OC: the update linearised at the MAP point, H made blind there

@@ -20,7 +20,6 @@ found — never a point J rates worse than the prior.
 
 from __future__ import annotations
 
-import math
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -54,13 +53,11 @@ def g_of(h0: tuple[float, float, float], h1: tuple[float, float, float],
                      -(h0[1] * y0 + h1[1] * y1)])
 
 
-def cost(prior: tuple[float, float, float, float, float], step: np.ndarray, g: np.ndarray,
-         z_range: float, z_bearing: float, var_range: float, var_bearing: float) -> float:
-    """J at the iterate x̂ + P g whose five entries are ``prior`` + ``step`` (module docstring)."""
-    x0, x1, theta = prior[0] + step[0], prior[1] + step[1], prior[2] + step[2]
-    dx, dy = prior[3] + step[3] - x0, prior[4] + step[4] - x1
-    e_r = z_range - math.hypot(dx, dy)
-    e_b = (z_bearing - (math.atan2(dy, dx) - theta) + math.pi) % (2 * math.pi) - math.pi
+def cost(step: np.ndarray, g: np.ndarray, residual: tuple[float, float], var_range: float,
+         var_bearing: float) -> float:
+    """J at the iterate x̂ + P g (its five entries x̂ + ``step``), with ``residual`` the
+    (range, bearing) z − h there, bearing wrapped (module docstring)."""
+    e_r, e_b = residual
     return 0.5 * float(g @ step) + 0.5 * (e_r * e_r / var_range + e_b * e_b / var_bearing)
 
 
