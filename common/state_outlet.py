@@ -30,6 +30,7 @@ BURST_STATES = 32
 #: go through shared memory, and holding them back would only hold their memory)
 BURST_BELOW_BYTES = 32 << 10
 
+
 class StateOutlet:
     """Publishes states on ``key`` and answers a ``get`` on it with the latest put."""
 
@@ -55,6 +56,11 @@ class StateOutlet:
         self._header = self._header_of(first)
         self._bus.answer(self._key, self._on_query)
         self._publisher.put(self._latest)
+
+    @property
+    def is_open(self) -> bool:
+        """Whether :meth:`open` was called: a ``get`` is answered."""
+        return self._latest is not None
 
     @contextmanager
     def burst(self) -> Iterator[None]:

@@ -38,7 +38,6 @@ class StatePublisher:
         self._dropped = dropped
         self._out = StateOutlet(bus, keys.state(robot), cache=STATE_CACHE,
                                 cache_bytes=STATE_CACHE_BYTES, header=self._header_of)
-        self._open = False
         bus.declare_alive(keys.estimator_alive(robot))
 
     def _header_of(self, state: SlamState) -> bytes:
@@ -47,9 +46,8 @@ class StatePublisher:
     def publish(self, message: Message, stop: threading.Event | None = None) -> None:
         if not isinstance(message, SlamState):
             return
-        if self._open:
+        if self._out.is_open:
             self._out.publish(message)
         else:  # the first: a get is answered from now on
             self._out.open(message)
-            self._open = True
         self.counts["SlamState"] += 1
