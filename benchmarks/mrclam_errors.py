@@ -113,21 +113,22 @@ def changing_sd(table: np.ndarray, errors: np.ndarray) -> float:
     return float(np.concatenate(diffs).std() / math.sqrt(2))
 
 
-def design(table: np.ndarray, terms: tuple[str, ...]) -> np.ndarray:
-    return np.column_stack([TERMS[t](table[:, 2], table[:, 3]) for t in terms])
+def design(r: np.ndarray, b: np.ndarray, terms: tuple[str, ...]) -> np.ndarray:
+    """The calibration's columns for sightings at ranges ``r`` and bearings ``b``."""
+    return np.column_stack([TERMS[t](r, b) for t in terms])
 
 
 def fit_calibration(tables: list[np.ndarray], terms: tuple[str, ...]) -> np.ndarray:
     """Least-squares coefficients of ``terms`` for the range error of ``tables``."""
     both = np.concatenate(tables)
-    coef, *_ = np.linalg.lstsq(design(both, terms), both[:, 4], rcond=None)
+    coef, *_ = np.linalg.lstsq(design(both[:, 2], both[:, 3], terms), both[:, 4], rcond=None)
     return coef
 
 
 def left_sd(tables: list[np.ndarray], terms: tuple[str, ...], coef: np.ndarray) -> float:
     """The range error's sd on ``tables`` once calibrated: the range σ that goes with it."""
     both = np.concatenate(tables)
-    return float((both[:, 4] - design(both, terms) @ coef).std())
+    return float((both[:, 4] - design(both[:, 2], both[:, 3], terms) @ coef).std())
 
 
 def report_errors(runs: dict[int, MrclamRun]) -> dict[int, np.ndarray]:
@@ -150,7 +151,7 @@ def report_errors(runs: dict[int, MrclamRun]) -> dict[int, np.ndarray]:
         print(f"range calibration {name}, fitted on the other four robots, sd left:")
         for k, t in tables.items():
             coef = fit_calibration([tables[j] for j in tables if j != k], terms)
-            left = t[:, 4] - design(t, terms) @ coef
+            left = t[:, 4] - design(t[:, 2], t[:, 3], terms) @ coef
             print(f"  robot {k}: {t[:, 4].std():.3f} → {left.std():.3f} m "
                   f"(mean {left.mean():+.3f}, changing {changing_sd(t, left):.3f})")
     return tables
@@ -164,8 +165,7 @@ def _inputs(run: MrclamRun, turn_bias: float, calibration: tuple[tuple[str, ...]
         elif calibration is not None:
             terms, coef = calibration
             r, b = np.asarray(m.ranges, float), np.asarray(m.bearings, float)
-            table = np.column_stack([np.zeros_like(r), np.zeros_like(r), r, b])
-            yield replace(m, ranges=r - design(table, terms) @ coef)
+            yield replace(m, ranges=r - design(r, b, terms) @ coef)
         else:
             yield m
 
