@@ -19,15 +19,12 @@ from scipy.optimize import least_squares
 from slamlens.services.slam import ekf
 from slamlens.services.slam.estimator import Estimator
 from slamlens.services.slam.settings import EstimatorSettings
+from tests.unit.test_ekf_oracle import random_state, wrap
 
 SIG_R, SIG_B = 0.05, 0.02
 R = np.diag([SIG_R ** 2, SIG_B ** 2])
 RTOL = 1e-8
 ITERATIONS = 50
-
-
-def wrap(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
 
 
 def measure(x: np.ndarray, j: int) -> tuple[np.ndarray, np.ndarray]:
@@ -71,15 +68,6 @@ def dense_iterated(x: np.ndarray, P: np.ndarray, j: int, z: np.ndarray, iteratio
         xi = x + K @ nu
     P2 = P - K @ S @ K.T
     return xi, 0.5 * (P2 + P2.T)
-
-
-def random_state(rng: np.random.Generator, n: int, spread: float = 0.1
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    N = 3 + 2 * n
-    x = np.concatenate([rng.uniform(-2, 2, 2), [rng.uniform(-math.pi, math.pi)],
-                        rng.uniform(-5, 5, 2 * n)])
-    A = rng.normal(scale=spread, size=(N, N))
-    return x, A @ A.T + 1e-4 * np.eye(N)
 
 
 def observation(rng: np.random.Generator, x: np.ndarray, j: int,

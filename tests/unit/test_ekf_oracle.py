@@ -82,11 +82,11 @@ def dense_initialise(x: np.ndarray, P: np.ndarray, z: np.ndarray):
 # ----------------------------------------------------------------------------- helpers
 
 
-def random_state(rng: np.random.Generator, n: int):
+def random_state(rng: np.random.Generator, n: int, spread: float = 0.1):
     N = 3 + 2 * n
     x = np.concatenate([rng.uniform(-2, 2, 2), [rng.uniform(-math.pi, math.pi)],
                         rng.uniform(-5, 5, 2 * n)])
-    A = rng.normal(scale=0.1, size=(N, N))
+    A = rng.normal(scale=spread, size=(N, N))
     P = A @ A.T + 1e-4 * np.eye(N)
     return x, P
 
