@@ -28,7 +28,7 @@ from collections.abc import Callable
 import numpy as np
 import scipy
 
-from slamlens.services.slam import ekf, ekf_storage
+from slamlens.services.slam import ekf, ekf_storage, models
 from slamlens.services.slam.estimator import Estimator
 from slamlens.services.slam.settings import EstimatorSettings
 
@@ -58,7 +58,7 @@ def mapped_estimator(n: int, rng: np.random.Generator, *,
              for i in range(n)}
     for i, m in truth.items():
         est.predict(v=0.1, w=0.05, dt=0.1, stamp=0.0)
-        r, b = ekf.observe(est.pose, m)
+        r, b = models.observe(est.pose, m)
         est.observe(ids=[i], ranges=[r + rng.normal(0, 0.05)], bearings=[b], stamp=0.0)
     return est
 
@@ -79,7 +79,7 @@ def measure(n: int, rng: np.random.Generator, *, reps: int, dense_reps: int) -> 
         j = int(js[state["k"] % js.size])
         state["k"] += 1
         a = 3 + 2 * j
-        z = ekf.observe(x[:3], x[a:a + 2])
+        z = models.observe(x[:3], x[a:a + 2])
         ekf.update(x, L, n, j, z_range=float(z[0]) + 1e-3, z_bearing=float(z[1]),
                    var_range=VAR_R, var_bearing=VAR_B, ws=ws)
 
@@ -93,7 +93,7 @@ def measure(n: int, rng: np.random.Generator, *, reps: int, dense_reps: int) -> 
         j = int(js[state["k"] % js.size])
         state["k"] += 1
         a = 3 + 2 * j
-        z = ekf.observe(x[:3], x[a:a + 2])
+        z = models.observe(x[:3], x[a:a + 2])
         ekf.update(x, L, n, j, z_range=float(z[0]) + 1e-3, z_bearing=float(z[1]),
                    var_range=VAR_R, var_bearing=VAR_B, ws=ws, guard=guard)
 
@@ -106,7 +106,7 @@ def measure(n: int, rng: np.random.Generator, *, reps: int, dense_reps: int) -> 
     def both_estimator() -> None:
         est.predict(v=0.2, w=0.1, dt=0.01, stamp=1.0)
         m = x[3:5]
-        z = ekf.observe(x[:3], m)
+        z = models.observe(x[:3], m)
         est.observe(ids=ids, ranges=[float(z[0])], bearings=[float(z[1])], stamp=1.0)
 
     # plain and guarded interleaved in rounds, so that load from other work hits both alike
@@ -177,7 +177,7 @@ def batch_text(n: int, rng: np.random.Generator, *, reps: int, batch: int = 4) -
     def run(defer: bool) -> None:
         for j in js[state["k"] % len(js)].tolist():
             a = 3 + 2 * j
-            z = ekf.observe(x[:3], x[a:a + 2])
+            z = models.observe(x[:3], x[a:a + 2])
             ekf.update(x, L, n, j, z_range=float(z[0]) + 1e-3, z_bearing=float(z[1]),
                        var_range=VAR_R, var_bearing=VAR_B, ws=ws, defer=defer)
         ekf.flush(L, 3 + 2 * n, ws)
@@ -212,7 +212,7 @@ def fej_text(n: int, *, reps: int, rounds: int = 7) -> str:
 
         def go() -> None:
             est.predict(v=0.2, w=0.1, dt=0.01, stamp=1.0)
-            z = ekf.observe(x[:3], x[3:5])
+            z = models.observe(x[:3], x[3:5])
             est.observe(ids=ids, ranges=[float(z[0]) + 1e-3], bearings=[float(z[1])],
                         stamp=1.0)
         return go

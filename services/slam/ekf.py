@@ -1,4 +1,5 @@
-"""EKF-SLAM numerical core: the standard models (docs/estimator.md), their Jacobians, kernels.
+"""EKF-SLAM numerical core: the in-place kernels of the standard models (docs/estimator.md;
+the models and their Jacobians as small functions: :mod:`slamlens.services.slam.models`).
 
 The state is ``x = [x, y, θ, m1x, m1y, …]`` (N = 3 + 2n). Its covariance lives in the
 lower triangle of a preallocated buffer ``L`` (:mod:`slamlens.services.slam.ekf_storage`:
@@ -114,61 +115,6 @@ def _psd2(a00: float, a10: float, a11: float, tol: float) -> bool:
 def _wrap(angle: float) -> float:
     # Scalar twin of slamlens.common.geometry.wrap_angle (same formula, no numpy dispatch).
     return (angle + math.pi) % _TWO_PI - math.pi
-
-
-# ---------------------------------------------------------------------------------------
-# the models of docs/estimator.md (pure functions of small arrays; used by tests and association)
-# ---------------------------------------------------------------------------------------
-
-
-def motion(pose: np.ndarray, *, v: float, w: float, dt: float) -> np.ndarray:
-    """First-order velocity model: the pose after driving (v m/s, w rad/s) for dt s."""
-    x, y, theta = (float(p) for p in pose)
-    return np.array([x + v * dt * math.cos(theta), y + v * dt * math.sin(theta),
-                     _wrap(theta + w * dt)])
-
-
-def motion_jacobians(pose: np.ndarray, *, v: float, w: float,
-                     dt: float) -> tuple[np.ndarray, np.ndarray]:
-    """(Fx 3×3, Fu 3×2) of :func:`motion` with respect to the pose and to (v, w)."""
-    c, s = math.cos(float(pose[2])), math.sin(float(pose[2]))
-    Fx = np.array([[1.0, 0.0, -v * dt * s], [0.0, 1.0, v * dt * c], [0.0, 0.0, 1.0]])
-    Fu = np.array([[dt * c, 0.0], [dt * s, 0.0], [0.0, dt]])
-    return Fx, Fu
-
-
-def observe(pose: np.ndarray, landmark_xy: np.ndarray) -> np.ndarray:
-    """h = (range m, bearing rad) of a landmark seen from ``pose``; bearing wrapped."""
-    dx, dy = float(landmark_xy[0] - pose[0]), float(landmark_xy[1] - pose[1])
-    return np.array([math.hypot(dx, dy), _wrap(math.atan2(dy, dx) - float(pose[2]))])
-
-
-def observation_jacobians(pose: np.ndarray,
-                          landmark_xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(Hv 2×3, Hm 2×2) of :func:`observe` with respect to the pose and the landmark."""
-    dx, dy = float(landmark_xy[0] - pose[0]), float(landmark_xy[1] - pose[1])
-    q = dx * dx + dy * dy
-    r = math.sqrt(q)
-    Hv = np.array([[-dx / r, -dy / r, 0.0], [dy / q, -dx / q, -1.0]])
-    Hm = np.array([[dx / r, dy / r], [-dy / q, dx / q]])
-    return Hv, Hm
-
-
-def inverse_observation(pose: np.ndarray, *, range_m: float, bearing: float) -> np.ndarray:
-    """Landmark position (m, map frame) from a range-bearing observation taken at ``pose``."""
-    alpha = float(pose[2]) + bearing
-    return np.array([float(pose[0]) + range_m * math.cos(alpha),
-                     float(pose[1]) + range_m * math.sin(alpha)])
-
-
-def inverse_observation_jacobians(pose: np.ndarray, *, range_m: float,
-                                  bearing: float) -> tuple[np.ndarray, np.ndarray]:
-    """(Gv 2×3, Gz 2×2) of :func:`inverse_observation` w.r.t. the pose and (range, bearing)."""
-    alpha = float(pose[2]) + bearing
-    c, s = math.cos(alpha), math.sin(alpha)
-    Gv = np.array([[1.0, 0.0, -range_m * s], [0.0, 1.0, range_m * c]])
-    Gz = np.array([[c, -range_m * s], [s, range_m * c]])
-    return Gv, Gz
 
 
 #: updates whose downdates :func:`update` may hold back (``defer``) before it applies them
@@ -593,7 +539,6 @@ def initialise(x: np.ndarray, L: np.ndarray, n: int, *, z_range: float, z_bearin
 __all__ = [
     "GatedObservationError", "Guard", "RefusedStepError", "SingularInnovationError",
     "MAX_DEFERRED", "SyrkArgs", "Workspace", "downdate_lower", "flush",
-    "initialise", "inverse_observation", "inverse_observation_jacobians", "lower_from_symmetric",
-    "motion", "motion_jacobians", "observation_jacobians", "observe", "predict",
+    "initialise", "lower_from_symmetric", "predict",
     "robot_rows_into", "symmetric", "symmetric_after_predict", "update", "wrap_angle",
 ]

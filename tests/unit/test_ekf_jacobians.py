@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from slamlens.services.slam import ekf
+from slamlens.services.slam import ekf, models
 
 EPS = 1e-6
 TOL = 1e-7  # central differences: O(eps²) truncation plus O(1e-16/eps) rounding
@@ -36,9 +36,9 @@ def test_motion_jacobians(seed: int) -> None:
     rng = np.random.default_rng(seed)
     pose = np.array([*rng.uniform(-3, 3, 2), rng.uniform(-math.pi, math.pi)])
     v, w, dt = rng.normal(0, 1), rng.normal(0, 1), rng.uniform(0.01, 0.5)
-    Fx, Fu = ekf.motion_jacobians(pose, v=v, w=w, dt=dt)
-    num_Fx = numeric_jacobian(lambda p: ekf.motion(p, v=v, w=w, dt=dt), pose, (2,))
-    num_Fu = numeric_jacobian(lambda u: ekf.motion(pose, v=u[0], w=u[1], dt=dt),
+    Fx, Fu = models.motion_jacobians(pose, v=v, w=w, dt=dt)
+    num_Fx = numeric_jacobian(lambda p: models.motion(p, v=v, w=w, dt=dt), pose, (2,))
+    num_Fu = numeric_jacobian(lambda u: models.motion(pose, v=u[0], w=u[1], dt=dt),
                               np.array([v, w]), (2,))
     np.testing.assert_allclose(Fx, num_Fx, atol=TOL)
     np.testing.assert_allclose(Fu, num_Fu, atol=TOL)
@@ -50,9 +50,9 @@ def test_observation_jacobians(seed: int) -> None:
     pose = np.array([*rng.uniform(-3, 3, 2), rng.uniform(-math.pi, math.pi)])
     lm = pose[:2] + rng.uniform(0.3, 4) * np.array([math.cos(t := rng.uniform(0, 6.28)),
                                                     math.sin(t)])
-    Hv, Hm = ekf.observation_jacobians(pose, lm)
-    num_Hv = numeric_jacobian(lambda p: ekf.observe(p, lm), pose, (1,))
-    num_Hm = numeric_jacobian(lambda m: ekf.observe(pose, m), lm, (1,))
+    Hv, Hm = models.observation_jacobians(pose, lm)
+    num_Hv = numeric_jacobian(lambda p: models.observe(p, lm), pose, (1,))
+    num_Hm = numeric_jacobian(lambda m: models.observe(pose, m), lm, (1,))
     np.testing.assert_allclose(Hv, num_Hv, atol=TOL)
     np.testing.assert_allclose(Hm, num_Hm, atol=TOL)
 
@@ -61,10 +61,10 @@ def test_observation_jacobian_where_bearing_wraps() -> None:
     """Landmark behind the robot: h's bearing jumps between ±π, the derivative must not."""
     pose = np.array([0.0, 0.0, 0.0])
     lm = np.array([-2.0, 1e-9])
-    Hv, Hm = ekf.observation_jacobians(pose, lm)
-    np.testing.assert_allclose(Hv, numeric_jacobian(lambda p: ekf.observe(p, lm), pose, (1,)),
+    Hv, Hm = models.observation_jacobians(pose, lm)
+    np.testing.assert_allclose(Hv, numeric_jacobian(lambda p: models.observe(p, lm), pose, (1,)),
                                atol=TOL)
-    np.testing.assert_allclose(Hm, numeric_jacobian(lambda m: ekf.observe(pose, m), lm, (1,)),
+    np.testing.assert_allclose(Hm, numeric_jacobian(lambda m: models.observe(pose, m), lm, (1,)),
                                atol=TOL)
 
 
@@ -73,11 +73,11 @@ def test_inverse_observation_jacobians(seed: int) -> None:
     rng = np.random.default_rng(200 + seed)
     pose = np.array([*rng.uniform(-3, 3, 2), rng.uniform(-math.pi, math.pi)])
     r, phi = rng.uniform(0.1, 5), rng.uniform(-math.pi, math.pi)
-    Gv, Gz = ekf.inverse_observation_jacobians(pose, range_m=r, bearing=phi)
-    num_Gv = numeric_jacobian(lambda p: ekf.inverse_observation(p, range_m=r, bearing=phi),
+    Gv, Gz = models.inverse_observation_jacobians(pose, range_m=r, bearing=phi)
+    num_Gv = numeric_jacobian(lambda p: models.inverse_observation(p, range_m=r, bearing=phi),
                               pose)
     num_Gz = numeric_jacobian(
-        lambda z: ekf.inverse_observation(pose, range_m=z[0], bearing=z[1]), np.array([r, phi]))
+        lambda z: models.inverse_observation(pose, range_m=z[0], bearing=z[1]), np.array([r, phi]))
     np.testing.assert_allclose(Gv, num_Gv, atol=TOL)
     np.testing.assert_allclose(Gz, num_Gz, atol=TOL)
 
@@ -87,8 +87,8 @@ def test_inverse_observation_inverts_observe() -> None:
     for _ in range(50):
         pose = np.array([*rng.uniform(-3, 3, 2), rng.uniform(-math.pi, math.pi)])
         r, phi = rng.uniform(0.1, 5), rng.uniform(-math.pi, math.pi)
-        m = ekf.inverse_observation(pose, range_m=r, bearing=phi)
-        np.testing.assert_allclose(ekf.observe(pose, m), [r, phi], atol=1e-12)
+        m = models.inverse_observation(pose, range_m=r, bearing=phi)
+        np.testing.assert_allclose(models.observe(pose, m), [r, phi], atol=1e-12)
 
 
 def test_kernel_jacobians_match_model_jacobians() -> None:
@@ -99,7 +99,7 @@ def test_kernel_jacobians_match_model_jacobians() -> None:
     x = np.concatenate([pose, lm])
     A = rng.normal(scale=0.1, size=(5, 5))
     P = A @ A.T + 1e-3 * np.eye(5)
-    Hv, Hm = ekf.observation_jacobians(pose, lm)
+    Hv, Hm = models.observation_jacobians(pose, lm)
     H = np.hstack([Hv, Hm])
     R = np.diag([0.05**2, 0.02**2])
     S = H @ P @ H.T + R

@@ -10,7 +10,7 @@ import pytest
 from slamlens.common.config import load_settings
 from slamlens.common.errors import ConfigError, EstimationError
 from slamlens.common.messages import SlamState
-from slamlens.services.slam import association, ekf
+from slamlens.services.slam import association, ekf, models
 from slamlens.services.slam.estimator import Estimator
 from slamlens.services.slam.settings import EstimatorSettings
 
@@ -280,7 +280,7 @@ def test_covariance_stays_symmetric_psd_over_1000_random_steps() -> None:
     worst = 0.0
     for k in range(1000):
         v, w = rng.uniform(0, 1), rng.normal(0, 0.5)
-        truth_pose = ekf.motion(truth_pose, v=v, w=w, dt=0.1)
+        truth_pose = models.motion(truth_pose, v=v, w=w, dt=0.1)
         est.predict(v=v + rng.normal(0, 0.05), w=w + rng.normal(0, 0.05), dt=0.1, stamp=k)
         seen = [i for i, m in world.items() if measure(truth_pose, m)[0] < 4.0]
         picks = rng.permutation(seen)[:5]

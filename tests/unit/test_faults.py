@@ -13,7 +13,7 @@ import numpy as np
 import pytest
 
 from slamlens.common.geometry import relative_covariance
-from slamlens.services.slam import ekf
+from slamlens.services.slam import models
 from slamlens.services.slam.estimator import Estimator
 from slamlens.services.slam.settings import EstimatorSettings
 
@@ -48,12 +48,12 @@ def run(settings: EstimatorSettings, *, steps: int = 420, seed: int = 0) -> list
 
     for k in range(1, steps + 1):
         stamp = k * DT
-        truth = ekf.motion(truth, v=V, w=W, dt=DT)
+        truth = models.motion(truth, v=V, w=W, dt=DT)
         est.predict(v=V + rng.normal(0, 0.05), w=W + rng.normal(0, 0.05), dt=DT, stamp=stamp)
         record("predict", stamp)
         ids, rs, bs = [], [], []
         for lid, m in LANDMARKS.items():
-            r, b = ekf.observe(truth, m)
+            r, b = models.observe(truth, m)
             if r < 2.5 and abs(b) <= math.pi / 2:
                 ids.append(lid)
                 rs.append(r + rng.normal(0, 0.05))
