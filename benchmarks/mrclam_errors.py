@@ -7,7 +7,8 @@ measurements behind docs/consistency.md, "Why the NIS is low on real data".
 2. **Range.** Every sighting of a landmark against the range the ground truth gives (both
    poses from Vicon): the error's standard deviation, and the part that changes between
    consecutive sightings of one landmark less than a second apart (sd of their difference
-   / √2): the rest persists from one sighting to the next.
+   / √2): the rest persists from one sighting to the next; and the correlation of two
+   sightings' errors by how far apart in time they are.
 3. **A range calibration, left out.** The range error regressed on the sighting's geometry
    on four robots, applied to the fifth: the standard deviation left on the fifth.
 4. ``--evaluate``: the estimator (offline, each robot with its left-out profile
@@ -49,6 +50,7 @@ ROBOTS = (1, 2, 3, 4, 5)
 WINDOWS_S = (0.25, 1.0, 4.0, 32.0)
 GROSS_M = 0.5  #: range errors beyond this are gross (misreads), left out of the statistics
 CONSECUTIVE_S = 1.0  #: sightings of one landmark this close are "consecutive"
+GAPS_S = (0.3, 1.0, 3.0, 10.0, 30.0, 100.0)  #: buckets of time between two sightings, s
 #: geometric terms of a range calibration: name → column of (range r, bearing b)
 TERMS: dict[str, Callable[[np.ndarray, np.ndarray], np.ndarray]] = {
     "1": lambda r, b: np.ones_like(r), "r": lambda r, b: r, "r²": lambda r, b: r * r,
@@ -113,6 +115,21 @@ def changing_sd(table: np.ndarray, errors: np.ndarray) -> float:
     return float(np.concatenate(diffs).std() / math.sqrt(2))
 
 
+def correlation_by_gap(table: np.ndarray) -> list[float]:
+    """Correlation of the range errors of two sightings of one landmark, for pairs whose
+    time apart falls in each bucket of :data:`GAPS_S` (upper bounds, s)."""
+    e = table[:, 4] - table[:, 4].mean()
+    products: list[list[float]] = [[] for _ in GAPS_S]
+    for lid in np.unique(table[:, 1]):
+        stamps, errs = table[table[:, 1] == lid, 0], e[table[:, 1] == lid]
+        for i in range(stamps.size):
+            gaps = stamps[i + 1:] - stamps[i]
+            bucket = np.searchsorted(GAPS_S, gaps)
+            for b in range(len(GAPS_S)):
+                products[b].extend((errs[i] * errs[i + 1:][bucket == b]).tolist())
+    return [float(np.mean(p) / e.var()) if p else math.nan for p in products]
+
+
 def design(r: np.ndarray, b: np.ndarray, terms: tuple[str, ...]) -> np.ndarray:
     """The calibration's columns for sightings at ranges ``r`` and bearings ``b``."""
     return np.column_stack([TERMS[t](r, b) for t in terms])
@@ -146,7 +163,11 @@ def report_errors(runs: dict[int, MrclamRun]) -> dict[int, np.ndarray]:
           f"sightings (< {CONSECUTIVE_S:g} s apart) of one landmark")
     for k, t in tables.items():
         print(f"  robot {k}: {t.shape[0]} sightings, sd {t[:, 4].std():.3f} m, "
-              f"changing {changing_sd(t, t[:, 4]):.3f} m, mean {t[:, 4].mean():+.3f} m")
+              f"changing {changing_sd(t, t[:, 4]):.3f} m, mean {t[:, 4].mean():+.3f} m, "
+              f"median measured/true {np.median(t[:, 2] / (t[:, 2] - t[:, 4])):.4f}")
+    print(f"range: correlation of two sightings' errors by time apart (≤ {GAPS_S} s)")
+    for k, t in tables.items():
+        print(f"  robot {k}: " + "  ".join(f"{c:+.2f}" for c in correlation_by_gap(t)))
     for name, terms in CALIBRATIONS.items():
         print(f"range calibration {name}, fitted on the other four robots, sd left:")
         for k, t in tables.items():
