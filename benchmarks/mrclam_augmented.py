@@ -23,7 +23,8 @@ printed: pose NEES, map shape (landmark RMSE after a rigid fit), NIS mean / medi
 share of the monitor's 50-innovation NIS windows outside their band, the final ε; and,
 for the runs without an extra state, where S comes from (median |ν|, √S and √R).
 
-Run: ``.venv/bin/python benchmarks/mrclam_augmented.py [--check]`` (≈ 1.5 min on 2 cores; `--check` ≈ 2 min).
+Run: ``.venv/bin/python benchmarks/mrclam_augmented.py [--check]`` (≈ 1.5 min on 2 cores;
+``--check`` ≈ 2 min).
 """
 
 from __future__ import annotations
