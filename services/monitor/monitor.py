@@ -35,7 +35,13 @@ from slamlens.services.monitor import checks, theorems
 from slamlens.services.monitor.blame import Evidence, blame_weights
 from slamlens.services.monitor.screen import Screen, Screened
 from slamlens.services.monitor.settings import MonitorSettings
-from slamlens.services.monitor.stats import BlockTerms, WindowTest, quadratic_forms_2x2
+from slamlens.services.monitor.stats import (
+    NIS_READING,
+    BlockTerms,
+    WindowTest,
+    quadratic_forms_2x2,
+    window_detail,
+)
 from slamlens.services.monitor.truth import TruthTracker
 from slamlens.services.monitor.unobservable import UnobservableCheck, declares_fej
 from slamlens.services.monitor.verdict import Verdict
@@ -264,8 +270,8 @@ class Monitor:
                 if r.failed:
                     out.append(Violation(
                         kind="nis", ids=(), step=state.seq, value=r.mean, bound=r.edge,
-                        phase="update", detail=f"mean NIS {r.mean:.3g} over {r.samples} "
-                                               f"innovations outside [{r.lo:.3g}, {r.hi:.3g}]"))
+                        phase="update",
+                        detail=window_detail("mean NIS", r, "innovations", NIS_READING)))
         if self._nis.sliding_mean is not None:
             stats["nis_window_mean"] = self._nis.sliding_mean
             stats["nis_window_lo"], stats["nis_window_hi"] = self._nis.lo, self._nis.hi

@@ -148,6 +148,31 @@ class WindowResult:
         """The band edge a failed window crossed."""
         return float(self.hi if self.mean > self.hi else self.lo)
 
+    @property
+    def side(self) -> str:
+        """Where a failed window left its band: "below" or "above"."""
+        return "above" if self.mean > self.hi else "below"
+
+
+#: what a NIS window outside its band says, by the side it left by (docs/monitor.md)
+NIS_READING = {
+    "below": "the innovations are smaller than S predicts (timid: noise set too large, "
+             "or errors correlated in time)",
+    "above": "the innovations are larger than S predicts (overconfident: noise set too "
+             "small, or a model error)"}
+#: what a NEES window outside its band says
+NEES_READING = {
+    "below": "the error is smaller than the covariance says (timid)",
+    "above": "the error is larger than the covariance says (overconfident)"}
+
+
+def window_detail(what: str, result: WindowResult, samples: str,
+                  readings: dict[str, str]) -> str:
+    """A failed window in words: "mean NIS 0.67 over 50 innovations, below [0.907, 3.7]: the
+    innovations are smaller than S predicts (timid: …)"."""
+    return (f"{what} {result.mean:.3g} over {result.samples} {samples}, {result.side} "
+            f"[{result.lo:.3g}, {result.hi:.3g}]: {readings[result.side]}")
+
 
 class WindowTest:
     """Tumbling-window test of the mean of χ²(dof) samples; also a sliding mean for display.

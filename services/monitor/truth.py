@@ -23,12 +23,14 @@ from slamlens.common.geometry import compose2, inverse2, transform2
 from slamlens.common.messages import SlamState, Truth, Violation
 from slamlens.services.monitor.settings import MonitorSettings
 from slamlens.services.monitor.stats import (
+    NEES_READING,
     BlockTerms,
     FeatureWindows,
     WindowTest,
     feature_nees,
     match_ids,
     pose_nees,
+    window_detail,
 )
 
 log = logging.getLogger(__name__)
@@ -231,8 +233,7 @@ class TruthTracker:
             if r is not None and r.failed:
                 out.append(Violation(
                     kind="nees", ids=(), step=seq, value=r.mean, bound=r.edge,
-                    detail=f"mean pose NEES {r.mean:.3g} over {r.samples} states outside "
-                           f"[{r.lo:.3g}, {r.hi:.3g}]"))
+                    detail=window_detail("mean pose NEES", r, "states", NEES_READING)))
         # the id sets change rarely: reuse the last match (cheaper than intersect1d); int64
         # arrays are equal exactly when their bytes are
         key = (ids.tobytes(), truth.landmark_ids.tobytes())
@@ -245,6 +246,6 @@ class TruthTracker:
             if r.failed:
                 out.append(Violation(
                     kind="nees", ids=(fid,), step=seq, value=r.mean, bound=r.edge,
-                    detail=f"mean NEES of feature {fid} {r.mean:.3g} over {r.samples} states "
-                           f"outside [{r.lo:.3g}, {r.hi:.3g}]"))
+                    detail=window_detail(f"mean NEES of feature {fid}", r, "states",
+                                         NEES_READING)))
         return nees_p, nees_f, out

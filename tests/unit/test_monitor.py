@@ -4,6 +4,7 @@ planted faults of the paper scenario done by hand)."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -606,8 +607,32 @@ def test_nis_window_alarms_on_a_wrong_noise_model_only() -> None:
     bad = feed(Monitor(MonitorSettings()), states(2.0, 50))  # S 4× too small
     nis = [v for v in violations(bad) if v.kind == "nis"]
     assert len(nis) == 4 and all(v.value > v.bound for v in nis)
+    assert all(", above [" in v.detail and "overconfident" in v.detail for v in nis)
+    timid = feed(Monitor(MonitorSettings()), states(0.5, 50))  # S 4× too large
+    low = [v for v in violations(timid) if v.kind == "nis"]
+    assert len(low) == 4 and all(v.value < v.bound for v in low)
+    assert all(v.detail.startswith("mean NIS ") and " over 50 innovations, below [" in v.detail
+               and "smaller than S predicts (timid" in v.detail for v in low)
     assert good[-1].statistics["nis_window_hi"] == pytest.approx(
         chi2.ppf(1 - 0.5e-6, 100) / 50)
+
+
+@pytest.mark.parametrize(("scale", "side", "reading"), [
+    (1e-2, "above", "larger than the covariance says (overconfident)"),
+    (1e5, "below", "smaller than the covariance says (timid)")])
+def test_a_nees_window_says_which_side_it_left_by(correct_run, scale, side, reading) -> None:
+    """The correct run's every covariance × scale: no theorem breaks, the NEES leaves its
+    band (one χ²₃ sample's at 1e-6: [1.5e-4, 32.1]) on the side the scale says."""
+    states, truths = correct_run
+    scaled = [dataclasses.replace(s, covariance=s.covariance * scale) for s in states]
+    healths = feed(Monitor(MonitorSettings(nees_window=10)), scaled, truths)
+    nees = [v for v in violations(healths) if v.kind == "nees"]
+    assert {v.kind for v in violations(healths)} == {"nees"}
+    pose = [v for v in nees if not v.ids]
+    assert len(pose) >= 20 and all(v.detail.startswith("mean pose NEES ") for v in pose)
+    assert all(f" over 10 states, {side} [" in v.detail and v.detail.endswith(reading)
+               for v in nees)
+    assert all((v.value > v.bound) == (side == "above") for v in nees)
 
 
 def test_window_bands_follow_the_documented_distributions() -> None:

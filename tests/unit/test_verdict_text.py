@@ -35,8 +35,8 @@ def test_each_violation_is_named_once_pairs_low_to_high() -> None:
     assert text == "pair 3–12: growth 0.002 (since seq 4, in 6 states)"
     assert "np." not in text and "int64" not in text
     detailed = Violation("nees", (), 9, 40.0, bound=9.0, detail="mean pose NEES 40 over 100 "
-                                                                "states outside [2.4, 3.6]")
-    assert violation_text(detailed) == ("NEES pose: mean pose NEES 40 over 100 states outside "
+                                                                "states, above [2.4, 3.6]")
+    assert violation_text(detailed) == ("NEES pose: mean pose NEES 40 over 100 states, above "
                                         "[2.4, 3.6]")
 
 
