@@ -291,10 +291,8 @@ def _fill_to_1000(est, events) -> None:
     from slamlens.common.messages import Observations, Odometry
 
     for m in events:
-        if isinstance(m, Odometry):
-            est.predict(v=m.v, w=m.w, dt=m.dt, stamp=m.stamp)
-        elif isinstance(m, Observations):
-            est.observe(ids=m.ids, ranges=m.ranges, bearings=m.bearings, stamp=m.stamp)
+        if isinstance(m, (Odometry, Observations)):
+            est.apply(m)
         if est.n >= 1000:
             break
 

@@ -210,14 +210,11 @@ def evaluate(robot: int, variant: str, turn_bias: float,
     scorer = Scorer(TruthTrack.from_mrclam(run), robot=run.robot)
     for m in _inputs(run, turn_bias, calibration):
         try:
-            if isinstance(m, Odometry):
-                est.predict(v=m.v, w=m.w, dt=m.dt, stamp=m.stamp)
-            else:
-                rep = est.observe(ids=m.ids, ranges=m.ranges, bearings=m.bearings,
-                                  stamp=m.stamp)
-                scorer.add_innovations(rep.innovations, rep.innovation_covariances)
+            rep = est.apply(m)
         except EstimationError:
             continue
+        if rep is not None:
+            scorer.add_innovations(rep.innovations, rep.innovation_covariances)
         scorer.add(m.stamp, est.pose, est.pose_covariance)
     e = scorer.finish(est.landmark_ids, est.landmarks, est.diagnostics())
     nis = e.nis if e.nis is not None else np.zeros(0)

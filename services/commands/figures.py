@@ -43,7 +43,7 @@ from slamlens.common.cli import setup_logging
 from slamlens.common.config import settings_from_args
 from slamlens.common.errors import RenderError
 from slamlens.common.geometry import invert_T
-from slamlens.common.messages import Odometry, SlamState, Truth
+from slamlens.common.messages import SlamState, Truth
 from slamlens.services.commands.settings import FigureSettings
 from slamlens.services.registration.synthetic import (
     ImagingSettings,
@@ -97,12 +97,10 @@ def simulate(settings: FigureSettings, *, faulty: bool) -> tuple[Snapshot, Snaps
             truth = event
             continue
         seq += 1
-        if isinstance(event, Odometry):
-            est.predict(v=event.v, w=event.w, dt=event.dt, stamp=event.stamp)
+        report = est.apply(event)
+        if report is None:  # an odometry step
             path.append(est.pose[:2].copy())
             continue
-        report = est.observe(ids=event.ids, ranges=event.ranges, bearings=event.bearings,
-                             stamp=event.stamp)
         assert truth is not None  # the simulator sends truth first
         state = est.to_state(seq=seq, stamp=event.stamp, step="update", report=report)
         last = Snapshot(state, truth, np.array(path))

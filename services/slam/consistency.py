@@ -19,7 +19,7 @@ import numpy as np
 from scipy import stats
 
 from slamlens.common.geometry import wrap_angle
-from slamlens.common.messages import Observations, Odometry, SlamState, Truth
+from slamlens.common.messages import Odometry, SlamState, Truth
 from slamlens.services.slam.ekf import RefusedStepError
 from slamlens.services.slam.estimator import Estimator
 from slamlens.services.slam.settings import EstimatorSettings
@@ -91,12 +91,7 @@ def run(world: World, *, seed: int, settings: EstimatorSettings | None = None,
         report = None
         step = "predict" if isinstance(event, Odometry) else "update"
         try:
-            if isinstance(event, Odometry):
-                est.predict(v=event.v, w=event.w, dt=event.dt, stamp=event.stamp)
-            else:
-                assert isinstance(event, Observations)
-                report = est.observe(ids=event.ids, ranges=event.ranges,
-                                     bearings=event.bearings, stamp=event.stamp)
+            report = est.apply(event)
         except RefusedStepError:  # the service counts it and goes on: so does the run
             refused += 1
         if collect_states:

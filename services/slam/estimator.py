@@ -19,7 +19,12 @@ from typing import Any
 
 import numpy as np
 
-from slamlens.common.messages import SlamState, finite_by_construction
+from slamlens.common.messages import (
+    Observations,
+    Odometry,
+    SlamState,
+    finite_by_construction,
+)
 from slamlens.services.slam import association, ekf, faults
 from slamlens.services.slam.input_checks import InputChecks, odometry_text
 from slamlens.services.slam.noise_model import NoiseModel
@@ -183,6 +188,15 @@ class Estimator:
                 fault.feature_ids), fault.magnitude)
         self.checks.applied(stamp)
         return batch.report()
+
+    def apply(self, message: Odometry | Observations) -> ObserveReport | None:
+        """One input of either kind: an odometry step (:meth:`predict`; None) or an
+        observation batch (:meth:`observe`; its report). Refuses as those do."""
+        if isinstance(message, Odometry):
+            self.predict(v=message.v, w=message.w, dt=message.dt, stamp=message.stamp)
+            return None
+        return self.observe(ids=message.ids, ranges=message.ranges, bearings=message.bearings,
+                            stamp=message.stamp)
 
     def to_state(self, *, seq: int, stamp: float, step: str,
                  report: ObserveReport | None = None, epoch: int = 0,

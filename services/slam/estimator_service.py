@@ -185,26 +185,24 @@ class EstimatorService:
         """Fold one input into the map and publish the state (None if refused)."""
         message = item.message
         try:
-            if isinstance(message, Odometry):
-                self.estimator.predict(v=message.v, w=message.w, dt=message.dt,
-                                       stamp=message.stamp)
-                if self._origin_stamp is None:  # the map origin: where this step began
-                    self._origin_stamp = message.stamp - message.dt
-                self.stats.odometry += 1
-                return self._publish(stamp=message.stamp, step="predict", report=None)
-            report = self.estimator.observe(ids=message.ids, ranges=message.ranges,
-                                            bearings=message.bearings, stamp=message.stamp)
-            if self._origin_stamp is None:
-                self._origin_stamp = message.stamp
-            self.stats.observation_batches += 1
-            return self._publish(stamp=message.stamp, step="update", report=report)
+            report = self.estimator.apply(message)
         except (ImplausibleInputError, RefusedStepError) as exc:
             self.stats.refused += 1
             self._say_refused(item.leaf, exc.reason, str(exc))
+            return None
         except EstimationError as exc:  # the estimator refused the input (NaN, bad control…)
             self.stats.refused += 1
             self.drops.drop(item.leaf, f"refused: {exc}")
-        return None
+            return None
+        odometry = isinstance(message, Odometry)
+        if self._origin_stamp is None:  # the map origin: where the first input's step began
+            self._origin_stamp = message.stamp - message.dt if odometry else message.stamp
+        if odometry:
+            self.stats.odometry += 1
+        else:
+            self.stats.observation_batches += 1
+        return self._publish(stamp=message.stamp, step="predict" if odometry else "update",
+                             report=report)
 
     def _say_refused(self, leaf: str, reason: str, detail: str) -> None:
         """One log line per reason (the rest are counted: ``status()``, the final line)."""

@@ -18,7 +18,7 @@ from scipy import stats
 
 from slamlens.common.errors import EstimationError
 from slamlens.common.geometry import wrap_angle
-from slamlens.common.messages import Observations, Odometry, SlamState, Truth
+from slamlens.common.messages import Odometry, SlamState, Truth
 from slamlens.services.slam.estimator import Estimator
 from slamlens.services.slam.mrclam import MrclamRun
 from slamlens.services.slam.settings import EstimatorSettings
@@ -309,15 +309,11 @@ def evaluate(run: MrclamRun, settings: EstimatorSettings, *, start: float | None
         if progress is not None and done % 1000 == 0:
             progress(1000)
         try:
-            if isinstance(message, Odometry):
-                est.predict(v=message.v, w=message.w, dt=message.dt, stamp=message.stamp)
-            else:
-                assert isinstance(message, Observations)
-                report = est.observe(ids=message.ids, ranges=message.ranges,
-                                     bearings=message.bearings, stamp=message.stamp)
-                scorer.add_innovations(report.innovations, report.innovation_covariances)
+            report = est.apply(message)
         except EstimationError:
             continue  # refused (counted by the estimator): no state for it
+        if report is not None:
+            scorer.add_innovations(report.innovations, report.innovation_covariances)
         scorer.add(message.stamp, est.pose, est.pose_covariance)
     if progress is not None:
         progress(done % 1000)

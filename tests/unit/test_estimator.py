@@ -9,7 +9,7 @@ import pytest
 
 from slamlens.common.config import load_settings
 from slamlens.common.errors import ConfigError, EstimationError
-from slamlens.common.messages import SlamState
+from slamlens.common.messages import Observations, Odometry, SlamState
 from slamlens.services.slam import association, ekf, models
 from slamlens.services.slam.estimator import Estimator
 from slamlens.services.slam.settings import EstimatorSettings
@@ -86,6 +86,22 @@ def test_unknown_id_initialises_then_known_id_updates() -> None:
     np.testing.assert_allclose(rep.innovations[0], [2.1 - h[0], wrap(0.5 - h[1])], atol=1e-12)
     np.testing.assert_allclose(rep.innovation_covariances[0], S, rtol=1e-10, atol=1e-15)
     assert est.covariance[3, 3] < P_before[3, 3]
+
+
+def test_apply_is_predict_for_odometry_and_observe_for_observations() -> None:
+    by_kind, by_call = Estimator(EstimatorSettings()), Estimator(EstimatorSettings())
+    odo = Odometry(robot="r", stamp=0.1, dt=0.1, v=0.3, w=0.2)
+    obs = Observations(robot="r", stamp=0.1, ids=np.array([4]), ranges=np.array([1.5]),
+                       bearings=np.array([0.3]))
+    assert by_kind.apply(odo) is None
+    by_call.predict(v=0.3, w=0.2, dt=0.1, stamp=0.1)
+    report = by_kind.apply(obs)
+    assert list(report.new_ids) == [4]
+    by_call.observe(ids=np.array([4]), ranges=[1.5], bearings=[0.3], stamp=0.1)
+    np.testing.assert_array_equal(by_kind.covariance, by_call.covariance)
+    np.testing.assert_array_equal(by_kind.landmarks, by_call.landmarks)
+    with pytest.raises(EstimationError):  # refused as predict refuses
+        by_kind.apply(Odometry(robot="r", stamp=0.2, dt=0.1, v=1e6, w=0.2))
 
 
 def test_unknown_id_twice_in_a_batch_initialises_once_then_updates() -> None:
