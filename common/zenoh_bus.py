@@ -94,6 +94,18 @@ class _ZenohReply:
         self._finish(lambda q: q.reply_err(payload))
 
 
+def _let_go(entity: Any) -> None:
+    """Close a queue channel or undeclare a Zenoh entity; a failure (the session may be
+    closing) is logged at debug level, never raised: letting go is best effort."""
+    try:
+        if isinstance(entity, QueueChannel):
+            entity.close()
+        else:
+            entity.undeclare()
+    except Exception:
+        log.debug("letting go of %r failed", entity, exc_info=True)
+
+
 class ZenohBus:
     """A :class:`Bus` on one Zenoh session; closes everything it declared on ``close``."""
 
@@ -333,13 +345,7 @@ class ZenohBus:
                 self._entities.remove(entity)
             except ValueError:
                 return  # released already, or the bus closed
-        try:
-            if isinstance(entity, QueueChannel):
-                entity.close()
-            else:
-                entity.undeclare()
-        except Exception:  # the session may be closing
-            log.debug("releasing %r failed", entity, exc_info=True)
+        _let_go(entity)
 
     def close(self) -> None:
         with self._lock:
@@ -348,13 +354,7 @@ class ZenohBus:
             self._closed = True
             entities, self._entities = self._entities, []
         for entity in reversed(entities):
-            try:
-                if isinstance(entity, QueueChannel):
-                    entity.close()
-                else:
-                    entity.undeclare()
-            except Exception:  # session may already be closing
-                pass
+            _let_go(entity)
         try:
             self.session.close()
         except Exception:
