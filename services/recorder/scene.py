@@ -20,6 +20,7 @@ The geometry (pairs of the mode, glyph centres, axes, flags, colours) is
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 from foxglove.messages import (
@@ -85,6 +86,24 @@ def _cone(x: float, y: float, height: float, radius: float, rgb: RGB) -> Cylinde
         color=_colour(rgb))
 
 
+def _robot(pose: np.ndarray, rgb: RGB, arrow: Color, *, shaft: float, head_length: float,
+           head_diameter: float) -> dict[str, list[Any]]:
+    """A robot's primitives: a cone on its position and an arrow along its heading."""
+    x, y, theta = (float(v) for v in pose)
+    return {"cylinders": [_cone(x, y, 1.4 * CONE_HEIGHT_M, 1.4 * CONE_RADIUS_M, rgb)],
+            "arrows": [ArrowPrimitive(
+                pose=Pose(position=Vector3(x=x, y=y, z=0.01), orientation=_yaw(theta)),
+                shaft_length=0.22, shaft_diameter=shaft, head_length=head_length,
+                head_diameter=head_diameter, color=arrow)]}
+
+
+def _path_line(points: list[Point3], thickness: float, colour: Color) -> dict[str, list[Any]]:
+    """A path's primitives: one line strip, or none for fewer than two points."""
+    return {"lines": [LinePrimitive(
+        type=LinePrimitiveLineType.LineStrip, thickness=thickness, scale_invariant=False,
+        points=points, color=colour)] if len(points) >= 2 else []}
+
+
 def path_points(path_xy: np.ndarray) -> list[Point3]:
     """The robot path (k, 2) as Foxglove points on the floor."""
     return [Point3(x=x, y=y, z=0.0) for x, y in np.asarray(path_xy).reshape(-1, 2).tolist()]
@@ -111,18 +130,12 @@ def scene_update(state: SlamState, settings: SceneSettings, *, log_time_ns: int,
         return SceneEntity(timestamp=stamp, frame_id=MAP_FRAME, id=f"{state.robot}/{name}",
                            frame_locked=False, metadata=meta, **primitives)  # type: ignore
 
-    x, y, theta = (float(v) for v in state.pose)
-    robot = entity("robot", cylinders=[_cone(x, y, 1.4 * CONE_HEIGHT_M, 1.4 * CONE_RADIUS_M,
-                                             ROBOT)],
-                   arrows=[ArrowPrimitive(
-                       pose=Pose(position=Vector3(x=x, y=y, z=0.01), orientation=_yaw(theta)),
-                       shaft_length=0.22, shaft_diameter=0.02, head_length=0.08,
-                       head_diameter=0.07, color=_colour(HEADING))])
+    robot = entity("robot", **_robot(state.pose, ROBOT, _colour(HEADING), shaft=0.02,
+                                     head_length=0.08, head_diameter=0.07))
     points_of_path = [] if path_xy is None else (
         path_points(path_xy) if isinstance(path_xy, np.ndarray) else path_xy)
-    path = None if path_xy is None else entity("path", lines=[LinePrimitive(
-        type=LinePrimitiveLineType.LineStrip, thickness=0.015, scale_invariant=False,
-        points=points_of_path, color=_colour(PATH))] if len(points_of_path) >= 2 else [])
+    path = None if path_xy is None else entity(
+        "path", **_path_line(points_of_path, 0.015, _colour(PATH)))
     suspects = set() if health is None else set(health.suspects.tolist())
     lm_ids = state.landmark_ids.tolist()
     lm_xy = state.landmarks.tolist()
@@ -182,17 +195,10 @@ def truth_update(truth: Truth, *, log_time_ns: int, path: list[Point3]) -> bytes
         return SceneEntity(timestamp=stamp, frame_id=MAP_FRAME, id=f"{truth.robot}/truth/{name}",
                            frame_locked=False, metadata=meta, **primitives)  # type: ignore
 
-    x, y, theta = (float(v) for v in truth.pose)
-    robot = entity("robot", cylinders=[_cone(x, y, 1.4 * CONE_HEIGHT_M, 1.4 * CONE_RADIUS_M,
-                                             TRUTH)],
-                   arrows=[ArrowPrimitive(
-                       pose=Pose(position=Vector3(x=x, y=y, z=0.01), orientation=_yaw(theta)),
-                       shaft_length=0.22, shaft_diameter=0.015, head_length=0.07,
-                       head_diameter=0.05, color=grey)])
+    robot = entity("robot", **_robot(truth.pose, TRUTH, grey, shaft=0.015, head_length=0.07,
+                                     head_diameter=0.05))
     features = entity("features", cylinders=[
         _cone(p[0], p[1], 0.6 * CONE_HEIGHT_M, 0.6 * CONE_RADIUS_M, TRUTH)
         for p in truth.landmarks.tolist()])
-    line = entity("path", lines=[LinePrimitive(
-        type=LinePrimitiveLineType.LineStrip, thickness=0.01, scale_invariant=False,
-        points=path, color=grey)] if len(path) >= 2 else [])
+    line = entity("path", **_path_line(path, 0.01, grey))
     return SceneUpdate(entities=[robot, features, line]).encode()
