@@ -325,15 +325,26 @@ def test_a_ros2_robots_inputs_drive_the_estimator(router: str, messages: Path,
     assert counts["to_bus"] == {"Odometry": 40, "Observations": 8, "Truth": 0}
 
 
+#: an rmw_zenoh publication's attachment: sequence number 1, source timestamp 5, a 16-byte
+#: (all-zero) publisher GID
+ATTACHMENT = np.int64(1).tobytes() + np.int64(5).tobytes() + bytes([16]) + bytes(16)
+
+
+def importing_bridge(router: str) -> tuple[Service, States]:
+    """A bridge importing a ROS 2 estimator's output (no export), ready; and a collector
+    of the states it gives (close it)."""
+    bridge = start("ros2", "--robot", ROBOT, "--connect", router, "--from-ros", "estimate",
+                   "--no-export")
+    bridge.wait_for_line("ros2 ready")
+    return bridge, States(router)
+
+
 def test_bad_input_is_dropped_counted_and_named(router: str, tmp_path: Path) -> None:
     """Malformed CDR, another type hash, no attachment, arrays of the wrong length: each
     dropped with a line naming it, counted; a good message after them still goes through."""
     from slamlens.services.ros2.rostypes import ros_type, typestore
 
-    bridge = start("ros2", "--robot", ROBOT, "--connect", router, "--from-ros", "estimate",
-                   "--no-export")
-    bridge.wait_for_line("ros2 ready")
-    states = States(router)
+    bridge, states = importing_bridge(router)
     store = typestore("jazzy")
     T = store.types
     name = "slamlens_msgs/msg/SlamEstimate"
@@ -350,15 +361,14 @@ def test_bad_input_is_dropped_counted_and_named(router: str, tmp_path: Path) -> 
     def key(type_hash: str) -> str:
         return f"0/robot1/slam/estimate/slamlens_msgs::msg::dds_::SlamEstimate_/{type_hash}"
 
-    attach = (np.int64(1).tobytes() + np.int64(5).tobytes() + bytes([16]) + bytes(16))
     bus = open_bus(BusSettings(connect=(router,)))
     session = bus.session
     try:
-        session.put(key(good_hash), estimate(2)[:30], attachment=attach)  # malformed CDR
-        session.put(key("RIHS01_" + "0" * 64), estimate(2), attachment=attach)  # hash
+        session.put(key(good_hash), estimate(2)[:30], attachment=ATTACHMENT)  # malformed CDR
+        session.put(key("RIHS01_" + "0" * 64), estimate(2), attachment=ATTACHMENT)  # hash
         session.put(key(good_hash), estimate(2))  # no attachment
-        session.put(key(good_hash), estimate(3), attachment=attach)  # wrong length
-        session.put(key(good_hash), estimate(2), attachment=attach)  # good
+        session.put(key(good_hash), estimate(3), attachment=ATTACHMENT)  # wrong length
+        session.put(key(good_hash), estimate(2), attachment=ATTACHMENT)  # good
         assert states.wait(lambda c: 1 in c.states)
     finally:
         bus.close()
@@ -440,10 +450,7 @@ def test_a_pose_only_estimator_gives_states_without_landmarks(router: str) -> No
     yaw covariance and no landmarks (the viewer's pose ellipse and path, no pairs)."""
     from slamlens.services.ros2.rostypes import ros_type, typestore
 
-    bridge = start("ros2", "--robot", ROBOT, "--connect", router, "--from-ros", "estimate",
-                   "--no-export")
-    bridge.wait_for_line("ros2 ready")
-    states = States(router)
+    bridge, states = importing_bridge(router)
     store = typestore("jazzy")
     T = store.types
     name = "geometry_msgs/msg/PoseWithCovarianceStamped"
@@ -461,11 +468,10 @@ def test_a_pose_only_estimator_gives_states_without_landmarks(router: str) -> No
             covariance=cov.reshape(-1))), name))
     key = f"0/robot1/slam/pose/geometry_msgs::msg::dds_::PoseWithCovarianceStamped_/" \
           f"{ros_type(name, 'jazzy').hash}"
-    attach = np.int64(1).tobytes() + np.int64(5).tobytes() + bytes([16]) + bytes(16)
     bus = open_bus(BusSettings(connect=(router,)))
     try:
         assert bus.wait_for_subscriber(key, timeout=30)
-        bus.session.put(key, payload, attachment=attach)
+        bus.session.put(key, payload, attachment=ATTACHMENT)
         assert states.wait(lambda c: 1 in c.states)
     finally:
         bus.close()
