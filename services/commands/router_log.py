@@ -42,9 +42,10 @@ ACL_DIRECTIVES = "zenoh::net::routing::interceptor=trace"
 _PIPE_BYTES = 1 << 20  # room for bursts of trace lines while the reader is descheduled
 _QUEUE = 1000  # log records waiting for the router's log; more are counted and dropped
 _CHUNK = 1 << 16  # bytes read from the pipe at a time
-#: a chunk without any of these is only "authorized" decisions: skipped without parsing
-_INTERESTING = (b"intercepted", b"CertCommonName", b"did not match", b"WARN", b"ERROR")
-_LOOKBACK = 8192  # bytes of a skipped chunk re-read before the next interesting one
+#: a chunk without any of these is only "authorized" decisions: skipped without parsing.
+#: "unauthorized" keeps every refused decision, however far from its "Msg intercepted!"
+_INTERESTING = (b"unauthorized", b"intercepted", b"CertCommonName", b"did not match",
+                b"WARN", b"ERROR")
 _NAP_S = 0.02  # the pipe holds _PIPE_BYTES: ~5000 lines, far more than 20 ms of routing
 
 _ANSI = re.compile(r"\x1b\[[0-9;]*m")
@@ -89,7 +90,6 @@ class ZenohLogReader:
         self._last_decision: dict[str, re.Match[str] | None] = {}
         self._names: dict[str, str] = {}  # zid → certificate name (cached decisions omit it)
         self._partial = b""  # an incomplete last line, until its end arrives
-        self._skipped = b""  # the tail of the last chunk skipped unparsed
         self._records: deque[tuple[int, str]] = deque()
         self._cond = threading.Condition()
         self.dropped_records = 0
@@ -98,21 +98,16 @@ class ZenohLogReader:
     def feed(self, chunk: bytes, *, final: bool = False) -> None:
         """Take the next bytes of Zenoh's log. Most chunks hold nothing but allowed
         decisions and are skipped unparsed (every message routed writes such lines); the
-        tail of a skipped chunk is kept, since the decision behind a drop is the line just
-        before it."""
+        decision behind a drop is an unauthorized one, and a chunk holding one is parsed,
+        so the drop finds it however many other lines came between (a thread descheduled
+        between the two, a reader behind)."""
         data = self._partial + chunk
         cut = len(data) if final else data.rfind(b"\n") + 1
         complete, self._partial = data[:cut], data[cut:]
         if not complete:
             return
         if not self.verbose and not any(m in complete for m in _INTERESTING):
-            tail = complete[-_LOOKBACK:]
-            if len(complete) > _LOOKBACK:
-                tail = tail[tail.find(b"\n") + 1:]  # from a line boundary
-            self._skipped = tail
             return
-        if self._skipped:
-            complete, self._skipped = self._skipped + complete, b""
         for raw in complete.decode("utf-8", errors="replace").splitlines():
             self.line(raw)
 

@@ -134,3 +134,24 @@ def test_chunks_of_allowed_decisions_are_skipped_but_the_one_before_a_drop_is_ke
     reader.emit_pending(0)
     assert out == [(logging.WARNING, "refused: robot-r2 may not Put (ingress) on "
                                      "slamlens/robot/r1/odometry (dropped; repeats are counted)")]
+
+
+def test_a_refusal_far_before_its_drop_is_still_named() -> None:
+    """The refused decision and its "Msg intercepted!" on one thread, with more than a
+    skipped chunk's kept tail of other threads' allowed decisions between them (a reader or
+    a thread descheduled on a loaded machine): the drop is still named, never "a client
+    of no known identity"."""
+    reader, out = _reader()
+    allowed = _line(9, ACL, f"Using cached result: {ZID_V} is authorized to Put (egress) on "
+                            "slamlens/robot/r1/state").encode()
+    names = _line(8, ACL, f"{_subject(ZID_R2, 'robot-r2')} is authorized to Declare "
+                          "Subscriber (ingress) on slamlens/robot/r2/state").encode()
+    refusal = _line(8, ACL, f"Using cached result: {ZID_R2} is unauthorized to Put (ingress) "
+                            "on slamlens/robot/r1/odometry").encode()
+    drop = _line(8, ICP, "Msg intercepted!").encode()
+    reader.feed(names)
+    reader.feed(refusal + allowed * 2000)  # ≫ the tail a skipped chunk keeps
+    reader.feed(allowed * 10 + drop)
+    reader.emit_pending(0)
+    assert out == [(logging.WARNING, "refused: robot-r2 may not Put (ingress) on "
+                                     "slamlens/robot/r1/odometry (dropped; repeats are counted)")]
