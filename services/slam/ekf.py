@@ -40,8 +40,7 @@ from slamlens.services.slam.ekf_storage import (
     symmetric,
     symmetric_after_predict,
 )
-
-_TWO_PI = 2.0 * math.pi
+from slamlens.services.slam.models import wrap as _wrap
 
 
 class SingularInnovationError(EstimationError):
@@ -110,11 +109,6 @@ def _psd3(a00: float, a10: float, a11: float, a20: float, a21: float, a22: float
 def _psd2(a00: float, a10: float, a11: float, tol: float) -> bool:
     d0, d1 = a00 + tol, a11 + tol
     return d0 >= 0.0 and d1 >= 0.0 and d0 * d1 - a10 * a10 >= 0.0
-
-
-def _wrap(angle: float) -> float:
-    # Scalar twin of slamlens.common.geometry.wrap_angle (same formula, no numpy dispatch).
-    return (angle + math.pi) % _TWO_PI - math.pi
 
 
 #: updates whose downdates :func:`update` may hold back (``defer``) before it applies them

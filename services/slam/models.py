@@ -14,8 +14,9 @@ import numpy as np
 _TWO_PI = 2.0 * math.pi
 
 
-def _wrap(angle: float) -> float:
-    # Scalar twin of slamlens.common.geometry.wrap_angle (same formula, no numpy dispatch).
+def wrap(angle: float) -> float:
+    """An angle wrapped to [−π, π): the modulo formula on one float, without
+    :func:`slamlens.common.geometry.wrap_angle`'s numpy dispatch (the kernels' hot path)."""
     return (angle + math.pi) % _TWO_PI - math.pi
 
 
@@ -23,7 +24,7 @@ def motion(pose: np.ndarray, *, v: float, w: float, dt: float) -> np.ndarray:
     """First-order velocity model: the pose after driving (v m/s, w rad/s) for dt s."""
     x, y, theta = (float(p) for p in pose)
     return np.array([x + v * dt * math.cos(theta), y + v * dt * math.sin(theta),
-                     _wrap(theta + w * dt)])
+                     wrap(theta + w * dt)])
 
 
 def motion_jacobians(pose: np.ndarray, *, v: float, w: float,
@@ -38,7 +39,7 @@ def motion_jacobians(pose: np.ndarray, *, v: float, w: float,
 def observe(pose: np.ndarray, landmark_xy: np.ndarray) -> np.ndarray:
     """h = (range m, bearing rad) of a landmark seen from ``pose``; bearing wrapped."""
     dx, dy = float(landmark_xy[0] - pose[0]), float(landmark_xy[1] - pose[1])
-    return np.array([math.hypot(dx, dy), _wrap(math.atan2(dy, dx) - float(pose[2]))])
+    return np.array([math.hypot(dx, dy), wrap(math.atan2(dy, dx) - float(pose[2]))])
 
 
 def observation_jacobians(pose: np.ndarray,
