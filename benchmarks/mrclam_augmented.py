@@ -1,9 +1,10 @@
 """Two states the shipped estimator does not have, tried on MRCLAM dataset 6 with a dense
 OC-EKF — the experiments behind docs/consistency.md, "Why the NIS is low on real data".
 
-The filter here is the shipped one written densely (the same models, OC's Jacobians, FEJ's
-points, the gate, new landmarks after a batch's updates): with no extra state it gives the
-shipped estimator's figures (``--check`` prints both). It can carry, beside robot and map:
+The filter is services/harness/dense_ekf.py's dense textbook EKF with OC (the same models,
+OC's Jacobians at FEJ's points, the gate, new landmarks after a batch's updates): with no
+extra state it gives the shipped estimator's figures (``--check`` prints both; the tests
+hold the two equal on a real run). It can carry, beside robot and map:
 
 * **a range bias per landmark** (``bias``): the range error that persists from one sighting
   of a landmark to the next (docs/consistency.md) as a first-order Gauss-Markov state b_i —
@@ -33,17 +34,15 @@ import argparse
 import math
 import sys
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
 from scipy.stats import chi2
 
 from slamlens.common.config import load_settings
-from slamlens.common.messages import Odometry
+from slamlens.services.harness.dense_ekf import DenseEkf, Extra
 from slamlens.services.harness.mrclam_pipeline import DATA
 from slamlens.services.slam.mrclam import load_mrclam
-from slamlens.services.slam.noise_model import NoiseModel
 from slamlens.services.slam.scoring import Evaluation, Scorer, TruthTrack, evaluate
 from slamlens.services.slam.settings import EstimatorSettings
 
@@ -51,158 +50,6 @@ REPO = Path(__file__).resolve().parents[1]
 ROBOTS = (1, 2, 3, 4, 5)
 NIS_WINDOW = 50
 NIS_SIGNIFICANCE = 1e-6  #: the monitor's two-sided significance per window
-CAPACITY = 40  #: landmarks (MRCLAM has 15 and 5 robots' barcodes)
-
-
-@dataclass(frozen=True)
-class Extra:
-    """The states added to robot and map (0 = not carried)."""
-
-    bias_sd: float = 0.0  #: σ_b, m
-    bias_tau: float = 10.0  #: τ, s
-    white: float = 1.0  #: the white range σ as a share of the profile's
-    scale_sd: float = 0.0  #: σ_ε
-    motion: float = 1.0  #: the profile's motion σ times this (1/c undoes its NEES scale)
-
-    def label(self) -> str:
-        parts = []
-        if self.bias_sd:
-            parts.append(f"bias σ {self.bias_sd} m τ {self.bias_tau:g} s white ×{self.white}")
-        if self.scale_sd:
-            parts.append(f"scale σ {self.scale_sd}")
-        if self.motion != 1.0:
-            parts.append(f"motion σ ×{self.motion}")
-        return ", ".join(parts) or "none (the shipped filter)"
-
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
-
-
-class DenseOc:
-    """A dense OC-EKF over [x, y, θ, (ε), (mx, my, (b)) …] (docs/estimator.md's OC)."""
-
-    def __init__(self, noise: NoiseModel, gate: float, extra: Extra) -> None:
-        self.noise, self.gate, self.extra = noise, gate, extra
-        self.base = 4 if extra.scale_sd else 3
-        self.block = 3 if extra.bias_sd else 2
-        size = self.base + self.block * CAPACITY
-        self.x, self.P = np.zeros(size), np.zeros((size, size))
-        if extra.scale_sd:
-            self.P[3, 3] = extra.scale_sd ** 2
-        self.n = self.base
-        self.index: dict[int, int] = {}  #: landmark id → first row of its block
-        self.first: dict[int, np.ndarray] = {}  #: FEJ's first estimates
-        self.seen: dict[int, float] = {}  #: when each bias was last brought forward
-        self.propagated = np.zeros(2)  #: FEJ's p̂(k|k−1)
-        self.gated = 0
-        self.parts: list[tuple[float, ...]] = []  #: (ν_r², ν_φ², S_rr, S_φφ, R_rr, R_φφ) a sighting
-
-    @property
-    def scale(self) -> float:
-        return 1.0 + float(self.x[3]) if self.extra.scale_sd else 1.0
-
-    def predict(self, v: float, w: float, dt: float) -> None:
-        x, P, n, th = self.x, self.P, self.n, float(self.x[2])
-        nx, ny = x[0] + v * dt * math.cos(th), x[1] + v * dt * math.sin(th)
-        dx, dy = nx - self.propagated[0], ny - self.propagated[1]
-        F = np.array([[1.0, 0.0, -dy], [0.0, 1.0, dx], [0.0, 0.0, 1.0]])
-        Fu = np.array([[dt * math.cos(th), 0.0], [dt * math.sin(th), 0.0], [0.0, dt]])
-        x[0], x[1], x[2] = nx, ny, _wrap(th + w * dt)
-        P[:3, :n] = F @ P[:3, :n]
-        P[:n, :3] = P[:n, :3] @ F.T
-        P[:3, :3] += Fu @ np.diag([self.noise.var_v, self.noise.var_w]) @ Fu.T
-        self.propagated = x[:2].copy()
-
-    def _bring_bias_forward(self, lid: int, a: int, stamp: float) -> None:
-        phi = math.exp(-(stamp - self.seen[lid]) / self.extra.bias_tau)
-        self.seen[lid] = stamp
-        b, n = a + 2, self.n
-        self.x[b] *= phi
-        self.P[b, :n] *= phi
-        self.P[:n, b] *= phi
-        self.P[b, b] += self.extra.bias_sd ** 2 * (1.0 - phi * phi)
-
-    def _range_variance(self, z_range: float, z_bearing: float) -> float:
-        var = self.noise.range_variance(z_range, z_bearing)
-        return var * self.extra.white ** 2 if self.extra.bias_sd else var
-
-    def update(self, lid: int, z_range: float, z_bearing: float,
-               stamp: float) -> tuple[np.ndarray, np.ndarray] | None:
-        """One sighting of a mapped landmark; (ν, S) when applied, None when gated."""
-        x, P, n, a = self.x, self.P, self.n, self.index[lid]
-        if self.extra.bias_sd:
-            self._bring_bias_forward(lid, a, stamp)
-        dx, dy = x[a] - x[0], x[a + 1] - x[1]
-        q = dx * dx + dy * dy
-        r = math.sqrt(q)
-        bias = float(x[a + 2]) if self.extra.bias_sd else 0.0
-        nu = np.array([z_range - (self.scale * r + bias),
-                       _wrap(z_bearing - (math.atan2(dy, dx) - x[2]))])
-        rows = self._oc_rows(lid, [-dx / r, -dy / r, 0.0, dx / r, dy / r],
-                             [dy / q, -dx / q, -1.0, -dy / q, dx / q])
-        H = np.zeros((2, n))
-        H[0, [0, 1, 2, a, a + 1]] = rows[0] * self.scale
-        H[1, [0, 1, 2, a, a + 1]] = rows[1]
-        if self.extra.scale_sd:
-            H[0, 3] = r
-        if self.extra.bias_sd:
-            H[0, a + 2] = 1.0
-        PHt = P[:n, :n] @ H.T
-        R = (self._range_variance(z_range, z_bearing), self.noise.var_b)
-        S = H @ PHt + np.diag(R)
-        if float(nu @ np.linalg.solve(S, nu)) > self.gate:
-            self.gated += 1
-            return None
-        self.parts.append((nu[0] ** 2, nu[1] ** 2, S[0, 0], S[1, 1], *R))
-        K = np.linalg.solve(S, PHt.T).T
-        x[:n] += K @ nu
-        x[2] = _wrap(float(x[2]))
-        P[:n, :n] -= K @ S @ K.T
-        P[:n, :n] = 0.5 * (P[:n, :n] + P[:n, :n].T)
-        return nu, S
-
-    def _oc_rows(self, lid: int, h0: list[float], h1: list[float]) -> list[np.ndarray]:
-        """Each row moved the least that makes it blind to N (docs/estimator.md's h*)."""
-        D = self.first[lid] - self.propagated
-        u = np.array([D[1] / 2, -D[0] / 2, 1.0, -D[1] / 2, D[0] / 2])
-        out = []
-        for h in (np.array(h0), np.array(h1)):
-            alpha = (h[2] + h[0] * D[1] - h[1] * D[0]) / (1.0 + float(D @ D) / 2)
-            out.append(h - alpha * u)
-        return out
-
-    def initialise(self, lid: int, z_range: float, z_bearing: float, stamp: float) -> None:
-        """A new landmark's block: Gv at FEJ's robot point, Gz, and ∂ℓ/∂ε, ∂ℓ/∂b."""
-        x, P, n, a = self.x, self.P, self.n, self.n
-        c, s = math.cos(x[2] + z_bearing), math.sin(x[2] + z_bearing)
-        rr = z_range / self.scale
-        mx, my = x[0] + rr * c, x[1] + rr * s
-        G = np.zeros((2, n))
-        G[:, :3] = [[1.0, 0.0, -(my - self.propagated[1])], [0.0, 1.0, mx - self.propagated[0]]]
-        if self.extra.scale_sd:
-            G[:, 3] = [-rr / self.scale * c, -rr / self.scale * s]
-        Gz = np.array([[c / self.scale, -rr * s], [s / self.scale, rr * c]])
-        R = np.diag([self._range_variance(z_range, z_bearing), self.noise.var_b])
-        P[a:a + 2, :n] = G @ P[:n, :n]
-        P[:n, a:a + 2] = P[a:a + 2, :n].T
-        P[a:a + 2, a:a + 2] = G @ P[:n, :n] @ G.T + Gz @ R @ Gz.T
-        x[a], x[a + 1] = mx, my
-        if self.extra.bias_sd:  # ℓ = p + (z − b)·dir: ∂ℓ/∂b = −dir/(1 + ε)
-            g, var, b = -Gz[:, 0], self.extra.bias_sd ** 2, a + 2
-            P[b, :] = 0.0
-            P[:, b] = 0.0
-            P[a:a + 2, a:a + 2] += np.outer(g, g) * var
-            P[b, b] = var
-            P[a:a + 2, b] = P[b, a:a + 2] = g * var
-            x[b] = 0.0
-            self.seen[lid] = stamp
-        self.index[lid], self.first[lid] = a, np.array([mx, my])
-        self.n += self.block
-
-    def landmarks(self) -> tuple[np.ndarray, np.ndarray]:
-        ids = sorted(self.index, key=self.index.__getitem__)
-        return np.array(ids), np.array([self.x[self.index[i]:self.index[i] + 2] for i in ids])
 
 
 def run(robot: int, extra: Extra) -> tuple[Evaluation, float, np.ndarray]:
@@ -211,25 +58,11 @@ def run(robot: int, extra: Extra) -> tuple[Evaluation, float, np.ndarray]:
     settings = load_settings(EstimatorSettings,
                              REPO / "benchmarks" / "profiles" / f"without-robot{robot}.toml")
     data = load_mrclam(DATA, robot)
-    noise = NoiseModel.of(settings)
-    noise = replace(noise, var_v=noise.var_v * extra.motion ** 2,
-                    var_w=noise.var_w * extra.motion ** 2)
-    ekf = DenseOc(noise, settings.innovation_gate_chi2, extra)
+    ekf = DenseEkf(settings, extra)
     scorer = Scorer(TruthTrack.from_mrclam(data), robot=data.robot)
     for m in data.events(truth=False):
-        if isinstance(m, Odometry):
-            ekf.predict(m.v, m.w, m.dt)
-        else:
-            new = []
-            for lid, zr, zb in zip(m.ids.tolist(), m.ranges.tolist(), m.bearings.tolist(),
-                                   strict=True):
-                if lid not in ekf.index:
-                    new.append((lid, zr, zb))
-                elif (done := ekf.update(lid, zr, zb, m.stamp)) is not None:
-                    scorer.add_innovations(done[0][None], done[1][None])
-            for lid, zr, zb in new:  # FEJ's and OC's order: after the updates, once
-                if lid not in ekf.index:
-                    ekf.initialise(lid, zr, zb, m.stamp)
+        for nu, S in ekf.apply(m):
+            scorer.add_innovations(nu[None], S[None])
         scorer.add(m.stamp, ekf.x[:3].copy(), ekf.P[:3, :3].copy())
     ids, landmarks = ekf.landmarks()
     return (scorer.finish(ids, landmarks, {"gated": ekf.gated}), ekf.scale - 1.0,
