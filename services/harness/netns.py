@@ -1,8 +1,9 @@
 """Two hosts on one machine: network namespaces joined by a veth pair (tests only).
 
 Only addresses inside the namespaces a test made itself (10.200.x.0/24) and their own
-loopbacks are used; the namespaces and the pair are removed afterwards. Needs root and
-iproute2 (CI runs as root).
+loopbacks are used; the namespaces and the pair are removed afterwards, and a pair whose
+maker is gone (a run killed before its teardown) by the next run that makes hosts. Needs
+root and iproute2 (CI runs as root).
 """
 
 from __future__ import annotations
@@ -52,21 +53,38 @@ class Hosts:
 
     def remove(self) -> None:
         for ns in self._made:
-            subprocess.run(["ip", "netns", "pids", ns], capture_output=True)
-            pids = subprocess.run(["ip", "netns", "pids", ns], capture_output=True,
-                                  text=True).stdout.split()
-            for pid in pids:
-                try:
-                    os.kill(int(pid), 9)
-                except (ProcessLookupError, ValueError):
-                    pass
-            subprocess.run(["ip", "netns", "del", ns], capture_output=True)
+            _delete_namespace(ns)
+
+
+def _delete_namespace(ns: str) -> None:
+    """Kill what runs in ``ns`` and delete it."""
+    pids = subprocess.run(["ip", "netns", "pids", ns], capture_output=True,
+                          text=True).stdout.split()
+    for pid in pids:
+        try:
+            os.kill(int(pid), 9)
+        except (ProcessLookupError, ValueError):
+            pass
+    subprocess.run(["ip", "netns", "del", ns], capture_output=True)
+
+
+def _remove_orphans() -> None:
+    """Delete the namespaces of test processes that are gone: a run killed (SIGKILL, or a
+    SIGTERM pytest does not turn into teardown) leaves its pair behind. A namespace's name
+    carries the pid that made it; another live run's are left alone."""
+    names = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout
+    for ns in (line.split()[0] for line in names.splitlines() if line.startswith("slr-")):
+        parts = ns.split("-")  # slr-{robot|ws}-PID-TAG
+        if len(parts) == 4 and parts[2].isdigit() and not os.path.exists(f"/proc/{parts[2]}"):
+            _delete_namespace(ns)
 
 
 def make_hosts() -> Hosts:
+    _remove_orphans()
     tag = secrets.token_hex(3)
     subnet = 1 + int(tag, 16) % 250
-    hosts = Hosts(robot=f"slr-robot-{tag}", workstation=f"slr-ws-{tag}",
+    me = os.getpid()
+    hosts = Hosts(robot=f"slr-robot-{me}-{tag}", workstation=f"slr-ws-{me}-{tag}",
                   robot_ip=f"10.200.{subnet}.1", workstation_ip=f"10.200.{subnet}.2",
                   robot_dev=f"slr{tag}r", workstation_dev=f"slr{tag}w")
     try:

@@ -10,9 +10,13 @@ checked (recovered from the estimator's cache) or counted every state.
 from __future__ import annotations
 
 import json
+import os
+import subprocess
 import time
 
-from slamlens.services.harness.netns import Hosts, curl_json
+import pytest
+
+from slamlens.services.harness.netns import Hosts, available, curl_json, make_hosts
 from slamlens.services.harness.procs import Service, spawn, stop
 
 ROBOT = "robot1"
@@ -105,3 +109,25 @@ def test_the_robot_keeps_estimating_through_a_link_cut(two_hosts: Hosts) -> None
     m = _final(mon_out, "monitor")
     assert m["checked"] + m["lost"] >= inputs, m
     assert m["violations"] == 0, m
+
+
+def test_a_killed_runs_namespaces_are_removed_by_the_next() -> None:
+    """A pair left by a run that was killed (its pid gone) is deleted when the next test
+    makes its hosts; a live process's pair is left alone."""
+    if available() is not None:
+        pytest.skip(f"needs network namespaces: {available()}")
+    dead = subprocess.Popen(["true"])
+    dead.wait()  # a pid that no longer runs (reaped)
+    orphan, alive = f"slr-ws-{dead.pid}-0abcde", f"slr-ws-{os.getpid()}-0fedcb"
+    for ns in (orphan, alive):
+        subprocess.run(["ip", "netns", "add", ns], check=True)
+    try:
+        hosts = make_hosts()
+        hosts.remove()
+        names = subprocess.run(["ip", "netns", "list"], capture_output=True,
+                               text=True).stdout.split()
+        assert orphan not in names and alive in names
+        assert hosts.robot not in names and hosts.workstation not in names
+    finally:
+        for ns in (orphan, alive):
+            subprocess.run(["ip", "netns", "del", ns], capture_output=True)
