@@ -110,7 +110,8 @@ class DenseEkf:
 
     def observe(self, ids: list[int], ranges: list[float], bearings: list[float],
                 stamp: float) -> list[tuple[np.ndarray, np.ndarray]]:
-        applied, new = [], []
+        applied: list[tuple[np.ndarray, np.ndarray]] = []
+        new: list[tuple[int, float, float]] = []
         for lid, zr, zb in zip(ids, ranges, bearings, strict=True):
             if lid not in self.index:
                 if self.kind == "standard":

@@ -308,6 +308,7 @@ def evaluate(run: MrclamRun, settings: EstimatorSettings, *, start: float | None
         done += 1
         if progress is not None and done % 1000 == 0:
             progress(1000)
+        assert not isinstance(message, Truth)  # events(truth=False)
         try:
             report = est.apply(message)
         except EstimationError:
