@@ -15,8 +15,9 @@ linearisations:
 * ``oc``: FEJ's points, Fx and Gv; H at the latest estimates, each row moved the least
   that makes it blind to the unobservable directions (the closed form h* = h − α u).
 
-It does not model what MRCLAM and the tests never send (two sightings of one new landmark
-in one batch under FEJ / OC, anonymous ids, the plausibility bounds, faults). For the
+It starts from the settings' initial pose and its σ. It does not model what MRCLAM and the
+tests never send (two sightings of one new landmark in one batch under FEJ / OC, anonymous
+ids, the plausibility bounds) and refuses a planted fault. For the
 experiments it can carry two states beside robot and map (:class:`Extra`): a Gauss-Markov
 range bias per landmark and a range scale for the camera; neither moves N, the global
 directions (their rows of N are 0).
@@ -66,18 +67,22 @@ class DenseEkf:
     def __init__(self, settings: EstimatorSettings, extra: Extra = Extra()) -> None:
         if settings.linearisation not in ("standard", "fej", "oc"):
             raise ValueError(f"linearisation {settings.linearisation!r}")
+        if settings.fault != "none":
+            raise ValueError(f"a dense EKF plants no faults ({settings.fault!r})")
         self.s, self.extra, self.kind = settings, extra, settings.linearisation
         self.base = 4 if extra.scale_sd else 3
         self.block = 3 if extra.bias_sd else 2
         size = self.base + self.block * CAPACITY
         self.x, self.P = np.zeros(size), np.zeros((size, size))
+        self.x[:3] = settings.initial_pose
+        self.P[:3, :3] = np.diag(np.square(settings.initial_pose_sigma))
         if extra.scale_sd:
             self.P[3, 3] = extra.scale_sd ** 2
         self.n = self.base
         self.index: dict[int, int] = {}  #: landmark id → first row of its block
         self.first: dict[int, np.ndarray] = {}  #: FEJ's first estimates
         self.seen: dict[int, float] = {}  #: when each bias was last brought forward
-        self.propagated = np.zeros(2)  #: FEJ's p̂(k|k−1)
+        self.propagated = self.x[:2].copy()  #: FEJ's p̂(k|k−1)
         self.gated = 0
         self.parts: list[tuple[float, ...]] = []  #: (ν_r², ν_φ², S_rr, S_φφ, R_rr, R_φφ)
 

@@ -25,16 +25,21 @@ REPO = Path(__file__).resolve().parents[2]
 SMALL = REPO / "tests" / "fixtures" / "mrclam_small"
 
 
-@pytest.mark.parametrize(("linearisation", "gate"), [
-    ("standard", None), ("fej", None), ("oc", None),
-    ("oc", 1.0)])  # a gate this tight refuses a few sightings: the same ones
+@pytest.mark.parametrize(("linearisation", "gate", "start"), [
+    ("standard", None, False), ("fej", None, False), ("oc", None, False),
+    ("oc", 1.0, False),  # a gate this tight refuses a few sightings: the same ones
+    ("fej", None, True)])  # from an uncertain initial pose
 def test_the_estimator_is_the_dense_ekf_over_a_real_run(linearisation: str,
-                                                        gate: float | None) -> None:
+                                                        gate: float | None,
+                                                        start: bool) -> None:
     run = load_mrclam(SMALL, 1)
     settings = replace(load_settings(EstimatorSettings, REPO / "deploy" / "mrclam.toml"),
                        linearisation=linearisation, robot=run.robot)
     if gate is not None:
         settings = replace(settings, innovation_gate_chi2=gate)
+    if start:
+        settings = replace(settings, initial_pose=(0.4, -0.3, 0.2),
+                           initial_pose_sigma=(0.1, 0.05, 0.03))
     est, dense = Estimator(settings), DenseEkf(settings)
     updates = 0
     for m in run.events(truth=False):
