@@ -64,6 +64,11 @@ def test_a_refusal_is_named_once_then_counted() -> None:
     assert reader.refused_total() == 3
 
 
+#: what the reader says of robot-r2's refused odometry put
+ROBOT_R2_REFUSED = ("refused: robot-r2 may not Put (ingress) on slamlens/robot/r1/odometry "
+                    "(dropped; repeats are counted)")
+
+
 def test_decisions_are_matched_by_thread() -> None:
     reader, out = _reader()
     reader.line(_line(8, ACL, f"{_subject(ZID_R2, 'robot-r2')} is unauthorized to Put "
@@ -72,8 +77,7 @@ def test_decisions_are_matched_by_thread() -> None:
                               "(egress) on slamlens/robot/r1/odometry"))
     reader.line(_line(8, ICP, "Msg intercepted!"))
     reader.emit_pending(0)
-    assert out == [(logging.WARNING, "refused: robot-r2 may not Put (ingress) on "
-                                     "slamlens/robot/r1/odometry (dropped; repeats are counted)")]
+    assert out == [(logging.WARNING, ROBOT_R2_REFUSED)]
 
 
 def test_a_drop_without_a_refusal_is_a_client_of_no_identity() -> None:
@@ -118,40 +122,33 @@ def test_spans_between_thread_and_target_are_understood() -> None:
     assert out == [(logging.INFO, "zenoh debug zenoh::net::runtime::region: return=Ok(North)")]
 
 
+#: raw log bytes: another thread's allowed put, robot-r2's name, its refusal and the drop
+ALLOWED = _line(9, ACL, f"Using cached result: {ZID_V} is authorized to Put (egress) on "
+                        "slamlens/robot/r1/state").encode()
+NAMES = _line(8, ACL, f"{_subject(ZID_R2, 'robot-r2')} is authorized to Declare "
+                      "Subscriber (ingress) on slamlens/robot/r2/state").encode()
+REFUSAL = _line(8, ACL, f"Using cached result: {ZID_R2} is unauthorized to Put (ingress) "
+                        "on slamlens/robot/r1/odometry").encode()
+DROP = _line(8, ICP, "Msg intercepted!").encode()
+
+
 def test_chunks_of_allowed_decisions_are_skipped_but_the_one_before_a_drop_is_kept() -> None:
     reader, out = _reader()
-    allowed = _line(9, ACL, f"Using cached result: {ZID_V} is authorized to Put (egress) on "
-                            "slamlens/robot/r1/state").encode()
-    names = _line(8, ACL, f"{_subject(ZID_R2, 'robot-r2')} is authorized to Declare "
-                          "Subscriber (ingress) on slamlens/robot/r2/state").encode()
-    refusal = _line(8, ACL, f"Using cached result: {ZID_R2} is unauthorized to Put (ingress) "
-                            "on slamlens/robot/r1/odometry").encode()
-    drop = _line(8, ICP, "Msg intercepted!").encode()
-    reader.feed(names)
-    reader.feed(allowed * 500 + refusal[:40])  # a line split across reads
-    reader.feed(refusal[40:])  # a chunk of nothing but decisions: skipped
-    reader.feed(allowed * 3 + drop)
+    reader.feed(NAMES)
+    reader.feed(ALLOWED * 500 + REFUSAL[:40])  # a line split across reads
+    reader.feed(REFUSAL[40:])  # a chunk of nothing but decisions: skipped
+    reader.feed(ALLOWED * 3 + DROP)
     reader.emit_pending(0)
-    assert out == [(logging.WARNING, "refused: robot-r2 may not Put (ingress) on "
-                                     "slamlens/robot/r1/odometry (dropped; repeats are counted)")]
+    assert out == [(logging.WARNING, ROBOT_R2_REFUSED)]
 
 
 def test_a_refusal_far_before_its_drop_is_still_named() -> None:
-    """The refused decision and its "Msg intercepted!" on one thread, with more than a
-    skipped chunk's kept tail of other threads' allowed decisions between them (a reader or
-    a thread descheduled on a loaded machine): the drop is still named, never "a client
-    of no known identity"."""
+    """The refused decision and its "Msg intercepted!" on one thread, with chunks of other
+    threads' allowed decisions between them (a reader or a thread descheduled on a loaded
+    machine): the drop is still named, never "a client of no known identity"."""
     reader, out = _reader()
-    allowed = _line(9, ACL, f"Using cached result: {ZID_V} is authorized to Put (egress) on "
-                            "slamlens/robot/r1/state").encode()
-    names = _line(8, ACL, f"{_subject(ZID_R2, 'robot-r2')} is authorized to Declare "
-                          "Subscriber (ingress) on slamlens/robot/r2/state").encode()
-    refusal = _line(8, ACL, f"Using cached result: {ZID_R2} is unauthorized to Put (ingress) "
-                            "on slamlens/robot/r1/odometry").encode()
-    drop = _line(8, ICP, "Msg intercepted!").encode()
-    reader.feed(names)
-    reader.feed(refusal + allowed * 2000)  # ≫ the tail a skipped chunk keeps
-    reader.feed(allowed * 10 + drop)
+    reader.feed(NAMES)
+    reader.feed(REFUSAL + ALLOWED * 2000)  # ≫ the 8 KiB tail a reader once kept
+    reader.feed(ALLOWED * 10 + DROP)
     reader.emit_pending(0)
-    assert out == [(logging.WARNING, "refused: robot-r2 may not Put (ingress) on "
-                                     "slamlens/robot/r1/odometry (dropped; repeats are counted)")]
+    assert out == [(logging.WARNING, ROBOT_R2_REFUSED)]
