@@ -37,28 +37,21 @@ from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
-from scipy.stats import chi2
 
-from slamlens.common.config import load_settings
 from slamlens.services.harness.dense_ekf import DenseEkf, Extra
-from slamlens.services.harness.mrclam_pipeline import DATA
+from slamlens.services.harness.mrclam_pipeline import DATA, left_out_profile, nis_windows_out
 from slamlens.services.slam.mrclam import load_mrclam
 from slamlens.services.slam.scoring import Evaluation, Scorer, TruthTrack, evaluate
-from slamlens.services.slam.settings import EstimatorSettings
 
 REPO = Path(__file__).resolve().parents[1]
 ROBOTS = (1, 2, 3, 4, 5)
-NIS_WINDOW = 50
-NIS_SIGNIFICANCE = 1e-6  #: the monitor's two-sided significance per window
 
 
 def run(robot: int, extra: Extra) -> tuple[Evaluation, float, np.ndarray]:
     """The dense filter over one robot with its left-out profile; (scores, final ε, the
     applied sightings' (ν_r², ν_φ², S_rr, S_φφ, R_rr, R_φφ))."""
-    settings = load_settings(EstimatorSettings,
-                             REPO / "benchmarks" / "profiles" / f"without-robot{robot}.toml")
     data = load_mrclam(DATA, robot)
-    ekf = DenseEkf(settings, extra)
+    ekf = DenseEkf(left_out_profile(robot), extra)
     scorer = Scorer(TruthTrack.from_mrclam(data), robot=data.robot)
     for m in data.events(truth=False):
         for nu, S in ekf.apply(m):
@@ -67,16 +60,6 @@ def run(robot: int, extra: Extra) -> tuple[Evaluation, float, np.ndarray]:
     ids, landmarks = ekf.landmarks()
     return (scorer.finish(ids, landmarks, {"gated": ekf.gated}), ekf.scale - 1.0,
             np.array(ekf.parts))
-
-
-def nis_windows_out(nis: np.ndarray) -> tuple[float, float]:
-    """Shares of the monitor's NIS windows (χ²(2N)/N band) below and above their band."""
-    k = nis.size // NIS_WINDOW
-    means = nis[:k * NIS_WINDOW].reshape(k, NIS_WINDOW).mean(axis=1)
-    dof = 2 * NIS_WINDOW
-    lo = chi2.ppf(NIS_SIGNIFICANCE / 2, dof) / NIS_WINDOW
-    hi = chi2.ppf(1 - NIS_SIGNIFICANCE / 2, dof) / NIS_WINDOW
-    return float(np.mean(means < lo)), float(np.mean(means > hi))
 
 
 def row(what: str, robot: int, ev: Evaluation, scale: float | None) -> str:
@@ -122,10 +105,8 @@ def _job(args: tuple[int, Extra]) -> str:
 
 
 def _shipped(robot: int) -> str:
-    settings = load_settings(EstimatorSettings,
-                             REPO / "benchmarks" / "profiles" / f"without-robot{robot}.toml")
     return row("the shipped Estimator (reference)", robot,
-               evaluate(load_mrclam(DATA, robot), settings), None)
+               evaluate(load_mrclam(DATA, robot), left_out_profile(robot)), None)
 
 
 EXTRAS = (Extra(), Extra(motion=0.44),

@@ -34,16 +34,20 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
-from scipy.stats import chi2
 
-from slamlens.common.config import load_settings
 from slamlens.common.errors import EstimationError
 from slamlens.common.messages import Observations, Odometry
-from slamlens.services.harness.mrclam_pipeline import DATA
+from slamlens.services.harness.mrclam_pipeline import (
+    DATA,
+    NIS_HI,
+    NIS_LO,
+    NIS_WINDOW,
+    left_out_profile,
+    nis_windows_out,
+)
 from slamlens.services.slam.estimator import Estimator
 from slamlens.services.slam.mrclam import MrclamRun, load_mrclam
 from slamlens.services.slam.scoring import Scorer, TruthTrack
-from slamlens.services.slam.settings import EstimatorSettings
 
 REPO = Path(__file__).resolve().parents[1]
 ROBOTS = (1, 2, 3, 4, 5)
@@ -57,14 +61,11 @@ TERMS: dict[str, Callable[[np.ndarray, np.ndarray], np.ndarray]] = {
     "b": lambda r, b: b, "b²": lambda r, b: b * b, "r·b²": lambda r, b: r * b * b}
 CALIBRATIONS = {"off-axis (b², r·b²)": ("b²", "r·b²"),
                 "full (1, r, r², b, b², r·b²)": ("1", "r", "r²", "b", "b²", "r·b²")}
-NIS_WINDOW = 50
 SENSOR_KEYS = ("sigma_range", "sigma_bearing", "sigma_range_per_m")
 #: the sensor σ scaled down until the mean NIS is near 2 (the profile's give 0.6–1.5)
 SENSOR_SCALE = 0.35
 #: the iterated update's budget tried (``update_iterations``, docs/estimator.md)
 ITERATIONS = 10
-#: the monitor's NIS band (docs/monitor.md): χ²(2·50)/50 at two-sided α = 1e-6
-NIS_BAND = tuple(float(q) / NIS_WINDOW for q in chi2.ppf([5e-7, 1 - 5e-7], 2 * NIS_WINDOW))
 
 
 def _wrap(a: np.ndarray | float) -> np.ndarray | float:
@@ -199,8 +200,7 @@ def evaluate(robot: int, variant: str, turn_bias: float,
     range σ, the range-dependent terms off; every sensor σ × ``sensor_scale``; the
     iterated update with ``iterations``); a table row."""
     run = load_mrclam(DATA, robot)
-    settings = load_settings(EstimatorSettings,
-                             REPO / f"benchmarks/profiles/without-robot{robot}.toml")
+    settings = left_out_profile(robot)
     if sigma_range is not None:
         settings = replace(settings, sigma_range=sigma_range, sigma_range_per_m=0.0,
                            sigma_range_off_axis=0.0)
@@ -218,8 +218,7 @@ def evaluate(robot: int, variant: str, turn_bias: float,
         scorer.add(m.stamp, est.pose, est.pose_covariance)
     e = scorer.finish(est.landmark_ids, est.landmarks, est.diagnostics())
     nis = e.nis if e.nis is not None else np.zeros(0)
-    windows = nis[: nis.size // NIS_WINDOW * NIS_WINDOW].reshape(-1, NIS_WINDOW).mean(axis=1)
-    outside = float(np.mean((windows < NIS_BAND[0]) | (windows > NIS_BAND[1])))
+    outside = sum(nis_windows_out(nis))
     return (f"  robot {robot}  {variant:<28} NEES {e.nees_mean:6.2f}  NIS mean "
             f"{e.nis_mean:4.2f} median {float(np.median(nis)):4.2f} (1.39)  windows outside "
             f"{outside:4.0%}  map {e.landmark_rmse_rigid:.3f} m")
@@ -240,9 +239,9 @@ def report_filter(runs: dict[int, MrclamRun], tables: dict[int, np.ndarray]) -> 
             coef = fit_calibration(others, terms)
             jobs.append((k, "ranges calibrated, " + name.split()[0], 0.0, (terms, coef),
                          left_sd(others, terms, coef), 1.0, 1))
-    print(f"the filter, each robot with its left-out profile (NIS windows of {NIS_WINDOW}, "
-          f"band [{NIS_BAND[0]:.2f}, {NIS_BAND[1]:.2f}]; map: landmark RMSE after a rigid "
-          "fit)")
+    print(f"the filter, each robot with its left-out profile (NIS windows of "
+          f"{NIS_WINDOW}, band [{NIS_LO:.2f}, {NIS_HI:.2f}]; map: "
+          "landmark RMSE after a rigid fit)")
     with ProcessPoolExecutor(2) as pool:
         for row in pool.map(evaluate, *zip(*jobs, strict=True)):
             print(row, flush=True)

@@ -15,15 +15,42 @@ import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import numpy as np
+
+from slamlens.common.config import load_settings
 from slamlens.common.keys import Keys
 from slamlens.common.messages import Health, SlamState
 from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus
 from slamlens.services.harness.procs import REPO, spawn, stop
+from slamlens.services.monitor.settings import MonitorSettings
+from slamlens.services.monitor.stats import WindowTest
 from slamlens.services.slam.mrclam import load_mrclam
 from slamlens.services.slam.scoring import Evaluation, Scorer, TruthTrack, dead_reckoning_track
+from slamlens.services.slam.settings import EstimatorSettings
 
 DATA = REPO.parent / "shared" / "data" / "mrclam6"
 PROFILE = REPO / "deploy" / "mrclam.toml"
+
+def _monitor_nis_band() -> tuple[int, float, float]:
+    s = MonitorSettings()
+    test = WindowTest(dof=2, window=s.nis_window, alpha=s.significance, dependent=False)
+    return test.window, test.lo, test.hi
+
+
+#: the monitor's NIS windows and their band, as its defaults make them (docs/monitor.md)
+NIS_WINDOW, NIS_LO, NIS_HI = _monitor_nis_band()
+
+
+def left_out_profile(robot: int) -> EstimatorSettings:
+    """The profile fitted on the other four robots (benchmarks/profiles/without-robotK.toml)."""
+    return load_settings(EstimatorSettings,
+                         REPO / "benchmarks" / "profiles" / f"without-robot{robot}.toml")
+
+
+def nis_windows_out(nis: np.ndarray) -> tuple[float, float]:
+    """Shares of the monitor's tumbling NIS windows over ``nis`` below and above their band."""
+    means = nis[:nis.size // NIS_WINDOW * NIS_WINDOW].reshape(-1, NIS_WINDOW).mean(axis=1)
+    return float(np.mean(means < NIS_LO)), float(np.mean(means > NIS_HI))
 
 
 @dataclass
