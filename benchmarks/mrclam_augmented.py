@@ -41,7 +41,13 @@ import numpy as np
 from slamlens.services.harness.dense_ekf import DenseEkf, Extra
 from slamlens.services.harness.mrclam_pipeline import DATA, left_out_profile, nis_windows_out
 from slamlens.services.slam.mrclam import load_mrclam
-from slamlens.services.slam.scoring import Evaluation, Scorer, TruthTrack, evaluate
+from slamlens.services.slam.scoring import (
+    Evaluation,
+    Scorer,
+    TruthTrack,
+    evaluate,
+    similarity_fit,
+)
 
 REPO = Path(__file__).resolve().parents[1]
 ROBOTS = (1, 2, 3, 4, 5)
@@ -70,20 +76,6 @@ def row(what: str, robot: int, ev: Evaluation, scale: float | None) -> str:
             f"  windows out {below + above:4.0%} ({below:.0%} below)  ε {eps}")
 
 
-def similarity_fit(ev: Evaluation) -> tuple[float, float]:
-    """(scale, RMSE m) of the final map after the rotation, translation and scale that fit
-    it best to the truth (Umeyama): how much of the shape error is a scale."""
-    est = ev.landmarks
-    true = est + ev.landmark_errors
-    X, Y = est - est.mean(0), true - true.mean(0)
-    U, S, Vt = np.linalg.svd(X.T @ Y)
-    D = np.diag([1.0, float(np.sign(np.linalg.det(Vt.T @ U.T)))])
-    R = Vt.T @ D @ U.T
-    scale = float((S * np.diag(D)).sum() / (X ** 2).sum())
-    fitted = scale * X @ R.T + true.mean(0)
-    return scale, float(np.sqrt(np.mean(np.sum((fitted - true) ** 2, axis=1))))
-
-
 def where_s_comes_from(robot: int, parts: np.ndarray) -> str:
     """Median innovation against median S and R, range and bearing, as σ (the NIS is low
     where the innovations are smaller than S; which part of S makes it large)."""
@@ -99,7 +91,7 @@ def _job(args: tuple[int, Extra]) -> str:
     line = row(extra.label(), robot, ev, scale if extra.scale_sd else None)
     if extra.bias_sd or extra.scale_sd:
         return line
-    scale, rmse = similarity_fit(ev)
+    rmse, scale = similarity_fit(ev.landmarks, ev.landmarks + ev.landmark_errors)
     return (f"{line}\n{where_s_comes_from(robot, parts)}\n{'':<48} robot{robot}  map after a "
             f"similarity fit: scale {scale:.3f}, RMSE {rmse:.3f} m")
 

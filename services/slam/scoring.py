@@ -108,18 +108,41 @@ def pose_nees(error: np.ndarray, P: np.ndarray) -> float:
     return (A * x * x + D * y * y + F * t * t + 2.0 * (B * x * y + C * x * t + E * y * t)) / det
 
 
+def _best_rotation(centred: np.ndarray, truth_centred: np.ndarray
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The rotation R that best turns ``centred`` onto ``truth_centred`` (Kabsch), with the
+    singular values of their cross-covariance and the reflection guard D."""
+    U, S, Vt = np.linalg.svd(centred.T @ truth_centred)
+    D = np.diag([1.0, float(np.sign(np.linalg.det(Vt.T @ U.T)))])
+    return Vt.T @ D @ U.T, S, D
+
+
+def _rmse(fitted: np.ndarray, truth: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum((fitted - truth) ** 2, axis=1))))
+
+
 def rigid_fit(estimated: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
     """RMSE (m) of ``estimated`` [n, 2] after the rotation and translation that fit it best
     to ``truth`` (Kabsch), and that rotation in degrees."""
     if estimated.shape[0] < 2:
         return math.nan, math.nan
     me, mt = estimated.mean(0), truth.mean(0)
-    U, _, Vt = np.linalg.svd((estimated - me).T @ (truth - mt))
-    D = np.diag([1.0, float(np.sign(np.linalg.det(Vt.T @ U.T)))])
-    R = Vt.T @ D @ U.T
+    R, _, _ = _best_rotation(estimated - me, truth - mt)
     fitted = (estimated - me) @ R.T + mt
-    return (float(np.sqrt(np.mean(np.sum((fitted - truth) ** 2, axis=1)))),
-            math.degrees(math.atan2(R[1, 0], R[0, 0])))
+    return _rmse(fitted, truth), math.degrees(math.atan2(R[1, 0], R[0, 0]))
+
+
+def similarity_fit(estimated: np.ndarray, truth: np.ndarray) -> tuple[float, float]:
+    """RMSE (m) of ``estimated`` [n, 2] after the rotation, translation and scale that fit
+    it best to ``truth`` (Umeyama), and that scale: how much of a map's shape error is
+    scale."""
+    if estimated.shape[0] < 2:
+        return math.nan, math.nan
+    me, mt = estimated.mean(0), truth.mean(0)
+    X = estimated - me
+    R, S, D = _best_rotation(X, truth - mt)
+    scale = float((S * np.diag(D)).sum() / (X ** 2).sum())
+    return _rmse(scale * X @ R.T + mt, truth), scale
 
 
 def nees_band(dof: int = POSE_DOF, confidence: float = 0.95) -> tuple[float, float]:

@@ -67,6 +67,10 @@ def test_pose_nees_rigid_fit_and_band() -> None:
     estimated = (truth - 1.0) @ R.T + [4.0, -2.0]
     rmse, rotation = scoring.rigid_fit(estimated, truth)
     assert rmse == pytest.approx(0.0, abs=1e-12) and rotation == pytest.approx(-25.0)
+    scaled = 1.02 * estimated  # a map 2 % too large: no rigid fit, an exact similarity one
+    assert scoring.rigid_fit(scaled, truth)[0] > 0.01
+    rmse, scale = scoring.similarity_fit(scaled, truth)
+    assert rmse == pytest.approx(0.0, abs=1e-12) and scale == pytest.approx(1 / 1.02)
     lo, hi = scoring.nees_band()
     assert (lo, hi) == pytest.approx((0.2158, 9.348), abs=1e-3)
 
