@@ -114,8 +114,9 @@ def test_the_robot_keeps_estimating_through_a_link_cut(two_hosts: Hosts) -> None
 def test_a_killed_runs_namespaces_are_removed_by_the_next() -> None:
     """A pair left by a run that was killed (its pid gone) is deleted when the next test
     makes its hosts; a live process's pair is left alone."""
-    if available() is not None:
-        pytest.skip(f"needs network namespaces: {available()}")
+    why = available()
+    if why is not None:
+        pytest.skip(f"needs network namespaces: {why}")
     dead = subprocess.Popen(["true"])
     dead.wait()  # a pid that no longer runs (reaped)
     orphan, alive = f"slr-ws-{dead.pid}-0abcde", f"slr-ws-{os.getpid()}-0fedcb"
