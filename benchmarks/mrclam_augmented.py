@@ -34,7 +34,6 @@ import argparse
 import math
 import sys
 from concurrent.futures import ProcessPoolExecutor
-from pathlib import Path
 
 import numpy as np
 
@@ -49,7 +48,6 @@ from slamlens.services.slam.scoring import (
     similarity_fit,
 )
 
-REPO = Path(__file__).resolve().parents[1]
 ROBOTS = (1, 2, 3, 4, 5)
 
 

@@ -31,7 +31,6 @@ import sys
 from collections.abc import Callable, Iterator
 from concurrent.futures import ProcessPoolExecutor
 from dataclasses import replace
-from pathlib import Path
 
 import numpy as np
 
@@ -49,7 +48,6 @@ from slamlens.services.slam.estimator import Estimator
 from slamlens.services.slam.mrclam import MrclamRun, load_mrclam
 from slamlens.services.slam.scoring import Scorer, TruthTrack
 
-REPO = Path(__file__).resolve().parents[1]
 ROBOTS = (1, 2, 3, 4, 5)
 WINDOWS_S = (0.25, 1.0, 4.0, 32.0)
 GROSS_M = 0.5  #: range errors beyond this are gross (misreads), left out of the statistics
