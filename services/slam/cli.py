@@ -315,7 +315,8 @@ def _run_tune(args: argparse.Namespace) -> int:
     try:
         if s.cross_validate and len(runs) >= 2:
             results = [crossval.cross_validate(
-                runs, crossval.Candidate(lin, s.motion_model), gate_chi2=s.gate_chi2,
+                runs, crossval.Candidate(lin, s.motion_model, s.update_iterations),
+                gate_chi2=s.gate_chi2,
                 scaled=s.scale, progress=fold_progress, executor=pool)
                 for lin in linearisations]
             cv = crossval.choose(results)
@@ -328,7 +329,9 @@ def _run_tune(args: argparse.Namespace) -> int:
             return lambda n, c: bar(f"tune ({lin}) pass {n} (σ × {c:.3f})", events)
 
         fits = [tuning.tune(runs, motion_model=s.motion_model, gate_chi2=s.gate_chi2,
-                            base=EstimatorSettings(linearisation=lin), scaled=s.scale,
+                            base=EstimatorSettings(linearisation=lin,
+                                                   update_iterations=s.update_iterations),
+                            scaled=s.scale,
                             progress=passes(lin), executor=pool)
                 for lin in linearisations]
     finally:
@@ -345,6 +348,8 @@ def _run_tune(args: argparse.Namespace) -> int:
     header = [f"slamlens estimator settings fitted by: slamlens tune {s.path} --robot-index "
               f"{robots} --motion-model {s.motion_model} --gate-chi2 {s.gate_chi2:g} "
               f"--linearisation {s.linearisation} --scale {s.scale}"
+              + (f" --update-iterations {s.update_iterations}" if s.update_iterations > 1
+                 else "")
               + ("" if s.cross_validate else " --no-cross-validate"),
               "use: slamlens estimator --config THIS_FILE --robot R (docs/estimator.md)"]
     text = tuning.profile_toml(result, header=header, notes=notes)

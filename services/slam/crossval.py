@@ -49,10 +49,13 @@ class Candidate:
 
     linearisation: str  #: standard or fej (EstimatorSettings.linearisation)
     motion_model: str = "spec"  #: spec or distance (tuning.fit_noise)
+    update_iterations: int = 1  #: EstimatorSettings.update_iterations (1 = the EKF)
 
     @property
     def label(self) -> str:
-        return f"{self.linearisation}, {self.motion_model} motion model"
+        iterated = (f", iterated (K = {self.update_iterations})"
+                    if self.update_iterations > 1 else "")
+        return f"{self.linearisation}{iterated}, {self.motion_model} motion model"
 
 
 @dataclass
@@ -104,12 +107,13 @@ def cross_validate(runs: Sequence[MrclamRun], candidate: Candidate, *,
     """Leave each robot out in turn (module docstring); at least two robots."""
     if len(runs) < 2:
         raise ConfigError("leave-one-robot-out needs at least two robots")
-    settings = replace(base or EstimatorSettings(), linearisation=candidate.linearisation)
+    settings = replace(base or EstimatorSettings(), linearisation=candidate.linearisation,
+                       update_iterations=candidate.update_iterations)
     events = [event_count(r) for r in runs] if progress is not None else [0] * len(runs)
     folds = []
     for k, held in enumerate(runs):
         train = [r for j, r in enumerate(runs) if j != k]
-        what = f"{candidate.linearisation}, {held.robot} left out"
+        what = f"{candidate.label.rsplit(', ', 1)[0]}, {held.robot} left out"
         total = sum(events) - events[k]
 
         def tick(number: int, scale: float, what: str = what,
@@ -134,21 +138,22 @@ def choose(results: Sequence[CrossValidation]) -> CrossValidation:
 def report(results: Sequence[CrossValidation], chosen: CrossValidation) -> list[str]:
     """The leave-one-robot-out table, one line per candidate and robot, and the choice."""
     lo, hi = NEES_RANGE
+    width = max(34, *(len(r.candidate.label) for r in results))
     lines = [f"leave-one-robot-out: each robot scored with the profile fitted on the others "
              f"(targets: NEES in [{lo:g}, {hi:g}], landmark RMSE after a rigid fit ≤ "
              f"{RIGID_RMSE_MAX:g} m)",
-             f"{'candidate':<34} {'left out':>9} {'NEES':>7} {'windows':>8} {'rigid m':>8} "
+             f"{'candidate':<{width}} {'left out':>9} {'NEES':>7} {'windows':>8} {'rigid m':>8} "
              f"{'rot°':>6} {'NIS':>5} {'gated':>6} {'scale c':>8}  meets"]
     for r in results:
         for f in r.folds:
             e = f.test
             lines.append(
-                f"{r.candidate.label:<34} {f.held_out:>9} {e.nees_mean:>7.2f} "
+                f"{r.candidate.label:<{width}} {f.held_out:>9} {e.nees_mean:>7.2f} "
                 f"{e.window_fraction(NEES_WINDOW):>8.0%} {e.landmark_rmse_rigid:>8.3f} "
                 f"{e.map_rotation_deg:>6.1f} {e.nis_mean:>5.2f} "
                 f"{e.counts.get('gated', 0):>6.0f} {f.result.scale:>8.3f}  "
                 f"{'yes' if meets(e) else 'NO'}")
-        lines.append(f"{r.candidate.label:<34} {'':>9} {r.meeting} of {len(r.folds)} meet "
+        lines.append(f"{r.candidate.label:<{width}} {'':>9} {r.meeting} of {len(r.folds)} meet "
                      f"the targets; mean |ln(NEES/3)| {r.spread:.2f}")
     lines.append(f"chosen: {chosen.candidate.label} ({chosen.meeting} of "
                  f"{len(chosen.folds)} held-out robots meet the targets)")

@@ -164,6 +164,10 @@ class TuneSettings:
         "all", doc="the estimator's linearisation to fit for: standard, fej, oc, or all = "
                    "fit each and choose by the robots left out (by the fit itself with one "
                    "robot or --no-cross-validate)", choices=(*LINEARISATIONS, "all"))
+    update_iterations: int = setting(
+        1, doc="fit for the iterated EKF: the estimator's --update-iterations, used in every "
+               "pass and written into the profile; 1 = the EKF (fej: no effect)",
+        min=1, max=100)
     cross_validate: bool = setting(
         True, doc="leave each robot out in turn: fit on the others, score it (NEES, landmark "
                   "RMSE after a rigid fit), report, and choose the linearisation by that; "

@@ -288,6 +288,7 @@ class TuneResult:
     motion_model: str
     passes_run: int = 0  #: estimator passes over the runs
     linearisation: str = "standard"  #: the estimator's (EstimatorSettings.linearisation)
+    update_iterations: int = 1  #: the estimator's (EstimatorSettings.update_iterations)
     scaled: str = "motion"  #: which σ the scale multiplies: motion or all
 
     @property
@@ -378,7 +379,8 @@ def tune(runs: Sequence[MrclamRun], *, motion_model: str = "spec",
         scale = new
     return TuneResult(fit=fit, scale=scale, values=values, before=before, after=after,
                       motion_model=motion_model, passes_run=number, scaled=scaled,
-                      linearisation=base.linearisation)
+                      linearisation=base.linearisation,
+                      update_iterations=base.update_iterations)
 
 
 #: what each setting of a profile means, physically (written next to its value)
@@ -429,6 +431,9 @@ def profile_toml(result: TuneResult, *, header: Sequence[str] = (),
                      f"({e.landmark_rmse_rigid:.3f} m after a rigid fit)")
     lines += [f"# {n}" if n else "#" for n in notes]
     lines += ["", f'linearisation = "{result.linearisation}"']
+    if result.update_iterations > 1:
+        lines.append(f"update_iterations = {result.update_iterations}  # the iterated EKF: "
+                     "at most this many linearisations of each update (docs/estimator.md)")
     for key in (*NOISE_KEYS, "innovation_gate_chi2"):
         if key in result.values:
             lines.append(f"{key} = {_number(result.values[key])}  # {MEANING[key]}")

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 import tomllib
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -244,3 +245,36 @@ def test_the_scale_multiplies_the_motion_sigma_only() -> None:
         assert result.values[key] == fit[key]
     for key in ("sigma_v", "sigma_w"):
         assert result.values[key] == pytest.approx(fit[key] * result.scale, rel=1e-12)
+
+
+def test_tune_fits_for_the_iterated_update_when_asked(tmp_path: Path) -> None:
+    """``--update-iterations K`` reaches every pass, the robot left out and the profile: the
+    figures are the iterated estimator's (scored here independently of tune), not the EKF's."""
+    from slamlens.services.slam import crossval
+
+    folder = two_robots(tmp_path)
+    runs = [load_mrclam(folder, k) for k in (1, 2)]
+    iterated = crossval.cross_validate(runs, crossval.Candidate("oc", update_iterations=10))
+    assert iterated.candidate.label == "oc, iterated (K = 10), spec motion model"
+    for fold, held in zip(iterated.folds, reversed(runs), strict=True):
+        # the held-out figures: the fold's profile run by an Estimator with K = 10
+        profile = tuning.settings_with(EstimatorSettings(linearisation="oc",
+                                                         update_iterations=10),
+                                       fold.result.values)
+        alone = scoring.evaluate(held, profile)
+        assert np.array_equal(fold.test.nees, alone.nees, equal_nan=True)
+        ekf = scoring.evaluate(held, replace(profile, update_iterations=1))
+        assert not np.array_equal(alone.nees, ekf.nees, equal_nan=True)
+        assert fold.result.update_iterations == 10
+        text = tuning.profile_toml(fold.result)
+        assert tomllib.loads(text)["update_iterations"] == 10
+        loaded = load_settings(EstimatorSettings, _write(tmp_path / "p.toml", text),
+                               {"robot": "robot1"})
+        assert loaded.update_iterations == 10 and loaded.linearisation == "oc"
+    plain = tuning.profile_toml(tuning.tune(runs[:1], base=EstimatorSettings(), max_passes=1))
+    assert "update_iterations" not in tomllib.loads(plain)  # the EKF: nothing written
+
+
+def _write(path: Path, text: str) -> Path:
+    path.write_text(text)
+    return path
