@@ -3,7 +3,8 @@
 ``Health.verdict`` is the robot's verdict now (docs/monitor.md): ``ok``, ``fault`` (an
 estimator fault: a covariance theorem or a structural property broken) or ``tuning``
 (only NEES / NIS outside their bands: inconsistent tuning or model mismatch), kept up by
-``Health.standing``. The web page's top bar and violations panel, the picture's legend,
+``Health.standing`` (under ``ok``, at most a NIS window below its band while the truth bears
+the pose covariance out). The web page's top bar and violations panel, the picture's legend,
 ``slamlens demo``'s summary line and the monitor's log all say it with these functions,
 so they cannot contradict each other. Pure: plain Python numbers in, text out (no numpy
 reprs, pairs written low–high, each kind named once).
@@ -18,6 +19,9 @@ from slamlens.common.messages import Health, Violation
 #: the verdict in words, as every view shows it
 WORDS = {"ok": "ok", "fault": "estimator fault",
          "tuning": "inconsistent tuning or model mismatch"}
+
+#: why a NIS window below its band may stand under "ok" (docs/monitor.md, "The verdict")
+CONSERVATIVE = "NIS below its band while the pose NEES is in its band: S is conservative"
 
 #: what each kind of violation is, as a reader names it
 KIND_NAMES = {"pair": "pair", "feature": "feature", "prediction": "prediction",
@@ -78,6 +82,9 @@ def summary_text(health: Health, *, max_items: int = 3) -> str:
     more); suspects 3, 12" — what the top bar, the legend and the terminal say."""
     text = verdict_text(health)
     if health.verdict == "ok":
+        if any(v.kind == "nis" and v.bound is not None and v.value < v.bound
+               for v in health.standing):  # the one thing that may stand under "ok"
+            text += f" ({CONSERVATIVE})"
         return text
     heads: list[str] = []
     for v in health.standing:

@@ -211,7 +211,10 @@ class Monitor:
             self._onset = (state.seq, state.stamp)
         self._prev = state
         self._states += 1
-        verdict = self._verdict.update(state.seq, [_finite(v) for v in found], suspects)
+        verdict = self._verdict.update(
+            state.seq, [_finite(v) for v in found], suspects,
+            pose_consistent=self._truth.pose_nees_in_band(
+                state.seq, within=self.settings.clear_after))
         return Health(robot=state.robot, seq=state.seq, stamp=state.stamp, ok=not found,
                       suspects=frozen_array(suspects, "<i8") if suspects else _NO_IDS,
                       violations=tuple(_finite(v) for v in self._cap(found)),

@@ -88,6 +88,14 @@ class TruthTracker:
         self._late: list[Violation] = []
         self._nees_pose.reset()
         self._nees_features.reset()
+        #: (seq, passed) of the newest pose NEES window judged (None: none since the start)
+        self._pose_window: tuple[int, bool] | None = None
+
+    def pose_nees_in_band(self, seq: int, *, within: int) -> bool:
+        """Whether the newest pose NEES window judged passed, ``within`` states of ``seq``:
+        the truth says the pose covariance is right now (False without a recent truth)."""
+        w = self._pose_window
+        return w is not None and w[1] and seq - w[0] <= within
 
     def take_late(self) -> list[Violation]:
         """The NEES window results of states whose truth came after them, once each."""
@@ -230,6 +238,8 @@ class TruthTracker:
                            condition_max=s.nees_condition_max)
         if nees_p is not None:
             r = self._nees_pose.add_one(nees_p)
+            if r is not None:
+                self._pose_window = (seq, not r.failed)
             if r is not None and r.failed:
                 out.append(Violation(
                     kind="nees", ids=(), step=seq, value=r.mean, bound=r.edge,

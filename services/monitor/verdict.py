@@ -10,7 +10,12 @@ violations that stand and gives one word for them:
   estimator;
 * ``tuning`` — only the statistical tests fail (NEES / NIS outside their bands): the filter
   is overconfident or its models do not fit the data, but it computes what it should;
-* ``ok`` — nothing stands.
+* ``ok`` — nothing stands, or only a NIS window *below* its band while the truth says the
+  pose covariance is right (the newest pose NEES window passed, none stands failed): the
+  innovations are smaller than S, so S is conservative, and the state's covariance — what
+  the verdict is about — is borne out by the truth. Real sensors do this when their errors
+  persist between sightings (R then holds a part the innovations do not see). It stays
+  listed in the standing violations; without a truth it makes ``tuning``.
 
 Clearance rule (docs/monitor.md): a violation stands from the state it was seen in until
 ``clear_after`` further states were checked without it (same kind, same ids); a ``fault``
@@ -34,6 +39,12 @@ VERDICTS = ("ok", "fault", "tuning")
 _RANK = {k: i for i, k in enumerate(FAULT_KINDS + TUNING_KINDS)}
 
 
+def timid(v: Violation) -> bool:
+    """A statistical window that left its band from below (smaller than the covariance
+    says); the two sides of one test stand apart."""
+    return v.kind in TUNING_KINDS and v.bound is not None and v.value < v.bound
+
+
 @dataclass
 class _Standing:
     first: int  #: seq where first seen
@@ -52,15 +63,18 @@ class Verdict:
         self.reset()
 
     def reset(self) -> None:
-        self._standing: dict[tuple[str, tuple[int, ...]], _Standing] = {}
+        self._standing: dict[tuple[str, tuple[int, ...], bool], _Standing] = {}
         self._listed: tuple[Violation, ...] | None = ()  #: None: to be rebuilt
         self.verdict = "ok"
         self.since: int | None = None  #: seq where the current verdict began
 
-    def update(self, seq: int, found: list[Violation], suspects: tuple[int, ...]) -> str:
-        """Take the violations of state ``seq`` and the current suspects; the verdict."""
+    def update(self, seq: int, found: list[Violation], suspects: tuple[int, ...], *,
+               pose_consistent: bool = False) -> str:
+        """Take the violations of state ``seq`` and the current suspects; the verdict.
+        ``pose_consistent``: the truth says the pose covariance is right now (module
+        docstring: a NIS window below its band then does not make ``tuning``)."""
         for v in found:
-            key = (v.kind, tuple(sorted(v.ids)))
+            key = (v.kind, tuple(sorted(v.ids)), timid(v))
             s = self._standing.get(key)
             if s is None:
                 self._standing[key] = _Standing(first=seq, last=seq, count=1, worst=v)
@@ -73,7 +87,8 @@ class Verdict:
         for key in expired:
             del self._standing[key]
             self._listed = None
-        kinds = {k for k, _ in self._standing}
+        kinds = {kind for kind, _, low in self._standing
+                  if not (kind == "nis" and low and pose_consistent)}
         if kinds & set(FAULT_KINDS) or suspects:
             verdict = "fault"
         elif kinds & set(TUNING_KINDS):

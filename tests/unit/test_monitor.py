@@ -635,6 +635,30 @@ def test_a_nees_window_says_which_side_it_left_by(correct_run, scale, side, read
     assert all((v.value > v.bound) == (side == "above") for v in nees)
 
 
+def test_a_timid_nis_with_the_truth_bearing_the_pose_out_is_ok(correct_run) -> None:
+    """The correct run with every S × 4 (as a filter whose R holds a persistent error the
+    innovations do not see): the NIS leaves its band from below while P, and so the NEES,
+    is right. With the truth the verdict is "tuning" only until the first pose NEES window
+    passes, then "ok" with the NIS listed; without the truth it stays "tuning"."""
+    states, truths = correct_run
+    timid = [s if s.innovation_covariances is None else dataclasses.replace(
+        s, innovation_covariances=s.innovation_covariances * 4.0) for s in states]
+    settings = MonitorSettings(nis_window=20)  # its first window ends before the NEES's
+    with_truth = feed(Monitor(settings), timid, truths)
+    assert {v.kind for v in violations(with_truth)} == {"nis"}
+    assert len(violations(with_truth)) >= 10
+    assert all(v.value < v.bound for v in violations(with_truth))
+    first_nis = next(k for k, h in enumerate(with_truth) if h.violations)
+    verdicts = [h.verdict for h in with_truth]
+    changes = [k for k in range(1, len(verdicts)) if verdicts[k] != verdicts[k - 1]]
+    assert len(changes) == 2 and changes[0] == first_nis, changes  # ok → tuning → ok
+    assert verdicts[first_nis] == "tuning" and verdicts[-1] == "ok"
+    assert with_truth[-1].standing and with_truth[-1].standing[0].kind == "nis"
+    blind = feed(Monitor(settings), timid)
+    assert blind[-1].verdict == "tuning" and {h.verdict for h in blind[first_nis:]} == {
+        "tuning"}
+
+
 def test_window_bands_follow_the_documented_distributions() -> None:
     ind = WindowTest(dof=2, window=50, alpha=1e-3, dependent=False)
     assert (ind.lo, ind.hi) == pytest.approx(tuple(chi2.ppf([5e-4, 1 - 5e-4], 100) / 50))

@@ -58,3 +58,23 @@ def test_health_carries_the_verdict_on_the_wire() -> None:
                verdict_since=verdict.since, standing=verdict.standing())
     back = Health.from_bytes(h.to_bytes())
     assert back == h and back.verdict == "fault" and back.standing[0].first_step == 7
+
+
+def test_a_timid_nis_is_tuning_unless_the_truth_bears_the_pose_covariance_out() -> None:
+    """A NIS window below its band (value < bound) does not make ``tuning`` while the pose
+    NEES is in its band; above its band, or without the truth, it does; a NEES standing
+    makes ``tuning`` whatever the NIS."""
+    low = Violation(kind="nis", ids=(), step=1, value=0.5, bound=0.9)
+    high = Violation(kind="nis", ids=(), step=1, value=4.0, bound=3.7)
+    verdict = Verdict(clear_after=50)
+    assert verdict.update(1, [low], ()) == "tuning"  # no truth (yet)
+    assert verdict.update(2, [], (), pose_consistent=True) == "ok"
+    assert [s.kind for s in verdict.standing()] == ["nis"]  # still listed
+    assert verdict.update(3, [], (), pose_consistent=False) == "tuning"
+    assert verdict.update(4, [high], (), pose_consistent=True) == "tuning"
+    assert len(verdict.standing()) == 2  # the two sides stand apart
+    other = Verdict(clear_after=50)
+    other.update(1, [low, v("nees", value=20.0)], (), pose_consistent=True)
+    assert other.verdict == "tuning"
+    timid_nees = Violation(kind="nees", ids=(), step=1, value=0.01, bound=0.2)
+    assert Verdict().update(1, [timid_nees], (), pose_consistent=True) == "tuning"

@@ -71,3 +71,9 @@ def test_spurious_information_is_an_estimator_fault_in_words() -> None:
     assert summary_text(held) == ("estimator fault since seq 611: spurious information in an "
                                   "unobservable direction")
     assert "unobservable" in monitor_verdict.FAULT_KINDS
+
+
+def test_ok_with_a_timid_nis_standing_says_why_it_is_ok() -> None:
+    low = Violation("nis", (), 899, 0.5, bound=0.9, first_step=60, count=300)
+    assert summary_text(health(standing=(low,))) == (
+        "ok (NIS below its band while the pose NEES is in its band: S is conservative)")
