@@ -1,0 +1,129 @@
+"""The monitor's verdict on a third party's conservative filter (docs/protocol.md, Health
+``verdict``): a NIS window below its band makes ``"tuning"`` without a truth, does not while
+the pose NEES against a truth is in its band, and makes it again once the truth is gone
+for longer than the monitor's clearance (docs/monitor.md, "The verdict").
+
+The third party publishes, in lock step with the monitor's Health of each seq, states whose
+pose error is drawn from their own P (pose NEES ≈ 3) and whose innovations are drawn from
+S / 4 (NIS ≈ 0.5, under its band), with or without a Truth before each. Nothing here waits
+on time: each state waits for its Health, and each phase runs until the verdict it expects
+or a bound of states.
+"""
+
+from __future__ import annotations
+
+import threading
+from typing import Any
+
+import kit_wire as wire
+import numpy as np
+from kit_procs import endpoint, launch, wait_ready
+
+ROBOT = "conservative"
+LANDMARK_IDS = [5, 9]
+LANDMARKS = np.array([[2.0, 1.0], [-1.0, 2.5]])
+P_POSE = np.diag([1e-4, 1e-4, 1e-5])
+SIGMA_LM = 0.06  #: each landmark coordinate's σ in P; the map is off by exactly one σ
+S = np.diag([0.01, 4e-4])  #: the innovation covariance the states declare
+INNOVATIONS = 4  #: per state
+CLEAR_AFTER = 200  #: the monitor's default clearance, in states (docs/monitor.md)
+
+
+class Conservative:
+    """The third party: a state publisher, a truth publisher, and every Health heard."""
+
+    def __init__(self, port: int) -> None:
+        self.session = wire.session(port)
+        self.rng = np.random.default_rng(32)
+        self.states = wire.plain(self.session, wire.key(ROBOT, "state"))
+        self.truths = wire.plain(self.session, wire.key(ROBOT, "truth"))
+        self.healths: dict[int, dict[str, Any]] = {}
+        self.heard = threading.Condition()
+        self.sub = self.session.declare_subscriber(wire.key(ROBOT, "health"), self._on_health)
+        self.seq = 0
+
+    def _on_health(self, sample: Any) -> None:
+        health = wire.unpack(sample.payload.to_bytes())
+        with self.heard:
+            self.healths[int(health["seq"])] = health
+            self.heard.notify_all()
+
+    def step(self, *, truth: bool) -> dict[str, Any]:
+        """One more state (after its truth, if ``truth``); the monitor's Health of it."""
+        self.seq += 1
+        stamp = 0.1 * self.seq
+        true_pose = np.array([0.5 * np.cos(stamp), 0.5 * np.sin(stamp), stamp])
+        pose = true_pose + self.rng.multivariate_normal(np.zeros(3), P_POSE)
+        if truth:
+            self.truths.put(wire.pack({
+                "robot": ROBOT, "stamp": stamp, "pose": wire.array(true_pose, "<f8"),
+                "landmark_ids": wire.array(LANDMARK_IDS, "<i8"),
+                "landmarks": wire.array(LANDMARKS, "<f8")}))
+        n = len(LANDMARK_IDS)
+        cov = np.zeros((3 + 2 * n, 3 + 2 * n))
+        cov[:3, :3] = P_POSE
+        cov[3:, 3:] = np.eye(2 * n) * SIGMA_LM ** 2
+        nu = self.rng.multivariate_normal(np.zeros(2), S / 4.0, INNOVATIONS)
+        state = wire.pack({
+            "robot": ROBOT, "seq": self.seq, "stamp": stamp, "step": "update",
+            "pose": wire.array([pose[0], pose[1], np.arctan2(np.sin(pose[2]),
+                                                             np.cos(pose[2]))], "<f8"),
+            "landmark_ids": wire.array(LANDMARK_IDS, "<i8"),
+            "landmarks": wire.array(LANDMARKS + SIGMA_LM, "<f8"),  # feature NEES 2 each
+            "covariance": wire.array(cov.reshape(-1), "<f8"),
+            "innovation_ids": wire.array([LANDMARK_IDS[k % n] for k in range(INNOVATIONS)],
+                                         "<i8"),
+            "innovations": wire.array(nu, "<f8"),
+            "innovation_covariances": wire.array(np.repeat(S[None], INNOVATIONS, 0), "<f8")})
+        with self.heard:
+            for _ in range(int(wire.PATIENCE_S / 5)):
+                self.states.put(state)  # again if unheard: a late subscriber, a lost sample
+                if self.heard.wait_for(lambda: self.seq in self.healths, 5.0):
+                    return self.healths[self.seq]
+        raise AssertionError(f"no Health for seq {self.seq}")
+
+    def close(self) -> None:
+        self.session.close()
+
+
+def timid_nis(health: dict[str, Any]) -> bool:
+    return any(v["kind"] == "nis" and v["statistic"] < v["bound"]
+               for v in health.get("standing", []))
+
+
+def test_a_timid_nis_is_ok_only_while_the_truth_bears_the_pose_out(router: int) -> None:
+    monitor = launch("monitor", "--robot", ROBOT, "--connect", endpoint(router))
+    wait_ready(monitor, "monitor ready")
+    party = Conservative(router)
+    try:
+        wire.wait_matched(party.session, wire.key(ROBOT, "state"))
+        # no truth: once a NIS window has left its band from below, it is "tuning"
+        health = party.step(truth=False)
+        while not timid_nis(health):
+            assert party.seq < 100, f"no NIS window below its band by seq {party.seq}"
+            health = party.step(truth=False)
+        assert health["verdict"] == "tuning", health
+        for _ in range(20):
+            health = party.step(truth=False)
+            assert health["verdict"] == "tuning" and timid_nis(health), health
+        # a truth with every state: "ok" once a pose NEES window has passed, the NIS listed
+        while health.get("verdict", "ok") != "ok":
+            assert party.seq < 600, f"still {health['verdict']} at seq {party.seq}"
+            assert not any(v["kind"] == "nees" for v in health.get("standing", [])), health
+            health = party.step(truth=True)
+        assert timid_nis(health), health
+        ok_from = party.seq
+        for _ in range(50):
+            health = party.step(truth=True)
+            assert health.get("verdict", "ok") == "ok" and timid_nis(health), health
+        # the truth gone: "tuning" again, within the clearance and a NEES window of states
+        stopped = party.seq
+        while health.get("verdict", "ok") == "ok":
+            assert party.seq < stopped + CLEAR_AFTER + 150, (
+                f"still ok {party.seq - stopped} states after the last truth")
+            health = party.step(truth=False)
+        assert health["verdict"] == "tuning" and timid_nis(health), health
+        assert party.seq - stopped > 50 and ok_from > 30  # it did hold "ok" for a while
+    finally:
+        party.close()
+        monitor.stop()
