@@ -256,7 +256,8 @@ def test_tune_fits_for_the_iterated_update_when_asked(tmp_path: Path) -> None:
     runs = [load_mrclam(folder, k) for k in (1, 2)]
     iterated = crossval.cross_validate(runs, crossval.Candidate("oc", update_iterations=10))
     assert iterated.candidate.label == "oc, iterated (K = 10), spec motion model"
-    for fold, held in zip(iterated.folds, reversed(runs), strict=True):
+    for fold, held in zip(iterated.folds, runs, strict=True):
+        assert fold.held_out == held.robot
         # the held-out figures: the fold's profile run by an Estimator with K = 10
         profile = tuning.settings_with(EstimatorSettings(linearisation="oc",
                                                          update_iterations=10),
