@@ -71,7 +71,9 @@ def row(robot: int, name: str, e: scoring.Evaluation, wall: float) -> str:
 def monitor_line(r: PipelineResult, duration_s: float) -> str:
     verdicts = ", ".join(f"{k} {v}" for k, v in sorted(r.verdicts.items()))
     kinds = ", ".join(f"{k} {v}" for k, v in sorted(r.tuning_kinds.items())) or "none"
+    timid = r.monitor.get("states_ok_with_timid_nis", 0)
     return (f"{'':>17}monitor: {verdicts} (Healths by verdict); tuning with standing: {kinds}; "
+            f"ok with a NIS window below its band standing: {timid}; "
             f"estimator fault seen: {r.monitor['estimator_fault_seen']}; {r.states} states "
             f"received of {r.estimator['seq']}; {duration_s / r.wall_s:.1f}× real time")
 

@@ -61,6 +61,10 @@ def verdict_sentence(summary: dict[str, Any]) -> str:
     if checked:
         parts.append(f"{by.get('fault', 0)} of {checked} states under an estimator fault, "
                      f"{by.get('tuning', 0)} under inconsistent tuning or model mismatch")
+        conservative = int(summary.get("states_ok_with_timid_nis", 0))
+        if conservative:
+            parts.append(f"{conservative} ok with a NIS window below its band standing (S "
+                         "conservative: the pose NEES in its band)")
     if not summary.get("estimator_fault_seen"):
         parts.append("no estimator fault seen")
     return "; ".join(parts)

@@ -33,7 +33,7 @@ from slamlens.common.keys import Keys
 from slamlens.common.messages import Health, SlamState, Truth
 from slamlens.services.monitor.monitor import Monitor
 from slamlens.services.monitor.settings import MonitorSettings
-from slamlens.services.monitor.verdict import WORDS
+from slamlens.services.monitor.verdict import WORDS, timid
 
 log = logging.getLogger("slamlens.monitor")
 
@@ -68,6 +68,8 @@ class MonitorService:
         self._position: tuple[int, int] | None = None  #: (epoch, seq) of the last state
         self.verdict = ""  #: the latest Health's verdict ("" before the first state)
         self.verdict_states = {v: 0 for v in WORDS}  #: states checked under each verdict
+        #: states "ok" with a NIS window below its band standing (docs/monitor.md)
+        self.conservative_states = 0
         self.fault_seen = False  #: the verdict was "fault" at some point
         self._latest: bytes | None = None
         self._lock = threading.Lock()
@@ -154,6 +156,9 @@ class MonitorService:
         health = self.monitor.check(state, extra_statistics=self._service_statistics())
         self.checked += 1
         self.verdict_states[health.verdict] += 1
+        if health.verdict == "ok" and any(v.kind == "nis" and timid(v)
+                                          for v in health.standing):
+            self.conservative_states += 1
         if health.verdict != self.verdict:
             standing = sorted({v.kind for v in health.standing})
             log.log(logging.INFO if health.verdict == "ok" else logging.WARNING,
@@ -276,6 +281,7 @@ class MonitorService:
         return {"verdict": self.verdict or "none",
                 "verdict_words": WORDS[self.verdict] if self.verdict else "no state checked",
                 "states_by_verdict": dict(self.verdict_states),
+                "states_ok_with_timid_nis": self.conservative_states,
                 "estimator_fault_seen": self.fault_seen, "checked": self.checked,
                 "violations": self.violations,
                 "suspects": [int(i) for i in s.suspects], "lost": self._inputs.lost,

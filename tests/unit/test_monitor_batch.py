@@ -6,6 +6,7 @@ or removed and single-state faults of every kind."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -338,3 +339,31 @@ def test_a_burst_without_a_state_to_check_is_taken_and_the_next_states_checked()
             h.statistics.pop(k)
     assert out == expected
     assert any("nees_pose" in h.statistics for h in out)  # the truths were kept
+
+
+def test_the_service_counts_the_states_ok_with_a_timid_nis_and_says_so() -> None:
+    """The correct run with every S × 4 and its truth, through the service: the states "ok"
+    with a NIS window below its band standing are counted apart, and the last lines say
+    how many; without the truth there are none (those states are "tuning")."""
+    from slamlens.services.monitor.cli import verdict_sentence
+
+    keys = Keys("t")
+    states, truths = run(seed=1)
+    timid = [s if s.innovation_covariances is None else dataclasses.replace(
+        s, innovation_covariances=s.innovation_covariances * 4.0) for s in states]
+
+    def summary(with_truth: bool) -> dict:
+        service = MonitorService(InProcessBus(), keys=keys, robot="r",
+                                 settings=MonitorSettings(robot="r", nis_window=20))
+        for x in _stream(timid, truths if with_truth else []):
+            key = keys.truth("r") if isinstance(x, Truth) else keys.state("r")
+            service.handle(key, x.to_bytes())
+        return service.summary()
+
+    seen, blind = summary(True), summary(False)
+    assert seen["states_ok_with_timid_nis"] > 100
+    assert seen["states_by_verdict"]["tuning"] > 0  # before the first NEES window passed
+    assert blind["states_ok_with_timid_nis"] == 0 and blind["states_by_verdict"]["tuning"] > 0
+    assert (f"{seen['states_ok_with_timid_nis']} ok with a NIS window below its band "
+            "standing") in verdict_sentence(seen)
+    assert "below its band" not in verdict_sentence(blind)
