@@ -27,8 +27,8 @@ import pytest
 from slamlens.common.errors import MessageError
 from slamlens.common.messages import MESSAGE_TYPES, Message, SlamState, Truth
 from slamlens.services.harness.fuzz import bad_payloads, valid
+from tests.unit.monitor_runs import run
 from tests.unit.test_messages import SAMPLES
-from tests.unit.test_monitor import run
 
 
 def _outcome(decode: Any, payload: bytes, **options: Any) -> tuple[str, Any]:

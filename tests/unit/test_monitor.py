@@ -1,15 +1,14 @@
 """The behaviour monitor: pure checks against independent oracles, and the Monitor class on
-runs of a small dense textbook EKF written here from docs/estimator.md (correct, and with the two
-planted faults of the paper scenario done by hand)."""
+runs of a small dense textbook EKF (tests/unit/monitor_runs.py: correct, and with the two
+planted faults of the paper scenario done by hand); its statistical tests are in
+test_monitor_statistics.py."""
 
 from __future__ import annotations
 
-import dataclasses
 import math
 
 import numpy as np
 import pytest
-from scipy.stats import chi2
 
 from slamlens.common.config import load_settings
 from slamlens.common.errors import ConfigError
@@ -19,136 +18,8 @@ from slamlens.services.monitor import checks
 from slamlens.services.monitor.blame import Evidence, blame_weights
 from slamlens.services.monitor.monitor import Monitor
 from slamlens.services.monitor.settings import MonitorSettings
-from slamlens.services.monitor.stats import WindowTest, pose_nees, quadratic_forms_2x2
-
-SIGMAS = dict(sigma_v=0.05, sigma_w=0.05, sigma_r=0.05, sigma_b=0.02)
-
-
-# -- a dense textbook EKF (docs/estimator.md), the oracle of "correct" sequences --
-class DenseEkf:
-    """Full-size Jacobians, no tricks. Faults are planted by the run, not here."""
-
-    def __init__(self) -> None:
-        self.x = np.zeros(3)
-        self.P = np.zeros((3, 3))
-        self.ids: list[int] = []
-        self.M = np.diag([SIGMAS["sigma_v"] ** 2, SIGMAS["sigma_w"] ** 2])
-        self.R = np.diag([SIGMAS["sigma_r"] ** 2, SIGMAS["sigma_b"] ** 2])
-
-    def predict(self, v: float, w: float, dt: float, *, frozen: tuple[int, ...] = ()) -> None:
-        th = self.x[2]
-        N = self.x.size
-        F = np.eye(N)
-        F[0, 2], F[1, 2] = -v * dt * math.sin(th), v * dt * math.cos(th)
-        G = np.zeros((N, 2))
-        G[:3] = [[dt * math.cos(th), 0.0], [dt * math.sin(th), 0.0], [0.0, dt]]
-        old = self.P.copy()
-        self.x[:3] += [v * dt * math.cos(th), v * dt * math.sin(th), w * dt]
-        self.x[2] = wrap_angle(self.x[2])
-        self.P = F @ self.P @ F.T + G @ self.M @ G.T
-        for f in frozen:  # planted fault: P_v,f not propagated
-            c = 3 + 2 * self.ids.index(f)
-            self.P[:3, c:c + 2] = old[:3, c:c + 2]
-            self.P[c:c + 2, :3] = old[c:c + 2, :3]
-
-    def observe(self, fid: int, r: float, b: float) -> tuple[np.ndarray, np.ndarray] | None:
-        if fid not in self.ids:
-            a = self.x[2] + b
-            m = self.x[:2] + r * np.array([math.cos(a), math.sin(a)])
-            N = self.x.size
-            G = np.zeros((2, N))
-            G[:, :3] = [[1, 0, -r * math.sin(a)], [0, 1, r * math.cos(a)]]
-            Gz = np.array([[math.cos(a), -r * math.sin(a)], [math.sin(a), r * math.cos(a)]])
-            Pmm = G @ self.P @ G.T + Gz @ self.R @ Gz.T
-            Pmx = G @ self.P
-            self.P = np.block([[self.P, Pmx.T], [Pmx, Pmm]])
-            self.x = np.concatenate([self.x, m])
-            self.ids.append(fid)
-            return None
-        c = 3 + 2 * self.ids.index(fid)
-        dx, dy = self.x[c] - self.x[0], self.x[c + 1] - self.x[1]
-        q = dx * dx + dy * dy
-        sq = math.sqrt(q)
-        H = np.zeros((2, self.x.size))
-        H[:, :3] = [[-dx / sq, -dy / sq, 0], [dy / q, -dx / q, -1]]
-        H[:, c:c + 2] = [[dx / sq, dy / sq], [-dy / q, dx / q]]
-        nu = np.array([r - sq, wrap_angle(b - (math.atan2(dy, dx) - self.x[2]))])
-        S = H @ self.P @ H.T + self.R
-        K = self.P @ H.T @ np.linalg.inv(S)
-        self.x = self.x + K @ nu
-        self.x[2] = wrap_angle(self.x[2])
-        self.P = self.P - K @ S @ K.T
-        self.P = 0.5 * (self.P + self.P.T)
-        return nu, S
-
-    def state(self, seq: int, stamp: float, step: str, innov: list | None = None) -> SlamState:
-        n = len(self.ids)
-        kw = {}
-        if innov:
-            kw = dict(innovation_ids=np.array([i for i, _, _ in innov]),
-                      innovations=np.array([nu for _, nu, _ in innov]),
-                      innovation_covariances=np.array([S for _, _, S in innov]))
-        return SlamState(robot="r", seq=seq, stamp=stamp, step=step, pose=self.x[:3],
-                         landmark_ids=np.array(self.ids, dtype=np.int64),
-                         landmarks=self.x[3:].reshape(n, 2), covariance=self.P, **kw)
-
-
-LANDMARKS = {i + 1: 2.2 * np.array([math.cos(a), math.sin(a)]) + [0.0, 1.0]
-             for i, a in enumerate(np.linspace(0, 2 * math.pi, 7)[:-1])}
-
-
-def run(*, seed: int = 0, steps: int = 260, map_fault: tuple[int, ...] = (),
-        cross_fault: tuple[int, ...] = (), onset: float = 1e9, magnitude: float = 2e-3
-        ) -> tuple[list[SlamState], list[Truth]]:
-    """A robot driving a 1 m circle among 6 landmarks; states after every event."""
-    rng = np.random.default_rng(seed)
-    ekf, pose = DenseEkf(), np.zeros(3)
-    states = [ekf.state(0, 0.0, "init")]
-    truths = [Truth(robot="r", stamp=0.0, pose=pose, landmark_ids=np.array(list(LANDMARKS)),
-                    landmarks=np.array(list(LANDMARKS.values())))]
-    dt, v, w = 0.1, 0.3, 0.3
-    for k in range(1, steps + 1):
-        t = k * dt
-        pose = pose + [v * dt * math.cos(pose[2]), v * dt * math.sin(pose[2]), w * dt]
-        pose[2] = wrap_angle(pose[2])
-        vm = v + rng.normal(0, SIGMAS["sigma_v"])
-        wm = w + rng.normal(0, SIGMAS["sigma_w"])
-        ekf.predict(vm, wm, dt, frozen=cross_fault if t >= onset else ())
-        states.append(ekf.state(len(states), t, "predict"))
-        truths.append(Truth(robot="r", stamp=t, pose=pose, landmark_ids=truths[0].landmark_ids,
-                            landmarks=truths[0].landmarks))
-        innov = []
-        for fid, m in LANDMARKS.items():
-            d = m - pose[:2]
-            r = math.hypot(*d)
-            b = wrap_angle(math.atan2(d[1], d[0]) - pose[2])
-            if r > 2.8 or abs(b) > math.pi / 2:
-                continue
-            out = ekf.observe(fid, r + rng.normal(0, SIGMAS["sigma_r"]),
-                              wrap_angle(b + rng.normal(0, SIGMAS["sigma_b"])))
-            if out is not None:
-                innov.append((fid, *out))
-        if t >= onset:
-            for f in map_fault:
-                c = 3 + 2 * ekf.ids.index(f)
-                ekf.P[c:c + 2, c:c + 2] += magnitude * np.eye(2)
-        states.append(ekf.state(len(states), t, "update", innov))
-    return states, truths
-
-
-def feed(monitor: Monitor, states: list[SlamState], truths: list[Truth] | None = None
-         ) -> list[Health]:
-    by_stamp = {} if truths is None else {t.stamp: t for t in truths}
-    out = []
-    for s in states:
-        if s.stamp in by_stamp:
-            monitor.add_truth(by_stamp.pop(s.stamp))
-        out.append(monitor.check(s))
-    return out
-
-
-def violations(healths: list[Health]) -> list:
-    return [v for h in healths for v in h.violations]
+from slamlens.services.monitor.stats import pose_nees, quadratic_forms_2x2
+from tests.unit.monitor_runs import feed, run, violations, with_cov
 
 
 # -- the pure checks against per-pair textbook oracles --------------------------------------
@@ -321,85 +192,6 @@ def test_correct_run_raises_nothing_and_reports_statistics(correct_run) -> None:
     assert summary.onset_seq is None and summary.phase == "" and summary.suspects == ()
 
 
-def test_nees_statistic_equals_the_textbook_formula(correct_run) -> None:
-    states, truths = correct_run
-    monitor = Monitor(MonitorSettings())
-    healths = feed(monitor, states[:101], truths)
-    s, t = states[100], truths[50]
-    assert t.stamp == s.stamp
-    e = s.pose - t.pose
-    e[2] = wrap_angle(e[2])
-    expected = e @ np.linalg.solve(s.covariance[:3, :3], e)
-    assert healths[100].statistics["nees_pose"] == pytest.approx(expected, rel=1e-9)
-    assert s.n >= 2
-    per_feature = [float(d @ np.linalg.solve(Pf, d)) for d, Pf in (
-        (s.landmarks[i] - t.landmarks[int(fid) - 1],
-         s.covariance[3 + 2 * i:5 + 2 * i, 3 + 2 * i:5 + 2 * i])
-        for i, fid in enumerate(s.landmark_ids))]
-    assert healths[100].statistics["nees_features_mean"] == pytest.approx(np.mean(per_feature))
-    assert healths[100].statistics["nees_features_max"] == pytest.approx(max(per_feature))
-
-
-def test_truth_arriving_after_its_state_still_counts(correct_run) -> None:
-    states, truths = correct_run
-    early, late = Monitor(MonitorSettings(nees_window=10)), Monitor(MonitorSettings(
-        nees_window=10))
-    by_stamp = {t.stamp: t for t in truths}
-    for s in states[:120]:
-        early.add_truth(by_stamp[s.stamp])
-        early.check(s)
-    for s in states[:120]:
-        late.check(s)
-        late.add_truth(by_stamp[s.stamp])
-    a = early.check(states[120]).statistics["nees_pose_window_mean"]
-    b = late.check(states[120]).statistics["nees_pose_window_mean"]
-    assert a == pytest.approx(b, rel=1e-12)
-
-
-def test_the_nees_does_not_depend_on_how_far_truth_and_states_are_apart(
-        correct_run, monkeypatch) -> None:
-    """State and truth come from different sessions: no order between them. All truths
-    before the states (a monitor behind the driver), all after (a truth source behind),
-    or interleaved: the same NEES. Beyond the buffers' bounds what is missed is counted."""
-    states, truths = correct_run
-    states = states[:200]  # within the states that may wait for a truth (256)
-    truths = [t for t in truths if t.stamp <= states[-1].stamp]
-    assert truths[-1].stamp == states[-1].stamp
-
-    def last_health(order: str) -> Health:
-        monitor = Monitor(MonitorSettings(nees_window=10))
-        by_stamp = {t.stamp: t for t in truths}
-        if order == "truth first":
-            for truth in truths:
-                monitor.add_truth(truth)
-        for s in states[:-1]:
-            if order == "interleaved" and s.stamp in by_stamp:
-                monitor.add_truth(by_stamp[s.stamp])
-            monitor.check(s)
-        if order == "truth last":  # every truth after its state was checked
-            for truth in truths[:-1]:
-                monitor.add_truth(truth)
-        if order != "truth first":
-            monitor.add_truth(truths[-1])
-        return monitor.check(states[-1])  # reports what the late truths found, too
-
-    def nees(h: Health) -> tuple[float | None, float | None]:
-        return h.statistics.get("nees_pose_window_mean"), h.statistics.get("nees_features_mean")
-
-    interleaved = last_health("interleaved")
-    assert nees(interleaved)[0] is not None
-    assert nees(last_health("truth first")) == nees(interleaved)
-    late = last_health("truth last")
-    assert "truth_missing" not in late.statistics
-    assert late.statistics["nees_pose_window_mean"] == pytest.approx(
-        interleaved.statistics["nees_pose_window_mean"], rel=1e-12)
-    # a buffer too small for the distance: what it cannot keep is counted, never silent
-    monkeypatch.setattr("slamlens.services.monitor.truth._TRUTH_BUFFER", 20)
-    assert last_health("truth first").statistics["truth_missing"] > 0
-    monkeypatch.setattr("slamlens.services.monitor.truth._PENDING", 20)
-    assert last_health("truth last").statistics["truth_missing"] > 0
-
-
 def test_gaps_are_compared_across_without_false_alarms(correct_run) -> None:
     states, truths = correct_run
     rng = np.random.default_rng(5)
@@ -473,12 +265,6 @@ def test_faults_are_still_caught_with_gaps() -> None:
 
 
 # -- hand-planted single-state faults ------------------------------------------------------
-def with_cov(state: SlamState, P: np.ndarray, *, seq: int | None = None,
-             step: str | None = None) -> SlamState:
-    return SlamState(robot=state.robot, seq=state.seq + 1 if seq is None else seq,
-                     stamp=state.stamp, step=step or state.step, pose=state.pose,
-                     landmark_ids=state.landmark_ids, landmarks=state.landmarks, covariance=P)
-
 
 def test_asymmetry_psd_and_correlation_are_reported_with_the_feature(correct_run) -> None:
     states, _ = correct_run
@@ -585,87 +371,6 @@ def test_a_removed_landmark_is_counted_not_alarmed(correct_run) -> None:
     h = mon.check(pruned)
     assert h.ok and h.statistics["landmarks_removed"] == 1.0
 
-
-def test_nis_window_alarms_on_a_wrong_noise_model_only() -> None:
-    rng = np.random.default_rng(9)
-    S = np.array([[0.01, 0.002], [0.002, 0.004]])
-    L = np.linalg.cholesky(S)
-
-    def states(scale: float, count: int) -> list[SlamState]:
-        out = []
-        for k in range(count):
-            nu = (L @ rng.normal(size=(2, 4))).T * scale
-            out.append(SlamState(robot="r", seq=k, stamp=0.1 * k, step="update",
-                                 pose=np.zeros(3), landmark_ids=np.zeros(0, dtype=np.int64),
-                                 landmarks=np.zeros((0, 2)), covariance=np.zeros((3, 3)),
-                                 innovation_ids=np.arange(4), innovations=nu,
-                                 innovation_covariances=np.repeat(S[None], 4, axis=0)))
-        return out
-
-    good = feed(Monitor(MonitorSettings()), states(1.0, 500))
-    assert violations(good) == []
-    bad = feed(Monitor(MonitorSettings()), states(2.0, 50))  # S 4× too small
-    nis = [v for v in violations(bad) if v.kind == "nis"]
-    assert len(nis) == 4 and all(v.value > v.bound for v in nis)
-    assert all(", above [" in v.detail and "overconfident" in v.detail for v in nis)
-    timid = feed(Monitor(MonitorSettings()), states(0.5, 50))  # S 4× too large
-    low = [v for v in violations(timid) if v.kind == "nis"]
-    assert len(low) == 4 and all(v.value < v.bound for v in low)
-    assert all(v.detail.startswith("mean NIS ") and " over 50 innovations, below [" in v.detail
-               and "smaller than S predicts (timid" in v.detail for v in low)
-    assert good[-1].statistics["nis_window_hi"] == pytest.approx(
-        chi2.ppf(1 - 0.5e-6, 100) / 50)
-
-
-@pytest.mark.parametrize(("scale", "side", "reading"), [
-    (1e-2, "above", "larger than the covariance says (overconfident)"),
-    (1e5, "below", "smaller than the covariance says (timid)")])
-def test_a_nees_window_says_which_side_it_left_by(correct_run, scale, side, reading) -> None:
-    """The correct run's every covariance × scale: no theorem breaks, the NEES leaves its
-    band (one χ²₃ sample's at 1e-6: [1.5e-4, 32.1]) on the side the scale says."""
-    states, truths = correct_run
-    scaled = [dataclasses.replace(s, covariance=s.covariance * scale) for s in states]
-    healths = feed(Monitor(MonitorSettings(nees_window=10)), scaled, truths)
-    nees = [v for v in violations(healths) if v.kind == "nees"]
-    assert {v.kind for v in violations(healths)} == {"nees"}
-    pose = [v for v in nees if not v.ids]
-    assert len(pose) >= 20 and all(v.detail.startswith("mean pose NEES ") for v in pose)
-    assert all(f" over 10 states, {side} [" in v.detail and v.detail.endswith(reading)
-               for v in nees)
-    assert all((v.value > v.bound) == (side == "above") for v in nees)
-
-
-def test_a_timid_nis_with_the_truth_bearing_the_pose_out_is_ok(correct_run) -> None:
-    """The correct run with every S × 4 (as a filter whose R holds a persistent error the
-    innovations do not see): the NIS leaves its band from below while P, and so the NEES,
-    is right. With the truth the verdict is "tuning" only until the first pose NEES window
-    passes, then "ok" with the NIS listed; without the truth it stays "tuning"."""
-    states, truths = correct_run
-    timid = [s if s.innovation_covariances is None else dataclasses.replace(
-        s, innovation_covariances=s.innovation_covariances * 4.0) for s in states]
-    settings = MonitorSettings(nis_window=20)  # its first window ends before the NEES's
-    with_truth = feed(Monitor(settings), timid, truths)
-    assert {v.kind for v in violations(with_truth)} == {"nis"}
-    assert len(violations(with_truth)) >= 10
-    assert all(v.value < v.bound for v in violations(with_truth))
-    first_nis = next(k for k, h in enumerate(with_truth) if h.violations)
-    verdicts = [h.verdict for h in with_truth]
-    changes = [k for k in range(1, len(verdicts)) if verdicts[k] != verdicts[k - 1]]
-    assert len(changes) == 2 and changes[0] == first_nis, changes  # ok → tuning → ok
-    assert verdicts[first_nis] == "tuning" and verdicts[-1] == "ok"
-    assert with_truth[-1].standing and with_truth[-1].standing[0].kind == "nis"
-    blind = feed(Monitor(settings), timid)
-    assert blind[-1].verdict == "tuning" and {h.verdict for h in blind[first_nis:]} == {
-        "tuning"}
-
-
-def test_window_bands_follow_the_documented_distributions() -> None:
-    ind = WindowTest(dof=2, window=50, alpha=1e-3, dependent=False)
-    assert (ind.lo, ind.hi) == pytest.approx(tuple(chi2.ppf([5e-4, 1 - 5e-4], 100) / 50))
-    dep = WindowTest(dof=3, window=50, alpha=1e-3, dependent=True)
-    assert (dep.lo, dep.hi) == pytest.approx(tuple(chi2.ppf([5e-4, 1 - 5e-4], 3)))
-    results = dep.add(np.full(120, 3.0))
-    assert len(results) == 2 and not results[0].failed and dep.sliding_mean == 3.0
 
 
 # -- pinpointing -------------------------------------------------------------------------

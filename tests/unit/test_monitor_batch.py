@@ -19,7 +19,7 @@ from slamlens.services.monitor import checks
 from slamlens.services.monitor.monitor import Monitor
 from slamlens.services.monitor.service import BURST_HEALTHS, MonitorService
 from slamlens.services.monitor.settings import MonitorSettings
-from tests.unit.test_monitor import run, with_cov
+from tests.unit.monitor_runs import run, with_cov
 
 SETTINGS = MonitorSettings()
 TOLS = dict(rtol_symmetry=SETTINGS.rtol_symmetry, rtol_correlation=SETTINGS.rtol_correlation,
