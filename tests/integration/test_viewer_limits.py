@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 import socket
 import threading
-import time
 from collections.abc import Callable, Iterator
 from http.client import HTTPConnection
 from pathlib import Path
@@ -25,6 +24,7 @@ from slamlens.services.harness.web_client import http, post_json
 from slamlens.services.visualiser.service import ViewerService
 from slamlens.services.visualiser.settings import ViewerConfig
 from slamlens.services.visualiser.web import WebServer
+from tests.integration.viewer_rig import wait_until
 from tests.routes import put_until_seen
 
 KEYS = Keys()
@@ -40,15 +40,6 @@ def state(seq: int) -> SlamState:
                      pose=np.array([1.0 + 0.01 * seq, 1.0, 0.0]),
                      landmark_ids=np.arange(10, 10 + len(LANDMARKS)), landmarks=LANDMARKS,
                      covariance=P)
-
-
-def wait_until(predicate: Callable[[], bool], timeout: float = 30.0) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return
-        time.sleep(0.02)
-    raise AssertionError("condition not met in time")
 
 
 def status_of(url: str) -> dict[str, Any]:

@@ -9,9 +9,8 @@ from __future__ import annotations
 
 import dataclasses
 
-from tests.integration import test_viewer_service as viewer_test
 from tests.integration import test_web_browser as browser_test
-from tests.integration.test_viewer_service import (
+from tests.integration.viewer_rig import (
     CAMERA,
     KEYS,
     ROBOT,
@@ -20,10 +19,7 @@ from tests.integration.test_viewer_service import (
     wait_until,
 )
 
-# the fixtures of those modules, used here too
-start_viewer = viewer_test.start_viewer
-publisher = viewer_test.publisher
-viewers = viewer_test.viewers
+# the browser fixture of that module, used here too (the viewer's: tests/integration/conftest.py)
 browser = browser_test.browser
 
 

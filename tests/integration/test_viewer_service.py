@@ -1,17 +1,16 @@
 """The viewer service and its web server on real Zenoh (loopback) with real OpenCV.
 
 The test plays estimator, camera and monitor: it publishes (or serves) SlamState,
-Registration, CameraFrame and Health, and reads the viewer's HTTP endpoints.
+Registration, CameraFrame and Health, and reads the viewer's HTTP endpoints (the scene and
+the fixtures: tests/integration/viewer_rig.py; several robots: test_viewer_robots.py).
 """
 
 from __future__ import annotations
 
 import dataclasses
 import json
-import time
 import urllib.error
 import urllib.request
-from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import cv2
@@ -19,186 +18,25 @@ import msgpack
 import numpy as np
 import pytest
 
-from slamlens.common.keys import Keys
-from slamlens.common.messages import CameraFrame, Health, Registration, SlamState, Violation
-from slamlens.services.visualiser.service import ViewerService
-from slamlens.services.visualiser.settings import ViewerConfig
-from slamlens.services.visualiser.web import WebServer
-from tests.routes import put_until_seen
-
-KEYS = Keys()
-ROBOT, CAMERA = "robot1", "top"
-WIDTH, HEIGHT, FOCAL = 800, 600, 600.0
-CAMERA_CENTRE = np.array([1.5, 1.5, 3.0])  # 3 m above the middle of the arena
-BACKGROUND_BGR = (120, 100, 80)
-# two clusters of three features, 2.8 m apart
-LANDMARKS = np.array([[0.5, 0.5], [0.9, 0.5], [0.7, 0.85],
-                      [2.3, 2.3], [2.7, 2.3], [2.5, 2.65]])
-
-
-def camera_pose() -> np.ndarray:
-    """T_camera_from_map of a camera looking straight down (x right, y image-down)."""
-    R = np.diag([1.0, -1.0, -1.0])
-    T = np.eye(4)
-    T[:3, :3], T[:3, 3] = R, -R @ CAMERA_CENTRE
-    return T
-
-
-K = np.array([[FOCAL, 0, WIDTH / 2], [0, FOCAL, HEIGHT / 2], [0, 0, 1.0]])
-
-
-def pixel_of(xy: np.ndarray) -> tuple[int, int]:
-    """Hand-made pinhole projection of a floor point (the test's own oracle)."""
-    p = camera_pose() @ np.array([xy[0], xy[1], 0.0, 1.0])
-    u, v = FOCAL * p[0] / p[2] + WIDTH / 2, FOCAL * p[1] / p[2] + HEIGHT / 2
-    return int(round(u)), int(round(v))
-
-
-def make_state(seq: int, *, sigma_m: float = 0.05, landmarks: np.ndarray = LANDMARKS) -> SlamState:
-    n = len(landmarks)
-    P = np.eye(3 + 2 * n) * sigma_m ** 2  # P_d = 2σ² I: 2-sigma glyph semi-axis 0.14 m
-    P[:3, :3] = np.diag([1e-4, 1e-4, 1e-4])
-    return SlamState(robot=ROBOT, seq=seq, stamp=0.1 * seq, step="update",
-                     pose=np.array([1.5, 0.2, 0.0]), landmark_ids=np.arange(10, 10 + n),
-                     landmarks=landmarks, covariance=P)
-
-
-def make_registration(camera: str = CAMERA) -> Registration:
-    return Registration(camera=camera, robot=ROBOT, stamp=0.0, K=K, dist=np.zeros(5),
-                        width=WIDTH, height=HEIGHT, T_camera_from_map=camera_pose(),
-                        reprojection_error_px=0.3)
-
-
-def make_frame(seq: int, camera: str = CAMERA) -> CameraFrame:
-    image = np.empty((HEIGHT, WIDTH, 3), np.uint8)
-    image[:] = BACKGROUND_BGR
-    ok, jpeg = cv2.imencode(".jpg", image)
-    assert ok
-    return CameraFrame(camera=camera, seq=seq, stamp=0.1 * seq, encoding="jpeg", width=WIDTH,
-                       height=HEIGHT, data=jpeg.tobytes())
-
-
-def red_pixels(image: np.ndarray, uv: tuple[int, int], half: int = 5) -> int:
-    """Red-dominant pixels (the glyph colour and its shading) around ``uv``."""
-    u, v = uv
-    patch = image[v - half:v + half + 1, u - half:u + half + 1].astype(int)
-    b, g, r = patch[..., 0], patch[..., 1], patch[..., 2]
-    return int(np.sum((r > 100) & (r > 1.5 * g) & (r > 1.5 * b)))
-
-
-def midpoint(i: int, j: int) -> tuple[int, int]:
-    return pixel_of((LANDMARKS[i] + LANDMARKS[j]) / 2)
-
-
-# ------------------------------------------------------------------------------ helpers
-def http(url: str, *, data: dict | None = None, method: str | None = None,
-         timeout: float = 10.0) -> tuple[int, dict[str, str], bytes]:
-    body = None if data is None else json.dumps(data).encode()
-    request = urllib.request.Request(url, data=body, method=method or (
-        "POST" if data is not None else "GET"), headers={"Content-Type": "application/json"})
-    try:
-        with urllib.request.urlopen(request, timeout=timeout) as response:
-            return response.status, dict(response.headers), response.read()
-    except urllib.error.HTTPError as exc:
-        return exc.code, dict(exc.headers), exc.read()
-
-
-def snapshot(url: str, client: str | None = None) -> tuple[np.ndarray, dict[str, str]]:
-    status, headers, body = http(url + "/snapshot.png" + (f"?client={client}" if client else ""))
-    assert status == 200, body
-    assert headers["Content-Type"] == "image/png"
-    assert body[:8] == b"\x89PNG\r\n\x1a\n"
-    image = cv2.imdecode(np.frombuffer(body, np.uint8), cv2.IMREAD_COLOR)
-    assert image is not None
-    return image, headers
-
-
-def wait_until(predicate: Callable[[], bool], timeout: float = 10.0) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return
-        time.sleep(0.02)
-    raise AssertionError("condition not met in time")
-
-
-def status_of(url: str) -> dict:
-    status, _, body = http(url + "/api/status")
-    assert status == 200
-    return json.loads(body)
-
-
-def received_by(service: ViewerService, key: str) -> int | None:
-    """How many samples of ``key`` the viewer's subscription received (None: it does not
-    subscribe to it), read from its intake's slots: what a test waits on to know that a
-    route from its publisher to the viewer carries samples."""
-    intake = service.intake
-    for robot in intake.robots():
-        if key == KEYS.state(robot.name):
-            return robot.state_slot.count
-        if key == KEYS.health(robot.name):
-            return robot.health_queue.received_count
-    for camera in intake.cameras():
-        if key == KEYS.frame(camera.name):
-            return camera.frame_slot.count
-        for robot_name, slot in camera.registration_slots.items():
-            if key == KEYS.registration(camera.name, robot_name):
-                return slot.count
-    return None
-
-
-@pytest.fixture
-def viewers() -> list[ViewerService]:
-    """The viewer services a test started (the publisher waits until they receive)."""
-    return []
-
-
-@pytest.fixture
-def start_viewer(make_client, tmp_path: Path, viewers: list[ViewerService]
-                 ) -> Iterator[Callable[..., tuple[ViewerService, str]]]:
-    started: list[tuple[ViewerService, WebServer]] = []
-
-    def start(**config: object) -> tuple[ViewerService, str]:
-        settings = {"robot": ROBOT, "recordings_dir": str(tmp_path / "recordings"), **config}
-        service = ViewerService(make_client(), keys=KEYS, config=ViewerConfig(**settings))
-        service.start()
-        web = WebServer(service, host="127.0.0.1", port=0)
-        url = web.start()
-        started.append((service, web))
-        viewers.append(service)
-        return service, url
-
-    yield start
-    for service, web in started:
-        web.stop()
-        service.stop()
-
-
-@pytest.fixture
-def publisher(make_client, viewers: list[ViewerService]) -> Callable[[str, bytes], None]:
-    """``put(key, payload)`` as the estimator, camera or monitor would.
-
-    A new publisher first waits for its matching status; then its first sample is put
-    until every viewer subscribing to the key received it: on a loaded machine a route
-    can still drop samples for a few hundred ms after the publisher matched (zenoh 1.10,
-    measured: up to 0.3 s). Once a sample went through, the route is there (reliable)."""
-    bus = make_client()
-    publishers: dict[str, object] = {}
-
-    def put(key: str, payload: bytes) -> None:
-        if key in publishers:
-            publishers[key].put(payload)  # type: ignore[attr-defined]
-            return
-        pub = publishers[key] = bus.publisher(key)
-        assert pub.wait_matched(), key  # type: ignore[attr-defined]
-        subscribed = [v for v in viewers if received_by(v, key) is not None]
-        before = [received_by(v, key) for v in subscribed]
-        put_until_seen(lambda: pub.put(payload),  # type: ignore[attr-defined]
-                       lambda: all(received_by(v, key) > n  # type: ignore[operator]
-                                   for v, n in zip(subscribed, before, strict=True)),
-                       what=f"the first sample on {key} at the viewer", timeout_s=15.0)
-
-    return put
+from slamlens.common.messages import Health, Violation
+from tests.integration.viewer_rig import (
+    BACKGROUND_BGR,
+    CAMERA,
+    HEIGHT,
+    KEYS,
+    ROBOT,
+    WIDTH,
+    http,
+    make_frame,
+    make_registration,
+    make_state,
+    midpoint,
+    pixel_of,
+    red_pixels,
+    snapshot,
+    status_of,
+    wait_until,
+)
 
 
 # ------------------------------------------------------------------------------ tests
@@ -549,142 +387,6 @@ def test_a_resumed_estimator_keeps_its_map(start_viewer, publisher) -> None:
     (robot,) = status_of(url)["robots"]
     assert robot["restarts"] == 0 and not robot["map_restarted"]
     assert json.loads(http(url + "/api/series?pairs=10-11")[2])["state"]["seq"] == [1, 2, 3, 4]
-
-
-# ------------------------------------------------------------------------------ several robots
-R2_OFFSET = np.array([0.6, 0.9])  # robot r2's map origin in robot1's map frame
-R2_LANDMARKS = np.array([[0.2, 0.2], [0.6, 0.2], [0.2, 1.7]])  # in r2's own map frame
-
-
-def r2_state(seq: int, *, robot: str = "r2") -> SlamState:
-    import dataclasses
-
-    state = make_state(seq, landmarks=R2_LANDMARKS)
-    return dataclasses.replace(state, robot=robot, pose=np.array([0.4, 0.1, 0.0]),
-                               landmark_ids=np.arange(50, 53))
-
-
-def r2_registration(robot: str = "r2") -> Registration:
-    """Where r2's map frame sits in the camera: its own registration (its own frame)."""
-    import dataclasses
-
-    T_map1_from_map2 = np.eye(4)
-    T_map1_from_map2[:2, 3] = R2_OFFSET
-    return dataclasses.replace(make_registration(), robot=robot,
-                               T_camera_from_map=camera_pose() @ T_map1_from_map2)
-
-
-def colour_pixels(image: np.ndarray, uv: tuple[int, int], bgr: tuple[int, int, int],
-                  half: int = 6, tol: int = 40) -> int:
-    u, v = uv
-    patch = image[v - half:v + half + 1, u - half:u + half + 1].astype(int)
-    return int(np.sum(np.abs(patch - np.array(bgr)).max(axis=2) <= tol))
-
-
-def test_one_viewer_shows_several_robots_each_through_its_own_registration(
-        start_viewer, publisher) -> None:
-    from slamlens.services.visualiser.legend import ROBOT_COLOURS
-
-    _, url = start_viewer(camera=CAMERA, robot=f"{ROBOT},r2")
-    publisher(KEYS.registration(CAMERA, ROBOT), make_registration().to_bytes())
-    publisher(KEYS.registration(CAMERA, "r2"), r2_registration().to_bytes())
-    publisher(KEYS.frame(CAMERA), make_frame(1).to_bytes())
-    publisher(KEYS.state(ROBOT), make_state(4).to_bytes())
-    publisher(KEYS.state("r2"), r2_state(6).to_bytes())
-    wait_until(lambda: all(r["state"] and r["registration"] == {CAMERA: "current"}
-                           for r in status_of(url)["robots"])
-               and len(status_of(url)["robots"]) == 2)
-    status = status_of(url)
-    assert [r["name"] for r in status["robots"]] == [ROBOT, "r2"]
-    assert status["robots"][0]["colour"] != status["robots"][1]["colour"]
-
-    image, headers = snapshot(url)
-    assert headers["X-State-Seq"] == "4"  # the first robot's
-    for i, j in [(0, 1), (1, 4)]:  # robot1's pairs where robot1's registration puts them
-        assert red_pixels(image, midpoint(i, j)) >= 40
-    for i, j in [(0, 1), (1, 2)]:  # r2's pairs, in r2's frame, where r2's registration puts them
-        assert red_pixels(image, pixel_of((R2_LANDMARKS[i] + R2_LANDMARKS[j]) / 2
-                                          + R2_OFFSET)) >= 40
-    # each robot's cone in its own colour: robot1 green, r2 the first other colour
-    assert colour_pixels(image, pixel_of(np.array([1.5, 0.2])), (28, 140, 28), tol=45) >= 5
-    r2_pose = pixel_of(np.array([0.4, 0.1]) + R2_OFFSET)
-    assert colour_pixels(image, r2_pose, tuple(int(0.6 * c) for c in ROBOT_COLOURS[0]),
-                         tol=45) >= 5
-
-    # features of both maps are clickable, each with its robot
-    features = json.loads(http(url + "/api/features")[2])
-    assert features["robot"] == [ROBOT] * 6 + ["r2"] * 3
-    assert features["ids"][6:] == [50, 51, 52]
-    u, v = features["uv"][6]
-    assert abs(u - pixel_of(R2_LANDMARKS[0] + R2_OFFSET)[0]) <= 1.5
-    # health and plots per robot; an unknown robot is a clear 400
-    assert json.loads(http(url + "/api/health?robot=r2")[2])["robot"] == "r2"
-    status_code, _, body = http(url + "/api/series?robot=nobody")
-    assert status_code == 400 and "nobody" in json.loads(body)["error"]
-    # selecting r2's feature 50 shows only its pairs; robot1 is drawn whole
-    http(url + "/api/settings?client=sel", data={"selected_robot": "r2", "selected_feature": 50})
-    selected, _ = snapshot(url, "sel")
-    assert red_pixels(selected, pixel_of((R2_LANDMARKS[1] + R2_LANDMARKS[2]) / 2
-                                         + R2_OFFSET)) == 0
-    assert red_pixels(selected, pixel_of((R2_LANDMARKS[0] + R2_LANDMARKS[1]) / 2
-                                         + R2_OFFSET)) >= 40
-    assert red_pixels(selected, midpoint(0, 1)) >= 40
-
-
-def test_all_robots_whose_estimator_is_alive_are_shown(start_viewer, make_client,
-                                                       publisher) -> None:
-    _, url = start_viewer(robot="all")
-    assert status_of(url)["robots"] == []
-    estimators = make_client()
-    estimators.declare_alive(KEYS.estimator_alive("r7"))
-    estimators.declare_alive(KEYS.estimator_alive("r8"))
-    wait_until(lambda: [r["name"] for r in status_of(url)["robots"]] in (
-        ["r7", "r8"], ["r8", "r7"]), timeout=15.0)
-    publisher(KEYS.state("r8"), r2_state(3, robot="r8").to_bytes())
-    wait_until(lambda: any(r["state"] for r in status_of(url)["robots"]))
-    _, headers = snapshot(url)
-    assert status_of(url)["discover"] is True
-
-
-def test_the_reregister_button_asks_the_registration_service_by_a_query(start_viewer,
-                                                                       make_client) -> None:
-    """A viewer may publish nothing (docs/security.md): it asks by a Zenoh query carrying a
-    CameraControl, which the registration service answers."""
-    from slamlens.common.messages import CameraControl
-
-    _, url = start_viewer(camera=CAMERA, reregister_timeout_s=1.0)
-    status, _, body = http(url + "/api/reregister", data={})
-    assert status == 200
-    answer = json.loads(body)
-    assert answer["answered"] is False and "no registration service" in (
-        answer["cameras"][0]["detail"])
-
-    camera_service = make_client()
-    asked: list[CameraControl] = []
-
-    def answer(key: str, payload: bytes | None, parameters: str) -> bytes:
-        assert payload is not None
-        request = CameraControl.from_bytes(payload)
-        asked.append(request)
-        return msgpack.packb({"schema": 1, "answer": f"accepted: re-registering camera "
-                              f"{CAMERA} for robot {request.robot}"})
-
-    camera_service.answer(KEYS.camera_control(CAMERA), answer)  # as the registration service
-    status, _, body = http(url + f"/api/reregister?robot={ROBOT}", data={})
-    assert status == 200, body
-    answer_json = json.loads(body)
-    assert answer_json["answered"] is True and answer_json["accepted"] is True
-    assert answer_json["robot"] == ROBOT
-    assert answer_json["cameras"] == [{
-        "camera": CAMERA, "answered": True,
-        "detail": f"accepted: re-registering camera {CAMERA} for robot {ROBOT}"}]
-    assert [(a.command, a.robot) for a in asked] == [("reregister", ROBOT)]
-    assert asked[0].requester and "web viewer" in asked[0].requester
-    status, _, body = http(url + "/api/reregister?robot=stranger", data={})
-    assert status == 400 and "stranger" in json.loads(body)["error"]
-    _, map_url = start_viewer()
-    status, _, body = http(map_url + "/api/reregister", data={})
-    assert status == 400 and "no camera" in json.loads(body)["error"]
 
 
 def test_each_state_is_drawn_on_layers_before_the_render_thread_takes_it_in(

@@ -13,7 +13,7 @@ import numpy as np
 from slamlens.common.keys import Keys
 from slamlens.services.slam.settings import SummarySettings
 from slamlens.services.slam.summary_service import SummaryService
-from tests.integration.test_viewer_service import (  # noqa: F401  (fixtures)
+from tests.integration.viewer_rig import (
     CAMERA,
     HEIGHT,
     LANDMARKS,
@@ -25,12 +25,9 @@ from tests.integration.test_viewer_service import (  # noqa: F401  (fixtures)
     make_state,
     midpoint,
     pixel_of,
-    publisher,
     red_pixels,
     snapshot,
-    start_viewer,
     status_of,
-    viewers,
     wait_until,
 )
 
