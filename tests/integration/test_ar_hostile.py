@@ -67,10 +67,8 @@ async def next_json(ws: aiohttp.ClientWebSocketResponse) -> dict:
         assert msg.type == aiohttp.WSMsgType.BINARY, msg
 
 
-def test_bad_pages_are_refused_counted_and_freed(viewer, make_client) -> None:
-    url, hub = viewer
-    ws_url = url.replace("http", "ws") + "/ar/ws?client=page1&camera=phone-1"
-    # a robot must be shown before a page can ask for it
+def show_a_robot(make_client, hub) -> None:
+    """A robot's state, put until the viewer shows the robot (a page can ask for it then)."""
     pub = make_client().publisher(KEYS.state(ROBOT))
     assert pub.wait_matched()  # type: ignore[attr-defined]
     n = 2
@@ -78,14 +76,17 @@ def test_bad_pages_are_refused_counted_and_freed(viewer, make_client) -> None:
                       landmark_ids=np.arange(n), landmarks=np.zeros((n, 2)),
                       covariance=np.eye(3 + 2 * n))
     seen = threading.Event()
+    while not seen.is_set():
+        pub.put(state.to_bytes())
+        if hub.api.robot_names():
+            seen.set()
+        seen.wait(0.1)
 
-    def wait_robot() -> None:
-        while not seen.is_set():
-            pub.put(state.to_bytes())
-            if hub.api.robot_names():
-                seen.set()
-            seen.wait(0.1)
-    wait_robot()
+
+def test_bad_pages_are_refused_counted_and_freed(viewer, make_client) -> None:
+    url, hub = viewer
+    ws_url = url.replace("http", "ws") + "/ar/ws?client=page1&camera=phone-1"
+    show_a_robot(make_client, hub)
     captured: list[CameraFrame] = []
     make_client().subscribe(KEYS.capture("phone-1"),
                             lambda k, p: captured.append(CameraFrame.from_bytes(p)))

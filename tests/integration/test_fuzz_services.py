@@ -251,6 +251,122 @@ def _viewer_payloads(kind, seed: int) -> list[bytes]:
     return out
 
 
+class _ViewerStatus:
+    """A viewer process's ``/api/status``, read now or polled until a condition holds."""
+
+    def __init__(self, viewer, url: str) -> None:
+        self.viewer, self.url = viewer, url
+
+    def now(self) -> dict:
+        from slamlens.services.harness.web_client import http
+
+        code, _, body = http(self.url + "/api/status")
+        assert code == 200, body
+        return json.loads(body)
+
+    def wait(self, predicate, timeout: float = 30.0) -> dict:
+        deadline = time.monotonic() + timeout
+        while True:  # polling the status endpoint until the condition holds
+            now = self.now()
+            if predicate(now):
+                return now
+            assert time.monotonic() < deadline, now
+            assert self.viewer.poll() is None, "".join(self.viewer.err[-30:])
+            time.sleep(0.01)
+
+
+def _garbage_publishers(client) -> tuple[dict, dict[str, list[bytes]]]:
+    """A matched publisher per input the viewer takes, and the bad payloads for each, by
+    the name the viewer counts them under."""
+    import dataclasses
+
+    import zenoh
+
+    from slamlens.common.messages import CameraFrame, Registration
+
+    # (key, message type, the input the viewer counts it under)
+    inputs = [(KEYS.tracked_by("overhead", ROBOT), Truth, "tracked"),
+              (KEYS.state(ROBOT), SlamState, "state"),
+              (KEYS.health(ROBOT), Health, "health"),
+              (KEYS.registration(CAMERA, ROBOT), Registration, f"registration {CAMERA}"),
+              (KEYS.frame(CAMERA), CameraFrame, f"frame {CAMERA}")]
+    pubs, queues = {}, {}
+    for seed, (key, kind, name) in enumerate(inputs, start=10):
+        pubs[name] = client.session.declare_publisher(
+            key, congestion_control=zenoh.CongestionControl.BLOCK)
+        queues[name] = _viewer_payloads(kind, seed)
+    # well-formed registrations no camera has: they once made every render fail
+    reg = valid(Registration, robot=ROBOT, camera=CAMERA)
+    queues[f"registration {CAMERA}"] += [
+        dataclasses.replace(reg, **change).to_bytes() for change in (
+            {"K": np.zeros((3, 3))}, {"K": np.diag([500.0, 500.0, 2.0])},
+            {"dist": np.zeros(3)}, {"width": 10 ** 9, "height": 10 ** 9})]
+    negative = msgpack.unpackb(reg.to_bytes(), raw=False)  # malformed on the wire
+    negative["width"] = -640
+    queues[f"registration {CAMERA}"].append(msgpack.packb(negative, use_bin_type=True))
+    for name, pub in pubs.items():  # a new publisher drops what it puts before matching
+        deadline = time.monotonic() + 10
+        while not pub.matching_status and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert pub.matching_status, name
+    return pubs, queues
+
+
+def _send_every_payload(pubs: dict, queues: dict[str, list[bytes]],
+                        status: _ViewerStatus) -> dict[str, int]:
+    """Every bad payload, one per input at a time, each round once the viewer counted the
+    last; how many were sent of each."""
+    # a route may still drop samples for a while after its publisher matched (zenoh
+    # 1.10 on a loaded machine, measured up to 0.3 s): the first bad payload of each
+    # key is put again until the viewer counted it (its counts are exact and live)
+    sent = dict.fromkeys(pubs, 0)
+    deadline = time.monotonic() + 30
+    while not all(sent.values()):
+        for name in [n for n, k in sent.items() if not k]:
+            pubs[name].put(queues[name][0])
+        try:
+            status.wait(lambda s: all(s["bad_messages"].get(n) for n in pubs), timeout=2)
+        except AssertionError:
+            assert time.monotonic() < deadline, f"never counted: {sent}"
+        counted = status.now()["bad_messages"]
+        sent = {n: counted.get(n, 0) for n in sent}
+    for i in range(1, max(len(q) for q in queues.values())):
+        # tracked first: it wakes nobody and is taken in with the next state or health
+        for name, pub in pubs.items():
+            if i < len(queues[name]):
+                pub.put(queues[name][i])
+                sent[name] += 1
+        status.wait(lambda s: s["bad_messages"] == {k: n for k, n in sent.items() if n})
+    return sent
+
+
+def _a_good_state_is_drawn(pubs: dict, status: _ViewerStatus, sent: dict[str, int]) -> None:
+    """A good registration, frame and state after the garbage: drawn, nothing more counted."""
+    import cv2
+
+    from slamlens.common.messages import CameraFrame, Registration
+    from slamlens.services.harness.web_client import http
+
+    width, height = 640, 480
+    ok, jpeg = cv2.imencode(".jpg", np.full((height, width, 3), 90, np.uint8))
+    assert ok
+    pubs[f"registration {CAMERA}"].put(valid(Registration, robot=ROBOT,
+                                             camera=CAMERA).to_bytes())
+    pubs[f"frame {CAMERA}"].put(CameraFrame(
+        camera=CAMERA, seq=3, stamp=1.0, encoding="jpeg", width=width, height=height,
+        data=jpeg.tobytes()).to_bytes())
+    pubs["state"].put(valid(SlamState, robot=ROBOT, seq=41).to_bytes())
+    final = status.wait(lambda s: (s["state"] or {}).get("seq") == 41
+                        and s["cameras"][0]["frame"] is not None
+                        and s["cameras"][0]["registration"] is not None)
+    assert final["bad_messages"] == sent
+    code, headers, body = http(status.url + "/snapshot.png")
+    assert code == 200 and body[:8] == b"\x89PNG\r\n\x1a\n"
+    assert headers["X-State-Seq"] == "41"
+    image = cv2.imdecode(np.frombuffer(body, np.uint8), cv2.IMREAD_COLOR)
+    assert image.shape == (height, width, 3)  # the camera's picture, registered size
+
+
 def test_viewer_survives_garbage_on_every_key_it_subscribes(router_endpoint, make_client,
                                                             tmp_path) -> None:
     """State, health, tracked pose, the camera's registration and frames: each malformed
@@ -258,108 +374,20 @@ def test_viewer_survives_garbage_on_every_key_it_subscribes(router_endpoint, mak
     input (the viewer keeps the newest state, frame and registration, so they are sent one
     at a time, each once the previous was counted), logged in a few clear lines, and a good
     state afterwards is drawn."""
-    import dataclasses
-
-    import cv2
-    import zenoh
-
-    from slamlens.common.messages import CameraFrame, Registration
-    from slamlens.services.harness.web_client import http
-
     viewer = spawn("viewer", "--robot", ROBOT, "--camera", CAMERA, "--connect",
                    router_endpoint, "--http", "127.0.0.1:0", "--late-join-timeout-s", "0",
                    "--recordings-dir", str(tmp_path / "recordings"))
+    pubs: dict = {}
     try:
-        url = viewer.wait_for_line("viewer ready").split()[-1]
-
-        def status() -> dict:
-            code, _, body = http(url + "/api/status")
-            assert code == 200, body
-            return json.loads(body)
-
-        def wait_status(predicate, timeout: float = 30.0) -> dict:
-            deadline = time.monotonic() + timeout
-            while True:  # polling the status endpoint until the condition holds
-                now = status()
-                if predicate(now):
-                    return now
-                assert time.monotonic() < deadline, now
-                assert viewer.poll() is None, "".join(viewer.err[-30:])
-                time.sleep(0.01)
-
-        client = make_client()
-        # (key, message type, the input the viewer counts it under)
-        inputs = [(KEYS.tracked_by("overhead", ROBOT), Truth, "tracked"),
-                  (KEYS.state(ROBOT), SlamState, "state"),
-                  (KEYS.health(ROBOT), Health, "health"),
-                  (KEYS.registration(CAMERA, ROBOT), Registration, f"registration {CAMERA}"),
-                  (KEYS.frame(CAMERA), CameraFrame, f"frame {CAMERA}")]
-        pubs, queues = {}, {}
-        for seed, (key, kind, name) in enumerate(inputs, start=10):
-            pubs[name] = client.session.declare_publisher(
-                key, congestion_control=zenoh.CongestionControl.BLOCK)
-            queues[name] = _viewer_payloads(kind, seed)
-        # well-formed registrations no camera has: they once made every render fail
-        reg = valid(Registration, robot=ROBOT, camera=CAMERA)
-        queues[f"registration {CAMERA}"] += [
-            dataclasses.replace(reg, **change).to_bytes() for change in (
-                {"K": np.zeros((3, 3))}, {"K": np.diag([500.0, 500.0, 2.0])},
-                {"dist": np.zeros(3)}, {"width": 10 ** 9, "height": 10 ** 9})]
-        negative = msgpack.unpackb(reg.to_bytes(), raw=False)  # malformed on the wire
-        negative["width"] = -640
-        queues[f"registration {CAMERA}"].append(msgpack.packb(negative, use_bin_type=True))
-        for name, pub in pubs.items():  # a new publisher drops what it puts before matching
-            deadline = time.monotonic() + 10
-            while not pub.matching_status and time.monotonic() < deadline:
-                time.sleep(0.01)
-            assert pub.matching_status, name
-
-        # a route may still drop samples for a while after its publisher matched (zenoh
-        # 1.10 on a loaded machine, measured up to 0.3 s): the first bad payload of each
-        # key is put again until the viewer counted it (its counts are exact and live)
-        sent = dict.fromkeys(pubs, 0)
-        deadline = time.monotonic() + 30
-        while not all(sent.values()):
-            for name in [n for n, k in sent.items() if not k]:
-                pubs[name].put(queues[name][0])
-            try:
-                wait_status(lambda s: all(s["bad_messages"].get(n) for n in pubs), timeout=2)
-            except AssertionError:
-                assert time.monotonic() < deadline, f"never counted: {sent}"
-            counted = status()["bad_messages"]
-            sent = {n: counted.get(n, 0) for n in sent}
-        for i in range(1, max(len(q) for q in queues.values())):
-            # tracked first: it wakes nobody and is taken in with the next state or health
-            for name, pub in pubs.items():
-                if i < len(queues[name]):
-                    pub.put(queues[name][i])
-                    sent[name] += 1
-            wait_status(lambda s: s["bad_messages"] == {k: n for k, n in sent.items() if n})
+        status = _ViewerStatus(viewer, viewer.wait_for_line("viewer ready").split()[-1])
+        pubs, queues = _garbage_publishers(make_client())
+        sent = _send_every_payload(pubs, queues, status)
         assert viewer.poll() is None
         assert all(n >= 60 for n in sent.values()), sent
-
-        # afterwards, still serving: a good registration, frame and state are drawn
-        width, height = 640, 480
-        ok, jpeg = cv2.imencode(".jpg", np.full((height, width, 3), 90, np.uint8))
-        assert ok
-        pubs[f"registration {CAMERA}"].put(valid(Registration, robot=ROBOT,
-                                                 camera=CAMERA).to_bytes())
-        pubs[f"frame {CAMERA}"].put(CameraFrame(
-            camera=CAMERA, seq=3, stamp=1.0, encoding="jpeg", width=width, height=height,
-            data=jpeg.tobytes()).to_bytes())
-        pubs["state"].put(valid(SlamState, robot=ROBOT, seq=41).to_bytes())
-        final = wait_status(lambda s: (s["state"] or {}).get("seq") == 41
-                            and s["cameras"][0]["frame"] is not None
-                            and s["cameras"][0]["registration"] is not None)
-        assert final["bad_messages"] == sent
-        code, headers, body = http(url + "/snapshot.png")
-        assert code == 200 and body[:8] == b"\x89PNG\r\n\x1a\n"
-        assert headers["X-State-Seq"] == "41"
-        image = cv2.imdecode(np.frombuffer(body, np.uint8), cv2.IMREAD_COLOR)
-        assert image.shape == (height, width, 3)  # the camera's picture, registered size
+        _a_good_state_is_drawn(pubs, status, sent)
         assert viewer.poll() is None
     finally:
-        for pub in locals().get("pubs", {}).values():
+        for pub in pubs.values():
             pub.undeclare()
         out, err = stop(viewer)
     assert viewer.returncode == 0, err

@@ -13,7 +13,7 @@ import pytest
 from slamlens.common.config import load_settings
 from slamlens.common.errors import ConfigError
 from slamlens.common.geometry import relative_covariance, wrap_angle
-from slamlens.common.messages import Health, SlamState, Truth
+from slamlens.common.messages import Health, SlamState
 from slamlens.services.monitor import checks
 from slamlens.services.monitor.blame import Evidence, blame_weights
 from slamlens.services.monitor.monitor import Monitor
@@ -170,11 +170,6 @@ def test_common_landmarks_handles_append_reorder_and_removal() -> None:
 
 
 # -- the Monitor on dense-EKF runs ---------------------------------------------------------
-@pytest.fixture(scope="module")
-def correct_run() -> tuple[list[SlamState], list[Truth]]:
-    return run(seed=1)
-
-
 def test_correct_run_raises_nothing_and_reports_statistics(correct_run) -> None:
     states, truths = correct_run
     monitor = Monitor(MonitorSettings())

@@ -11,16 +11,11 @@ import pytest
 from scipy.stats import chi2
 
 from slamlens.common.geometry import wrap_angle
-from slamlens.common.messages import Health, SlamState, Truth
+from slamlens.common.messages import Health, SlamState
 from slamlens.services.monitor.monitor import Monitor
 from slamlens.services.monitor.settings import MonitorSettings
 from slamlens.services.monitor.stats import WindowTest
-from tests.unit.monitor_runs import feed, run, violations
-
-
-@pytest.fixture(scope="module")
-def correct_run() -> tuple[list[SlamState], list[Truth]]:
-    return run(seed=1)
+from tests.unit.monitor_runs import feed, violations
 
 
 def test_nees_statistic_equals_the_textbook_formula(correct_run) -> None:
