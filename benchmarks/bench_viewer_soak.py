@@ -220,6 +220,62 @@ def status_of(url: str) -> dict:
 
 
 # ------------------------------------------------------------------------------ the run
+def memory_back_after(viewer: Viewer, start_rss: float, seconds: float) -> float | None:
+    """Seconds until the viewer's RSS is within 20 % of ``start_rss`` (None: not within
+    ``seconds``); a second more is waited either way before the end's figures."""
+    left_at = time.monotonic()
+    back_after = None
+    while time.monotonic() - left_at < seconds:
+        if viewer.rss_mb() <= 1.2 * start_rss:
+            back_after = time.monotonic() - left_at
+            break
+        time.sleep(1.0)
+    time.sleep(1.0)
+    return back_after
+
+
+@dataclass
+class Figures:
+    """What the soak measured (main), for the report."""
+
+    start_rss: float
+    load_rss: list[float]
+    end_rss: float
+    back_after: float | None
+    base_fps: list[float]
+    fps_default: list[float]
+    windows: list[float]
+    fps_other: list[float]
+    refused: int
+    loaded: dict
+    final: dict
+    bound: float
+
+
+def print_report(args: argparse.Namespace, f: Figures) -> None:
+    print(f"viewer soak: {args.clients} clients ({args.default_clients} on the default view), "
+          f"{args.settings} distinct settings over {args.seconds:.0f} s, states at 30 Hz, "
+          f"n = 15, 1280x720 map view")
+    print(f"  default-view fps, load    : median {np.median(f.fps_default):5.1f} "
+          f"(clients {min(f.fps_default):4.1f}-{max(f.fps_default):4.1f}; 5 s windows p5 "
+          f"{np.percentile(f.windows, 5):4.1f})   target >= 15")
+    print(f"  default-view fps, baseline: median {np.median(f.base_fps):5.1f} (alone, same run)"
+          f"   ratio load/baseline {np.median(f.fps_default) / np.median(f.base_fps):4.2f}")
+    print(f"  other clients' fps, load  : median {np.median(f.fps_other):5.2f} "
+          f"({min(f.fps_other):4.2f}-{max(f.fps_other):4.2f}); settings changes refused "
+          f"(503) {f.refused}")
+    held = f.loaded.get("views") or {}  # (absent before the limits: to compare with old code)
+    print(f"  viewer at the end of load : views kept {held.get('kept')}, evicted "
+          f"{held.get('evicted')}, refused {held.get('refused')}, pictures "
+          f"{held.get('picture_bytes', float('nan')) / 1e6:5.1f} MB")
+    print(f"  RSS: start {f.start_rss:6.1f} MB, load median {np.median(f.load_rss):6.1f} / peak "
+          f"{max(f.load_rss):6.1f} MB (bound {f.bound:6.1f} MB), "
+          f"after leaving {f.end_rss:6.1f} MB "
+          f"({f.end_rss / f.start_rss:4.2f} x start; within 20 % after "
+          + (f"{f.back_after:4.1f} s)" if f.back_after is not None else "never)"))
+    print(f"  views kept once everybody left: {(f.final.get('views') or {}).get('kept')}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=300.0, help="the load phase")
@@ -266,14 +322,7 @@ def main() -> None:
         load_rss = sampler.of("load")
 
         sampler.phase = "leave"
-        left_at = time.monotonic()
-        back_after = None
-        while time.monotonic() - left_at < args.leave_seconds:
-            if viewer.rss_mb() <= 1.2 * start_rss:
-                back_after = time.monotonic() - left_at
-                break
-            time.sleep(1.0)
-        time.sleep(1.0)
+        back_after = memory_back_after(viewer, start_rss, args.leave_seconds)
         end_rss = viewer.rss_mb()
         final = status_of(viewer.url)
     finally:
@@ -283,28 +332,11 @@ def main() -> None:
         err = viewer.stop()
         router.close()
 
-    bound = start_rss + (max_views + 1) * PICTURE_MB * 1.5 + 100
-    refused = sum(c.refused for c in others)
-    print(f"viewer soak: {args.clients} clients ({args.default_clients} on the default view), "
-          f"{args.settings} distinct settings over {args.seconds:.0f} s, states at 30 Hz, "
-          f"n = 15, 1280x720 map view")
-    print(f"  default-view fps, load    : median {np.median(fps_default):5.1f} "
-          f"(clients {min(fps_default):4.1f}-{max(fps_default):4.1f}; 5 s windows p5 "
-          f"{np.percentile(windows, 5):4.1f})   target >= 15")
-    print(f"  default-view fps, baseline: median {np.median(base_fps):5.1f} (alone, same run)"
-          f"   ratio load/baseline {np.median(fps_default) / np.median(base_fps):4.2f}")
-    print(f"  other clients' fps, load  : median {np.median(fps_other):5.2f} "
-          f"({min(fps_other):4.2f}-{max(fps_other):4.2f}); settings changes refused "
-          f"(503) {refused}")
-    held = loaded.get("views") or {}  # (absent before the limits: to compare with old code)
-    print(f"  viewer at the end of load : views kept {held.get('kept')}, evicted "
-          f"{held.get('evicted')}, refused {held.get('refused')}, pictures "
-          f"{held.get('picture_bytes', float('nan')) / 1e6:5.1f} MB")
-    print(f"  RSS: start {start_rss:6.1f} MB, load median {np.median(load_rss):6.1f} / peak "
-          f"{max(load_rss):6.1f} MB (bound {bound:6.1f} MB), after leaving {end_rss:6.1f} MB "
-          f"({end_rss / start_rss:4.2f} x start; within 20 % after "
-          + (f"{back_after:4.1f} s)" if back_after is not None else "never)"))
-    print(f"  views kept once everybody left: {(final.get('views') or {}).get('kept')}")
+    print_report(args, Figures(
+        start_rss=start_rss, load_rss=load_rss, end_rss=end_rss, back_after=back_after,
+        base_fps=base_fps, fps_default=fps_default, windows=windows, fps_other=fps_other,
+        refused=sum(c.refused for c in others), loaded=loaded, final=final,
+        bound=start_rss + (max_views + 1) * PICTURE_MB * 1.5 + 100))
     if "Traceback" in err:
         print("viewer stderr had a traceback:\n" + err[-3000:])
 
