@@ -379,6 +379,60 @@ def _rate_bits(rate: str) -> float:
     return float(rate)
 
 
+def _phases(h, args: argparse.Namespace) -> None:
+    """Phases (a1) full state subscribed, (a2) full state pulled, (b) the summary pulled,
+    each printed, then the ratio, the target and the link's floor."""
+    warm = min(5.0, args.seconds / 4)
+    full_rate = args.full_rate or args.rate
+
+    def line(label: str, r: dict[str, float], unit: float, unit_name: str) -> str:
+        return (f"{label}: {r['states']} states, {r['rate']:.2f} states/s, latency "
+                f"median {r['latency_median_s']:.2f} s (max {r['latency_max_s']:.2f} s), "
+                f"{r['bytes'] / unit:.1f} {unit_name} each")
+
+    sub = _stats(_phase(h, "full", args, full_rate), warm)
+    print(line(f"(a1) full state, subscribed ({full_rate:g}/s published)", sub, 1e6,
+               "MB"), flush=True)
+    pull = _stats(_phase(h, "fullpull", args, full_rate), warm)
+    print(line(f"(a2) full state, get on `state` ({full_rate:g}/s published)", pull,
+               1e6, "MB"), flush=True)
+    summ = _stats(_phase(h, "summary", args, args.rate), warm)
+    print(line(f"(b)  summary pull, clusters ({args.rate:g}/s published)", summ, 1e3,
+               "kB"), flush=True)
+    base = max(sub, pull, key=lambda r: r["rate"])
+    if base["rate"] > 0:
+        print(f"ratio summary / best full-state path: {summ['rate'] / base['rate']:.1f}x "
+              f"states/s, {base['latency_median_s'] / summ['latency_median_s']:.1f}x "
+              "less behind")
+    else:
+        print("ratio summary / full state: no full state arrived in the phase")
+    ok = summ["rate"] >= 2.0 and summ["latency_median_s"] <= 1.0
+    print(f"target (>= 2 states/s, <= 1 s behind): {'met' if ok else 'NOT met'}")
+    floor = full_bytes = 0.0
+    if args.n:
+        full_bytes = float(len(synthetic_state(args.n).to_bytes()))
+        floor = full_bytes * 8 / _rate_bits(args.link)
+        print(f"link floor for the full state: {full_bytes / 1e6:.1f} MB takes "
+              f"{floor:.1f} s of a {args.link} link: at best {1 / floor:.3f} states/s, "
+              f">= {floor:.1f} s behind; summary / floor: {summ['rate'] * floor:.0f}x "
+              "states/s")
+
+
+def _viewer_report(h, args: argparse.Namespace) -> None:
+    """Phase (c): the viewer with --source summary on the workstation, printed."""
+    rows = _viewer_phase(h, args)
+    shot = rows.pop()["snapshot"] if rows and "snapshot" in rows[-1] else []
+    seqs = sorted({r["seq"] for r in rows})
+    behind = [r["behind_s"] for r in rows]
+    rates = [r["rate"] for r in rows if r["rate"]]
+    print(f"(c)  viewer --source summary: {len(seqs)} distinct states in "
+          f"{len(rows)} polls of /api/status, its state rate median "
+          f"{statistics.median(rates) if rates else 0:.2f}/s, picture behind the "
+          f"robot median {statistics.median(behind) if behind else float('nan'):.2f} "
+          f"s (max {max(behind) if behind else float('nan'):.2f} s); snapshot: "
+          f"{' '.join(shot)}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--role", default="main",
@@ -435,52 +489,9 @@ def main() -> None:
         _wait_line(summary, "summary ready")
         print(f"n = {args.n} ({3 + 2 * args.n}² covariance), {args.rate:g} states/s "
               f"published, link {args.link} tbf both ways, {args.seconds:g} s per phase")
-        warm = min(5.0, args.seconds / 4)
-        full_rate = args.full_rate or args.rate
-
-        def line(label: str, r: dict[str, float], unit: float, unit_name: str) -> str:
-            return (f"{label}: {r['states']} states, {r['rate']:.2f} states/s, latency "
-                    f"median {r['latency_median_s']:.2f} s (max {r['latency_max_s']:.2f} s), "
-                    f"{r['bytes'] / unit:.1f} {unit_name} each")
-
-        sub = _stats(_phase(h, "full", args, full_rate), warm)
-        print(line(f"(a1) full state, subscribed ({full_rate:g}/s published)", sub, 1e6,
-                   "MB"), flush=True)
-        pull = _stats(_phase(h, "fullpull", args, full_rate), warm)
-        print(line(f"(a2) full state, get on `state` ({full_rate:g}/s published)", pull,
-                   1e6, "MB"), flush=True)
-        summ = _stats(_phase(h, "summary", args, args.rate), warm)
-        print(line(f"(b)  summary pull, clusters ({args.rate:g}/s published)", summ, 1e3,
-                   "kB"), flush=True)
-        base = max(sub, pull, key=lambda r: r["rate"])
-        if base["rate"] > 0:
-            print(f"ratio summary / best full-state path: {summ['rate'] / base['rate']:.1f}x "
-                  f"states/s, {base['latency_median_s'] / summ['latency_median_s']:.1f}x "
-                  "less behind")
-        else:
-            print("ratio summary / full state: no full state arrived in the phase")
-        ok = summ["rate"] >= 2.0 and summ["latency_median_s"] <= 1.0
-        print(f"target (>= 2 states/s, <= 1 s behind): {'met' if ok else 'NOT met'}")
-        floor = full_bytes = 0.0
-        if args.n:
-            full_bytes = float(len(synthetic_state(args.n).to_bytes()))
-            floor = full_bytes * 8 / _rate_bits(args.link)
-            print(f"link floor for the full state: {full_bytes / 1e6:.1f} MB takes "
-                  f"{floor:.1f} s of a {args.link} link: at best {1 / floor:.3f} states/s, "
-                  f">= {floor:.1f} s behind; summary / floor: {summ['rate'] * floor:.0f}x "
-                  "states/s")
+        _phases(h, args)
         if args.viewer:
-            rows = _viewer_phase(h, args)
-            shot = rows.pop()["snapshot"] if rows and "snapshot" in rows[-1] else []
-            seqs = sorted({r["seq"] for r in rows})
-            behind = [r["behind_s"] for r in rows]
-            rates = [r["rate"] for r in rows if r["rate"]]
-            print(f"(c)  viewer --source summary: {len(seqs)} distinct states in "
-                  f"{len(rows)} polls of /api/status, its state rate median "
-                  f"{statistics.median(rates) if rates else 0:.2f}/s, picture behind the "
-                  f"robot median {statistics.median(behind) if behind else float('nan'):.2f} "
-                  f"s (max {max(behind) if behind else float('nan'):.2f} s); snapshot: "
-                  f"{' '.join(shot)}")
+            _viewer_report(h, args)
         summary.send_signal(signal.SIGINT)
         out, _ = summary.communicate(timeout=10)
         print("robot side:", *[ln for ln in out.splitlines() if "summary stopped" in ln])
