@@ -27,6 +27,7 @@ import numpy as np
 from slamlens.common.config import load_settings
 from slamlens.common.errors import EstimationError
 from slamlens.common.messages import Health, Truth
+from slamlens.common.verdict import conservative
 from slamlens.services.harness.mrclam_pipeline import DATA, PROFILE
 from slamlens.services.monitor.monitor import Monitor
 from slamlens.services.monitor.settings import MonitorSettings
@@ -47,15 +48,14 @@ class Timeline:
     t: list[float] = field(default_factory=list)  #: s from the run's start
     series: dict[str, list[float]] = field(default_factory=lambda: {k: [] for k in SERIES})
     verdicts: list[str] = field(default_factory=list)
-    timid_nis: list[bool] = field(default_factory=list)  #: a NIS window below stands
+    conservative: list[bool] = field(default_factory=list)  #: "ok", a timid NIS standing
 
     def add(self, t: float, health: Health) -> None:
         self.t.append(t)
         for key in SERIES:
             self.series[key].append(health.statistics.get(key, np.nan))
         self.verdicts.append(health.verdict)
-        self.timid_nis.append(any(v.kind == "nis" and v.bound is not None
-                                  and v.value < v.bound for v in health.standing))
+        self.conservative.append(conservative(health))
 
 
 def timeline(robot: int) -> Timeline:
@@ -83,12 +83,11 @@ def timeline(robot: int) -> Timeline:
 
 def summary(line: Timeline) -> str:
     verdicts = Counter(line.verdicts)
-    conservative = sum(1 for v, timid in zip(line.verdicts, line.timid_nis, strict=True)
-                       if v == "ok" and timid)
+    timid_ok = sum(line.conservative)
     return (f"robot {line.robot}: {len(line.verdicts)} Healths: "
             + ", ".join(f"{k} {n}" for k, n in sorted(verdicts.items()))
-            + f"; a NIS window below its band standing under 'ok' in {conservative} "
-              f"({conservative / max(1, len(line.verdicts)):.1%})")
+            + f"; a NIS window below its band standing under 'ok' in {timid_ok} "
+              f"({timid_ok / max(1, len(line.verdicts)):.1%})")
 
 
 def draw(lines: list[Timeline], out: Path) -> None:
@@ -109,8 +108,7 @@ def draw(lines: list[Timeline], out: Path) -> None:
                             alpha=0.10, lw=0, label=f"{label}: its band")
         xaxis = ax.get_xaxis_transform()
         verdict = np.asarray(line.verdicts)
-        timid = np.asarray(line.timid_nis)
-        ax.fill_between(t, 0, 1, where=timid & (verdict == "ok"), transform=xaxis,
+        ax.fill_between(t, 0, 1, where=np.asarray(line.conservative), transform=xaxis,
                         color="tab:green", alpha=0.3, lw=0, step="post",
                         label="'ok' with a NIS window below its band standing")
         ax.fill_between(t, 0, 1, where=verdict != "ok", transform=xaxis, color="tab:red",

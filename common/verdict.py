@@ -30,6 +30,18 @@ KIND_NAMES = {"pair": "pair", "feature": "feature", "prediction": "prediction",
               "unobservable": "spurious information in an unobservable direction"}
 
 
+def below_band(v: Violation) -> bool:
+    """A statistical window (NEES, NIS) that left its band from below: smaller than the
+    covariance says."""
+    return v.kind in ("nees", "nis") and v.bound is not None and v.value < v.bound
+
+
+def conservative(health: Health) -> bool:
+    """"ok" with a NIS window below its band standing (docs/monitor.md, "The verdict")."""
+    return health.verdict == "ok" and any(v.kind == "nis" and below_band(v)
+                                          for v in health.standing)
+
+
 def _ids(ids: Sequence[int]) -> list[int]:
     return sorted(int(i) for i in ids)
 
@@ -82,10 +94,7 @@ def summary_text(health: Health, *, max_items: int = 3) -> str:
     more); suspects 3, 12" — what the top bar, the legend and the terminal say."""
     text = verdict_text(health)
     if health.verdict == "ok":
-        if any(v.kind == "nis" and v.bound is not None and v.value < v.bound
-               for v in health.standing):  # the one thing that may stand under "ok"
-            text += f" ({CONSERVATIVE})"
-        return text
+        return f"{text} ({CONSERVATIVE})" if conservative(health) else text
     heads: list[str] = []
     for v in health.standing:
         head = violation_head(v)

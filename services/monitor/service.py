@@ -31,9 +31,10 @@ from slamlens.common.drops import DropCounter
 from slamlens.common.errors import MessageError
 from slamlens.common.keys import Keys
 from slamlens.common.messages import Health, SlamState, Truth
+from slamlens.common.verdict import conservative
 from slamlens.services.monitor.monitor import Monitor
 from slamlens.services.monitor.settings import MonitorSettings
-from slamlens.services.monitor.verdict import WORDS, timid
+from slamlens.services.monitor.verdict import WORDS
 
 log = logging.getLogger("slamlens.monitor")
 
@@ -156,9 +157,7 @@ class MonitorService:
         health = self.monitor.check(state, extra_statistics=self._service_statistics())
         self.checked += 1
         self.verdict_states[health.verdict] += 1
-        if health.verdict == "ok" and any(v.kind == "nis" and timid(v)
-                                          for v in health.standing):
-            self.conservative_states += 1
+        self.conservative_states += conservative(health)
         if health.verdict != self.verdict:
             standing = sorted({v.kind for v in health.standing})
             log.log(logging.INFO if health.verdict == "ok" else logging.WARNING,

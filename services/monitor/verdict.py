@@ -30,19 +30,17 @@ import dataclasses
 from dataclasses import dataclass
 
 from slamlens.common.messages import Violation
-from slamlens.common.verdict import WORDS, summary_text  # noqa: F401  (the one wording: common/verdict.py)
+from slamlens.common.verdict import (  # noqa: F401  (the one wording: common/verdict.py)
+    WORDS,
+    below_band,
+    summary_text,
+)
 
 FAULT_KINDS = ("pair", "feature", "prediction", "symmetry", "psd", "correlation",
                "unobservable")
 TUNING_KINDS = ("nees", "nis")
 VERDICTS = ("ok", "fault", "tuning")
 _RANK = {k: i for i, k in enumerate(FAULT_KINDS + TUNING_KINDS)}
-
-
-def timid(v: Violation) -> bool:
-    """A statistical window that left its band from below (smaller than the covariance
-    says); the two sides of one test stand apart."""
-    return v.kind in TUNING_KINDS and v.bound is not None and v.value < v.bound
 
 
 @dataclass
@@ -74,7 +72,7 @@ class Verdict:
         ``pose_consistent``: the truth says the pose covariance is right now (module
         docstring: a NIS window below its band then does not make ``tuning``)."""
         for v in found:
-            key = (v.kind, tuple(sorted(v.ids)), timid(v))
+            key = (v.kind, tuple(sorted(v.ids)), below_band(v))  # two sides stand apart
             s = self._standing.get(key)
             if s is None:
                 self._standing[key] = _Standing(first=seq, last=seq, count=1, worst=v)
