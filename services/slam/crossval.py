@@ -52,10 +52,15 @@ class Candidate:
     update_iterations: int = 1  #: EstimatorSettings.update_iterations (1 = the EKF)
 
     @property
+    def estimator(self) -> str:
+        """The estimator it fits for, e.g. "oc" or "oc, iterated (K = 10)"."""
+        if self.update_iterations > 1:
+            return f"{self.linearisation}, iterated (K = {self.update_iterations})"
+        return self.linearisation
+
+    @property
     def label(self) -> str:
-        iterated = (f", iterated (K = {self.update_iterations})"
-                    if self.update_iterations > 1 else "")
-        return f"{self.linearisation}{iterated}, {self.motion_model} motion model"
+        return f"{self.estimator}, {self.motion_model} motion model"
 
 
 @dataclass
@@ -113,7 +118,7 @@ def cross_validate(runs: Sequence[MrclamRun], candidate: Candidate, *,
     folds = []
     for k, held in enumerate(runs):
         train = [r for j, r in enumerate(runs) if j != k]
-        what = f"{candidate.label.rsplit(', ', 1)[0]}, {held.robot} left out"
+        what = f"{candidate.estimator}, {held.robot} left out"
         total = sum(events) - events[k]
 
         def tick(number: int, scale: float, what: str = what,
