@@ -33,6 +33,7 @@ import pytest
 from slamlens.services.harness.ar_rig import (
     CONES_ONLY,
     ArRig,
+    as_shown,
     cone_offsets,
     open_ar_page,
     post_settings,
@@ -64,9 +65,8 @@ def walk() -> Video:
 def as_sent(image: np.ndarray) -> np.ndarray:
     """A video frame as the registration gets it from the page: Chromium's I420 camera, then
     the page's JPEG at quality 0.8."""
-    bgr = cv2.cvtColor(cv2.cvtColor(image, cv2.COLOR_BGR2YUV_I420), cv2.COLOR_YUV2BGR_I420)
-    _, jpeg = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_QUALITY, 80])
-    return np.asarray(cv2.imdecode(jpeg, cv2.IMREAD_COLOR))
+    return as_shown(cv2.cvtColor(cv2.cvtColor(image, cv2.COLOR_BGR2YUV_I420),
+                                 cv2.COLOR_YUV2BGR_I420))  # JPEG quality 80, as shown
 
 
 def one_frame_anchors(walk: Video, detector) -> tuple[list, list]:

@@ -14,8 +14,7 @@ from __future__ import annotations
 import asyncio
 import json
 import socket
-import time
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from pathlib import Path
 
 import aiohttp
@@ -28,6 +27,7 @@ from slamlens.common.messages import CameraFrame, Registration
 from slamlens.services.harness.procs import Service, spawn, stop
 from slamlens.services.harness.web_client import http, post_json
 from slamlens.services.visualiser.jpeg import JpegError, jpeg_size
+from tests.integration.viewer_rig import wait_until
 from tests.routes import put_until_seen
 
 KEYS = Keys()
@@ -70,15 +70,6 @@ def memory_mb(pid: int) -> dict[str, float]:
     fields = dict(line.split(":", 1) for line in Path(f"/proc/{pid}/status").read_text()
                   .splitlines() if ":" in line)
     return {k: int(fields[k].split()[0]) / 1024 for k in ("VmRSS", "VmHWM")}
-
-
-def wait_until(predicate: Callable[[], bool], timeout: float = 30.0) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return
-        time.sleep(0.05)
-    raise AssertionError("condition not met in time")
 
 
 @pytest.fixture
