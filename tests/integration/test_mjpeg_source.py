@@ -36,7 +36,8 @@ from slamlens.services.visualiser.camera_sources import SourceWatch
 from slamlens.services.visualiser.service import ViewerService
 from slamlens.services.visualiser.settings import ViewerConfig
 from slamlens.services.visualiser.web import WebServer
-from tests.integration.test_registration_service import Inbox, wait_for
+from tests.integration.test_registration_service import Inbox
+from tests.waiting import wait_until
 
 KEYS = Keys()
 ROBOT, CAMERA = "r1", "top"
@@ -129,19 +130,19 @@ def test_mjpeg_stream_registers_and_a_stall_is_shown_and_retried(
                  "--reconnect-max-s", "0.5", "--connect", router_endpoint)
     try:
         proc.wait_for_line("registration ready", timeout=60)
-        wait_for(lambda: len(regs) >= 1, timeout=60)  # the robot's marker registered it
+        wait_until(lambda: len(regs) >= 1, timeout=60)  # the robot's marker registered it
         first = frames.last()
         assert first.data in camera.jpegs and (first.width, first.height) == (W, H)
         assert sources_note(page) == ""
 
         camera.sending.clear()  # the camera stalls: the connection stays open, silent
-        wait_for(lambda: "source lost" in sources_note(page), timeout=60)
+        wait_until(lambda: "source lost" in sources_note(page), timeout=60)
         note = sources_note(page)
         assert "stalled" in note and "retrying" in note, note
 
         camera.sending.set()  # back: reopened, frames again, the note goes
         count = len(frames)
-        wait_for(lambda: len(frames) > count + 5 and sources_note(page) == "", timeout=60)
+        wait_until(lambda: len(frames) > count + 5 and sources_note(page) == "", timeout=60)
         assert frames.last().data in camera.jpegs
     finally:
         out, err = stop(proc)

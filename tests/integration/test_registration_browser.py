@@ -23,8 +23,9 @@ from slamlens.common.keys import Keys
 from slamlens.common.messages import CameraFrame, CameraPose, Registration
 from slamlens.services.harness.ar_video import Video, render_walk, truth_pixels, write_calibration
 from slamlens.services.harness.procs import spawn, stop
-from tests.integration.test_registration_service import Inbox, wait_for
+from tests.integration.test_registration_service import Inbox
 from tests.routes import put_until_seen
+from tests.waiting import wait_until
 
 KEYS = Keys()
 ROBOT = "r1"
@@ -131,7 +132,7 @@ def test_browser_cameras_register_leave_and_refuse(make_client, router_endpoint,
         def b_gone() -> bool:
             pub_a.put(frame_bytes(video, "phone-a", 13, time.time()))  # a keeps sending
             return KEYS.camera_alive("phone-b") not in client.alive(KEYS.any_camera_alive())
-        wait_for(b_gone, timeout=30.0)
+        wait_until(b_gone, timeout=30.0)
         assert KEYS.camera_alive("phone-a") in client.alive(KEYS.any_camera_alive())
     finally:
         out, err = stop(proc)

@@ -39,20 +39,12 @@ from slamlens.services.registration.synthetic import (
 from slamlens.services.slam.sim import Simulator
 from slamlens.services.slam.world import load_world
 from tests.routes import put_until_seen
+from tests.waiting import wait_until
 
 KEYS = Keys()
 ROBOT, CAMERA = "r1", "cam"
 MM, DEG = 5e-3, 0.5
 ARENA = (-1.0, -1.0, 2.0, 2.0)
-
-
-def wait_for(predicate: Callable[[], object], timeout: float = 15.0) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return
-        time.sleep(0.02)
-    assert predicate(), "timed out"
 
 
 def deliver(publisher, payload: bytes, seen: Callable[[], object],
@@ -169,7 +161,7 @@ def test_frames_registration_late_get_and_tracked_poses(make_client, run_service
     for truth in paper_truths[1:120]:
         truth_pub.put(truth.to_bytes())
         time.sleep(1 / 30)  # pacing: the robot drives in real time past the 30 fps camera
-    wait_for(lambda: len(tracked) > 40)
+    wait_until(lambda: len(tracked) > 40)
     errors = [np.linalg.norm(t.pose[:2] - by_stamp[t.stamp].pose[:2]) for t in tracked.all()]
     assert max(errors) < 0.01, max(errors)
     assert service.pipelines[0].stats.registrations == 1  # a fixed camera registers once
@@ -193,17 +185,17 @@ def test_reregister_on_request_and_bad_control_messages(make_client, run_service
     control.put(msgpack.packb({"schema": 1, "command": "explode"}))
     # in order on one publisher: once the bad one after it is counted, the other robot's
     # request was handled too
-    wait_for(lambda: service.drops.counts["CameraControl"] == bad + 1)
+    wait_until(lambda: service.drops.counts["CameraControl"] == bad + 1)
 
     # SLAM restarts with the robot somewhere else: that pose is the new map origin
     new_start = np.array([0.8, 0.6, 1.1])
     truth_pub.put(truth_at(new_start, 50.0).to_bytes())
     processed = service.pipelines[0].stats.processed
-    wait_for(lambda: service.pipelines[0].stats.processed >= processed + 5)  # 5 more frames
+    wait_until(lambda: service.pipelines[0].stats.processed >= processed + 5)  # 5 more frames
     assert service.pipelines[0].stats.registrations == 1  # the other robot's request ignored
     control.put(msgpack.packb({"schema": 1, "command": "reregister", "robot": ROBOT}))
-    wait_for(lambda: service.pipelines[0].stats.registrations == 2)
-    wait_for(lambda: registrations.last().stamp == 50.0)
+    wait_until(lambda: service.pipelines[0].stats.registrations == 2)
+    wait_until(lambda: registrations.last().stamp == 50.0)
     reg = registrations.last()
     expected = true_overhead_T_camera_from_map() @ T_from_pose2(new_start)
     dt, dr = pose_error(reg.T_camera_from_map, expected)
@@ -238,9 +230,9 @@ def test_vanished_folder_logs_once_and_keeps_serving_the_registration(
         service = run_service(source=str(folder), calibration=calibration, loop=True,
                               fps=20.0)
         stats = service.pipelines[0].stats
-        wait_for(lambda: stats.registrations == 1)
+        wait_until(lambda: stats.registrations == 1)
         shutil.rmtree(folder)
-        wait_for(lambda: service.pipelines[0].source.outages == 1)
+        wait_until(lambda: service.pipelines[0].source.outages == 1)
         published = stats.published
         time.sleep(1.0)  # what is tested: nothing is published during 1 s without a camera
     assert stats.published == published  # no frames without a camera …
@@ -265,7 +257,7 @@ def test_frames_of_another_size_than_the_calibration_are_not_registered(
     with caplog.at_level(logging.ERROR):
         service = run_service(source=str(folder), calibration=calibration, loop=True,
                               fps=20.0)
-        wait_for(lambda: service.pipelines[0].stats.size_mismatches >= 10)
+        wait_until(lambda: service.pipelines[0].stats.size_mismatches >= 10)
     assert len(frames) > 0 and frames.last().width == 640  # still shown …
     assert service.pipelines[0].stats.registrations == 0  # … never registered
     assert client.get(KEYS.registration(CAMERA, ROBOT)) == []
@@ -286,15 +278,15 @@ def test_video_file_that_ends_keeps_serving_the_registration(
     assert make_client().wait_for_subscriber(KEYS.frame(CAMERA))
     with caplog.at_level(logging.WARNING):
         service = run_service(source=str(video), calibration=calibration, fps=20.0)
-        wait_for(lambda: service.pipelines[0].stats.ended)
+        wait_until(lambda: service.pipelines[0].stats.ended)
     assert service.pipelines[0].stats.published == 8
     # frames are latest-wins (best effort): under load some may not arrive, and that is
     # by design; the ones that do are the file's, and the registration outlives the file
-    wait_for(lambda: len(frames) >= 1)
+    wait_until(lambda: len(frames) >= 1)
     assert all(1 <= f.seq <= 8 for f in frames.all())
     assert any("ended" in r.getMessage() for r in caplog.records)
     # registered from the frames it had, after the file ended (on its processing thread)
-    wait_for(lambda: service.pipelines[0].latest_registration is not None)
+    wait_until(lambda: service.pipelines[0].latest_registration is not None)
     (sample,) = client.get(KEYS.registration(CAMERA, ROBOT))
     reg = Registration.from_bytes(sample.payload)
     dt, dr = pose_error(reg.T_camera_from_map, true_overhead_T_camera_from_map())
@@ -333,9 +325,9 @@ def test_a_slow_subscriber_does_not_slow_the_camera(make_client, run_service) ->
 
     thread = threading.Thread(target=slow_viewer)
     thread.start()
-    wait_for(lambda: len(slow_times) >= 1)  # the slow one is busy with its frames
+    wait_until(lambda: len(slow_times) >= 1)  # the slow one is busy with its frames
     start_pub, start_fast, t0 = pipeline.stats.published, len(fast), time.monotonic()
-    wait_for(lambda: len(slow_times) >= 4, timeout=30.0)  # three more of its seconds
+    wait_until(lambda: len(slow_times) >= 4, timeout=30.0)  # three more of its seconds
     published = pipeline.stats.published - start_pub
     fast_got = len(fast) - start_fast
     slow_got = sum(1 for t in slow_times if t >= t0)
@@ -361,7 +353,7 @@ def test_head_mounted_stereo_follows_the_moving_cameras(make_client, run_service
     for stamp in stamps:  # the robot stays at the origin; the viewer walks around
         truth_pub.put(truth_at((0.0, 0.0, 0.0), float(stamp)).to_bytes())
         time.sleep(0.1)  # pacing: the truth in real time, as the 10 fps cameras walk
-    wait_for(lambda: all(len(registrations[n]) > 10 for n in names))
+    wait_until(lambda: all(len(registrations[n]) > 10 for n in names))
     for i, name in enumerate(names):
         checked = 0
         for reg in registrations[name].all()[-8:]:
@@ -438,14 +430,14 @@ def test_head_mounted_with_an_external_tracker(make_client, run_service) -> None
                                 T_world_from_camera=T_wc).to_bytes())
         truth_pub.put(truth_at((0.0, 0.0, 0.0), float(stamp)).to_bytes())
         time.sleep(0.1)  # pacing: a walk in real time past the 10 fps camera
-    wait_for(lambda: len(registrations) > 5)
+    wait_until(lambda: len(registrations) > 5)
     for reg in registrations.all()[-5:]:
         T_wc = orbit_pose(reg.stamp, centre_xy=(0.5, 0.5), period_s=period)
         dt, dr = pose_error(reg.T_camera_from_map, invert_T(T_wc))
         assert dt < 0.01 and dr < DEG, (dt, dr)
     assert service.pipelines[0].stats.camera_poses == 0  # it publishes no pose of its own
     # the tracker went quiet: the registration turns stale
-    wait_for(lambda: registrations.last().status == "camera pose lost", timeout=15.0)
+    wait_until(lambda: registrations.last().status == "camera pose lost", timeout=15.0)
 
 
 def test_calibrate_command_writes_a_loadable_calibration(tmp_path: Path) -> None:

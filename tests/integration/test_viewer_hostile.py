@@ -27,8 +27,8 @@ from slamlens.common.messages import CameraFrame, Registration
 from slamlens.services.harness.procs import Service, spawn, stop
 from slamlens.services.harness.web_client import http, post_json
 from slamlens.services.visualiser.jpeg import JpegError, jpeg_size
-from tests.integration.viewer_rig import wait_until
 from tests.routes import put_until_seen
+from tests.waiting import wait_until
 
 KEYS = Keys()
 ROBOT, CAMERA = "robot1", "top"

@@ -24,8 +24,8 @@ from slamlens.services.harness.web_client import http, post_json
 from slamlens.services.visualiser.service import ViewerService
 from slamlens.services.visualiser.settings import ViewerConfig
 from slamlens.services.visualiser.web import WebServer
-from tests.integration.viewer_rig import wait_until
 from tests.routes import put_until_seen
+from tests.waiting import wait_until
 
 KEYS = Keys()
 ROBOT = "robot1"

@@ -16,8 +16,8 @@ from tests.integration.viewer_rig import (
     ROBOT,
     make_registration,
     status_of,
-    wait_until,
 )
+from tests.waiting import wait_until
 
 # the browser fixture of that module, used here too (the viewer's: tests/integration/conftest.py)
 browser = browser_test.browser

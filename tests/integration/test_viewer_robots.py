@@ -27,8 +27,8 @@ from tests.integration.viewer_rig import (
     red_pixels,
     snapshot,
     status_of,
-    wait_until,
 )
+from tests.waiting import wait_until
 
 # ------------------------------------------------------------------------------ several robots
 R2_OFFSET = np.array([0.6, 0.9])  # robot r2's map origin in robot1's map frame

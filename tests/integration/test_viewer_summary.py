@@ -28,8 +28,8 @@ from tests.integration.viewer_rig import (
     red_pixels,
     snapshot,
     status_of,
-    wait_until,
 )
+from tests.waiting import wait_until
 
 KEYS = Keys()
 

@@ -5,7 +5,6 @@ to them (tests/integration/conftest.py hands the fixtures to every test there)."
 from __future__ import annotations
 
 import json
-import time
 import urllib.error
 import urllib.request
 from collections.abc import Callable, Iterator
@@ -107,16 +106,6 @@ def snapshot(url: str, client: str | None = None) -> tuple[np.ndarray, dict[str,
     image = cv2.imdecode(np.frombuffer(body, np.uint8), cv2.IMREAD_COLOR)
     assert image is not None
     return image, headers
-
-
-def wait_until(predicate: Callable[[], bool], timeout: float = 30.0) -> None:
-    """Until ``predicate`` holds (polled; ``timeout`` is a bound, never a pacing)."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if predicate():
-            return
-        time.sleep(0.02)
-    raise AssertionError("condition not met in time")
 
 
 def status_of(url: str) -> dict:
