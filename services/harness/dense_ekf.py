@@ -33,7 +33,7 @@ import numpy as np
 from slamlens.common.messages import Observations, Odometry
 from slamlens.services.slam.settings import EstimatorSettings
 
-CAPACITY = 64  #: landmarks the arrays hold
+CAPACITY = 256  #: landmarks the arrays hold (Victoria Park has 151)
 
 
 @dataclass(frozen=True)
@@ -187,7 +187,8 @@ class DenseEkf:
         PHt = P[:n, :n] @ H.T
         R = (self.range_variance(z_range, z_bearing), self.s.sigma_bearing ** 2)
         S = H @ PHt + np.diag(R)
-        if float(nu @ np.linalg.solve(S, nu)) > self.s.innovation_gate_chi2:
+        gate = self.s.innovation_gate_chi2  # 0 = no gate (docs/estimator.md)
+        if gate and float(nu @ np.linalg.solve(S, nu)) > gate:
             self.gated += 1
             return None
         self.parts.append((nu[0] ** 2, nu[1] ** 2, S[0, 0], S[1, 1], *R))
