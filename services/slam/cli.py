@@ -193,14 +193,25 @@ def _replay_robots(s: ReplaySettings) -> list[tuple[int, str]]:
     return [(k, f"robot{k}") for k in numbers]
 
 
-def _run_replay(args: argparse.Namespace) -> int:
-    from slamlens.services.slam.drivers import Fleet, play
+def _replay_runs(s: ReplaySettings) -> list[Any]:
+    """The dataset's runs to replay, one per robot (MRCLAM or Victoria Park)."""
+    if s.format == "victoria-park":
+        from slamlens.services.slam.victoria_park import load_victoria_park
+
+        if s.robots:
+            raise ConfigError("--robots is for MRCLAM; Victoria Park is one robot (--robot R)")
+        return [load_victoria_park(s.path, robot=s.robot, step_s=s.step_s)]
     from slamlens.services.slam.mrclam import load_mrclam
 
+    return [load_mrclam(s.path, robot=k, robot_name=name) for k, name in _replay_robots(s)]
+
+
+def _run_replay(args: argparse.Namespace) -> int:
+    from slamlens.services.slam.drivers import Fleet, play
+
     s = settings_from_args(ReplaySettings, args)
-    robots = _replay_robots(s)
-    runs = [load_mrclam(s.path, robot=k, robot_name=name) for k, name in robots]
-    names = [name for _, name in robots]
+    runs = _replay_runs(s)
+    names = [run_.robot for run_ in runs]
     stop = stop_event()
     bus = command_bus(args)
     try:

@@ -102,11 +102,15 @@ class ReplaySettings:
     """``slamlens replay``: a recorded dataset as a robot driver (docs/drivers.md)."""
 
     path: str = setting("", doc="dataset folder (e.g. ../shared/data/mrclam6, or a rosbag2 "
-                                "folder)", positional=True, required=True, metavar="PATH")
+                                "folder), or GTSAM's victoria_park.txt", positional=True,
+                        required=True, metavar="PATH")
     robot: str = _robot()
     format: str = setting("mrclam", doc="dataset format: mrclam | rosbag2 (a bag of a ROS 2 "
-                                        "robot's topics, docs/ros2.md)",
-                          choices=("mrclam", "rosbag2"))
+                                        "robot's topics, docs/ros2.md) | victoria-park (GTSAM's "
+                                        "text file, docs/drivers.md)",
+                          choices=("mrclam", "rosbag2", "victoria-park"))
+    step_s: float = setting(0.2, doc="victoria-park: seconds per pose step (the file has no "
+                                     "times)", unit="s", min=1e-3, metavar="SECONDS")
     from_ros: str = setting("inputs", doc="rosbag2: play the bag's /R/odom and "
                                           "/R/landmarks/observations as the robot's inputs, or "
                                           "its /R/slam/estimate (or /R/slam/pose) as its states",

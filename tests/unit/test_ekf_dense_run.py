@@ -1,6 +1,7 @@
 """The shipped Estimator against a dense textbook EKF (services/harness/dense_ekf.py, written
 from docs/estimator.md) over whole real runs: MRCLAM robot 1's first minutes
-(tests/fixtures/mrclam_small) with the shipped profile's noise, each linearisation. The
+(tests/fixtures/mrclam_small) with the shipped profile's noise, each linearisation, and all of
+Victoria Park (151 landmarks, GTSAM's file with its own noise). The
 kernels' own tests check one step from random states; this checks what a run strings
 together — the batch order (message order, or updates before new landmarks), FEJ's points
 as they move, the gate, the new landmarks' rows — after every input, to rounding."""
@@ -20,6 +21,7 @@ from slamlens.services.harness.dense_ekf import DenseEkf
 from slamlens.services.slam.estimator import Estimator
 from slamlens.services.slam.mrclam import load_mrclam
 from slamlens.services.slam.settings import EstimatorSettings
+from slamlens.services.slam.victoria_park import load_victoria_park
 
 REPO = Path(__file__).resolve().parents[2]
 SMALL = REPO / "tests" / "fixtures" / "mrclam_small"
@@ -45,6 +47,18 @@ def test_the_estimator_is_the_dense_ekf_over_a_real_run(linearisation: str,
     updates = run_both(est, dense, run.events(truth=False))
     assert updates > 50 and est.n >= 5
     assert est.gated == dense.gated and (dense.gated > 0) == (gate == 1.0)
+
+
+@pytest.mark.parametrize("linearisation", ["standard", "oc"])
+def test_the_estimator_is_the_dense_ekf_over_victoria_park(linearisation: str) -> None:
+    """A second real dataset, a larger map: all of Victoria Park (GTSAM's file, its own
+    noise: deploy/victoria_park.toml), each step played as two Odometry, no gate."""
+    settings = replace(load_settings(EstimatorSettings, REPO / "deploy" / "victoria_park.toml"),
+                       linearisation=linearisation, robot="robot1")
+    run = load_victoria_park(REPO.parent / "shared" / "data" / "victoria_park")
+    est, dense = Estimator(settings), DenseEkf(settings)
+    updates = run_both(est, dense, run.events())
+    assert updates == 3640 - 151 and est.n == 151 and est.gated == dense.gated == 0
 
 
 def run_both(est: Estimator, dense: DenseEkf, events) -> int:
