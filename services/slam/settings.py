@@ -110,7 +110,8 @@ class ReplaySettings:
                                         "text file, docs/drivers.md)",
                           choices=("mrclam", "rosbag2", "victoria-park"))
     step_s: float = setting(0.2, doc="victoria-park: seconds per pose step (the file has no "
-                                     "times)", unit="s", min=1e-3, metavar="SECONDS")
+                                     "times; deploy/victoria_park.toml's σv, σω are for 0.2)",
+                            unit="s", min=1e-3, metavar="SECONDS")
     from_ros: str = setting("inputs", doc="rosbag2: play the bag's /R/odom and "
                                           "/R/landmarks/observations as the robot's inputs, or "
                                           "its /R/slam/estimate (or /R/slam/pose) as its states",
