@@ -10,6 +10,11 @@ their band, the Healths by verdict, the kinds of violation that stood, and wheth
 estimator fault was seen. Drawn (``--out``): the OC map and path over odometry alone, and
 the NIS window means against their band with the verdict.
 
+``--snapshot PNG`` instead runs the park through the real processes at ``--rate 0`` (router,
+estimator with the profile, viewer, ``slamlens replay --format victoria-park``), prints the
+replay's final line (every input applied, its wall time) and saves the viewer's
+``/snapshot.png`` of the last state: the map view, 151 trees, their pairs' P_d.
+
 ``--grid`` instead runs the OC estimator alone (no monitor) with the profile's sensor σ and
 motion σ scaled over a grid, and with a χ² gate: is there a white-noise model whose NIS is
 in its band? Printed per setting: NIS mean and median, and the share of consecutive
@@ -179,12 +184,49 @@ def grid_row(setting: tuple[float, float, float]) -> str:
             f"{np.mean(windows > hi):.0%}; final pose ({est.pose[0]:.1f}, {est.pose[1]:.1f}) m")
 
 
+def snapshot(out: Path) -> None:
+    """The processes' run and the viewer's picture of it (module docstring)."""
+    import urllib.request
+
+    from slamlens.common.session import free_tcp_endpoint
+    from slamlens.services.harness.procs import spawn, stop
+
+    endpoint = free_tcp_endpoint()
+    procs = [spawn("router", "--listen", endpoint)]
+    try:
+        procs[0].wait_for_line("router ready", timeout=30)
+        procs.append(spawn("estimator", "--config", str(PROFILE), "--robot", "park",
+                           "--connect", endpoint))
+        procs.append(spawn("viewer", "--robot", "park", "--http", "127.0.0.1:0",
+                           "--connect", endpoint))
+        procs[1].wait_for_line("estimator ready", timeout=60)
+        url = procs[2].wait_for_line("viewer ready", timeout=60).split()[-1].rstrip("/")
+        replay = spawn("replay", str(DATA), "--format", "victoria-park", "--robot", "park",
+                       "--rate", "0", "--connect", endpoint)
+        procs.append(replay)
+        print(replay.wait_for_line("replay done", timeout=600).strip(), flush=True)
+        # the snapshot waits (up to 3 s) for a picture of the newest inputs
+        png = urllib.request.urlopen(f"{url}/snapshot.png", timeout=60).read()
+        out.parent.mkdir(parents=True, exist_ok=True)
+        out.write_bytes(png)
+        print(f"wrote {out}")
+    finally:
+        for proc in reversed(procs):
+            if proc.poll() is None:
+                stop(proc)
+
+
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--out", default=str(REPO / "docs" / "figures" / "victoria_park.png"))
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--grid", action="store_true", help="the noise grid (no monitor)")
+    parser.add_argument("--snapshot", default="", metavar="PNG",
+                        help="the processes' run and the viewer's picture, saved here")
     args = parser.parse_args()
+    if args.snapshot:
+        snapshot(Path(args.snapshot))
+        return 0
     if args.grid:
         with ProcessPoolExecutor(max(1, args.jobs)) as pool:
             for line in pool.map(grid_row, GRID):
