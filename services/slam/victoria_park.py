@@ -33,8 +33,10 @@ Conventions (also in ``docs/drivers.md``):
   equals GTSAM's pose composition exactly (a step shorter than 1 µm, where α means nothing,
   is played straight: α = 0). The played speeds stay the car's (≤ 8.2 m/s) and the turn
   rates small (≤ 2.9 rad/s).
-* Malformed lines (unknown tag, wrong column count, not numbers, NaN, a broken chain) are
-  skipped and counted, with one log line per load.
+* Malformed lines (unknown tag, wrong column count, not numbers, NaN) are skipped and
+  counted, with one log line per load. An ODOMETRY line that does not continue the chain
+  (a step lost to a malformed line) ends the run there, with its own log line: no pose after
+  it could be placed.
 """
 
 from __future__ import annotations
@@ -65,8 +67,10 @@ class VictoriaParkStats:
 
     odometry: int = 0  #: odometry steps kept (the chain's edges)
     sightings: int = 0  #: landmark sightings kept
-    bad_lines: int = 0  #: malformed lines skipped
+    bad_lines: int = 0  #: malformed lines skipped (off-chain ones included)
     first_bad: str = ""  #: the first of them, for the log line
+    off_chain: int = 0  #: ODOMETRY lines after the chain broke (the run ends there)
+    chain_ends_at: int | None = None  #: the pose where it broke, if it did
 
 
 @dataclass(frozen=True)
@@ -170,14 +174,16 @@ def _parse(path: Path, stats: VictoriaParkStats) -> tuple[list[list[float]], lis
 
 
 def _chain(odometry: list[list[float]], stats: VictoriaParkStats) -> np.ndarray:
-    """The odometry rows that continue the chain from its first pose (others counted)."""
+    """The odometry rows that continue the chain from its first pose. A row that does not
+    (a step lost to a malformed line, or a file out of order) ends the run there: no pose
+    after it can be placed. The rows after it are counted."""
     kept: list[list[float]] = []
     for row in odometry:
         if kept and row[0] != kept[-1][1]:
-            stats.bad_lines += 1
-            stats.first_bad = stats.first_bad or f"ODOMETRY {row[0]:.0f} {row[1]:.0f}: " \
-                                                 "does not continue the chain"
-            continue
+            stats.chain_ends_at = int(kept[-1][1])
+            stats.off_chain = len(odometry) - len(kept)
+            stats.bad_lines += stats.off_chain
+            break
         kept.append(row)
     return np.array(kept, dtype=float).reshape(-1, 11)
 
@@ -217,9 +223,13 @@ def load_victoria_park(path: str | Path, *, robot: str = "robot1",
     sightings = np.column_stack([k, landmarks[:, 1:4]])
     sightings = sightings[np.argsort(k, kind="stable")]
     stats.odometry, stats.sightings = int(odometry.shape[0]), int(sightings.shape[0])
-    if stats.bad_lines:
+    if stats.bad_lines - stats.off_chain:
         log.warning("Victoria Park %s: %d malformed line(s) skipped, first %s", path.name,
-                    stats.bad_lines, stats.first_bad)
+                    stats.bad_lines - stats.off_chain, stats.first_bad)
+    if stats.off_chain:
+        log.warning("Victoria Park %s: the odometry chain breaks after pose %d: the run ends "
+                    "there, %d later ODOMETRY line(s) unused", path.name,
+                    stats.chain_ends_at, stats.off_chain)
     return VictoriaParkRun(robot=robot, poses=frozen_array(poses, "<i8"),
                            steps=frozen_array(odometry[:, 2:5], "<f8"),
                            sightings=frozen_array(sightings, "<f8"),

@@ -110,6 +110,8 @@ def test_bad_lines_are_counted_and_bad_files_refused(tmp_path: Path) -> None:
     run = load_victoria_park(path)
     assert run.steps.shape == (2, 3) and run.stats.sightings == 1
     assert run.stats.bad_lines == len(bad)
+    # the chain breaks after pose 3 (its next step was the NaN line): the run ends there
+    assert (run.stats.chain_ends_at, run.stats.off_chain) == (3, 1)
     path.write_text(good[0] + "\nLANDMARK 1 2 3.0 1.0 0.4 0 0.1\n")  # anisotropic
     with pytest.raises(SourceError, match="not isotropic"):
         load_victoria_park(path)
@@ -130,3 +132,40 @@ def test_a_longer_step_plays_the_same_poses(run) -> None:
             a = models.motion(a, v=m.v, w=m.w, dt=m.dt)
             b = models.motion(b, v=n.v, w=n.w, dt=n.dt)
     np.testing.assert_allclose(a, b, atol=1e-9)
+
+
+def test_a_corrupted_file_is_read_or_refused_never_crashes(tmp_path: Path) -> None:
+    """Lines of the real file, each corrupted at random (a token dropped, doubled, turned to
+    text, NaN or ±inf, a tag misspelt, bytes not UTF-8): every load keeps the good lines and
+    counts the others, or refuses the file with a SourceError — never another exception."""
+    lines = FILE.read_text().splitlines()[:400]
+    rng = np.random.default_rng(7)
+    outcomes = {"read": 0, "refused": 0}
+    for trial in range(60):
+        out = []
+        for line in lines:
+            tokens = line.split()
+            kind = rng.integers(12)
+            k = int(rng.integers(len(tokens)))
+            if kind == 0:
+                tokens.pop(k)
+            elif kind == 1:
+                tokens.insert(k, tokens[k])
+            elif kind == 2:
+                tokens[k] = rng.choice(["x", "nan", "inf", "-inf", "1e999", "", "#"])
+            elif kind == 3:
+                tokens[0] = tokens[0].lower()
+            out.append(" ".join(tokens))
+        path = tmp_path / f"corrupt{trial}.txt"
+        path.write_bytes("\n".join(out).encode() + (b"\xff\xfe\n" if trial % 2 else b""))
+        try:
+            run = load_victoria_park(path)
+        except SourceError:
+            outcomes["refused"] += 1
+            continue
+        outcomes["read"] += 1
+        assert run.stats.bad_lines > 0 and run.steps.shape[0] >= 1
+        assert np.isfinite(run.steps).all() and np.isfinite(run.sightings).all()
+        for m in run.events():  # every message it makes is valid (constructed, checked)
+            assert np.isfinite(m.stamp)
+    assert outcomes["read"] > 0, outcomes
