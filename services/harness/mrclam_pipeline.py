@@ -30,6 +30,9 @@ from slamlens.services.slam.settings import EstimatorSettings
 
 DATA = REPO.parent / "shared" / "data" / "mrclam6"
 PROFILE = REPO / "deploy" / "mrclam.toml"
+#: the truth "covers" a state when it has samples ≤ 0.5 s apart over the 3 s before it: time
+#: for the monitor's pose NEES window to judge again after a gap (docs/monitor.md)
+TRUTH_SPAN_S = 3.0
 
 def _monitor_nis_band() -> tuple[int, float, float]:
     s = MonitorSettings()
@@ -61,6 +64,8 @@ class PipelineResult:
     verdicts: dict[str, int]  #: Health verdicts received, by verdict
     #: "tuning" Healths by the kinds standing (e.g. "nees", "nis", "nees+nis")
     tuning_kinds: dict[str, int] = field(default_factory=dict)
+    #: "tuning" Healths with no NEES standing where the truth covers the last TRUTH_SPAN_S
+    tuning_without_nees_with_truth: int = 0
     fault_healths: list[dict] = field(default_factory=list)  #: a few "fault" ones, if any
     estimator: dict = field(default_factory=dict)  #: its final line
     monitor: dict = field(default_factory=dict)  #: its final line
@@ -84,6 +89,8 @@ class _Collector:
         self.last: SlamState | None = None
         self.verdicts: dict[str, int] = {}
         self.tuning_kinds: dict[str, int] = {}
+        self.truth = truth
+        self.tuning_without_nees_with_truth = 0
         self.faults: list[dict] = []
         self.healths_of_inputs = 0
         self.errors: list[str] = []
@@ -118,6 +125,9 @@ class _Collector:
             if health.verdict == "tuning":
                 kinds = "+".join(sorted({v.kind for v in health.standing}))
                 self.tuning_kinds[kinds] = self.tuning_kinds.get(kinds, 0) + 1
+                if "nees" not in kinds.split("+") and self.truth.covers(
+                        health.stamp, before_s=TRUTH_SPAN_S):
+                    self.tuning_without_nees_with_truth += 1
             self.healths_of_inputs += health.seq > 0
             if health.verdict == "fault" and len(self.faults) < 5:
                 self.faults.append({"seq": health.seq, "standing": [
@@ -196,6 +206,7 @@ def run_pipeline(robot_index: int, *, profile: Path = PROFILE, data: Path = DATA
         return PipelineResult(
             evaluation=evaluation, states=collector.count, last_seq=last.seq,
             verdicts=dict(collector.verdicts), tuning_kinds=dict(collector.tuning_kinds),
+            tuning_without_nees_with_truth=collector.tuning_without_nees_with_truth,
             fault_healths=collector.faults,
             estimator=estimator, monitor=monitor, replay_line=replay_line.strip(),
             monitor_log=mon_err, monitor_out=mon_out, wall_s=wall)

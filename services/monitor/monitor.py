@@ -76,6 +76,7 @@ class Monitor:
         self.settings = settings
         s = settings
         self._nis = WindowTest(dof=2, window=s.nis_window, alpha=s.significance, dependent=False)
+        self._nis_passed = False  #: the newest NIS window of the state being checked passed
         self._evidence = Evidence(half_life=s.evidence_half_life,
                                   suspect_score=s.suspect_score, suspect_ratio=s.suspect_ratio)
         self._verdict = Verdict(clear_after=s.clear_after,
@@ -214,7 +215,9 @@ class Monitor:
         verdict = self._verdict.update(
             state.seq, [_finite(v) for v in found], suspects,
             pose_consistent=self._truth.pose_nees_in_band(
-                state.seq, within=self.settings.clear_after))
+                state.seq, within=self.settings.clear_after),
+            passed=("nis",) if self._nis_passed else ())
+        self._nis_passed = False
         return Health(robot=state.robot, seq=state.seq, stamp=state.stamp, ok=not found,
                       suspects=frozen_array(suspects, "<i8") if suspects else _NO_IDS,
                       violations=tuple(_finite(v) for v in self._cap(found)),
@@ -270,6 +273,7 @@ class Monitor:
                 stats["nis"] = float(good.mean())
                 stats["nis_lo"], stats["nis_hi"] = self._nis.sample_lo, self._nis.sample_hi
             for r in self._nis.add(good):
+                self._nis_passed = not r.failed  # the newest window of this state decides
                 if r.failed:
                     out.append(Violation(
                         kind="nis", ids=(), step=state.seq, value=r.mean, bound=r.edge,

@@ -20,7 +20,10 @@ violations that stand and gives one word for them:
 Clearance rule (docs/monitor.md): a violation stands from the state it was seen in until
 ``clear_after`` further states were checked without it (same kind, same ids); a ``fault``
 also stands while the monitor names any suspect (its blame evidence decays with the
-monitor's half-life). The page, the picture's legend, the terminal and ``slamlens status``
+monitor's half-life). A NIS violation also needs a NIS window that passed after it: its
+windows complete only as innovations come (on real data hundreds or thousands of states
+apart), so states without one are no evidence that the innovations fit again.
+The page, the picture's legend, the terminal and ``slamlens status``
 all show this one verdict and its standing violations.
 """
 
@@ -39,6 +42,8 @@ from slamlens.common.verdict import (  # noqa: F401  (the one wording: common/ve
 FAULT_KINDS = ("pair", "feature", "prediction", "symmetry", "psd", "correlation",
                "unobservable")
 TUNING_KINDS = ("nees", "nis")
+#: kinds that clear only once a window of theirs passed, too (module docstring)
+CLEARED_BY_A_PASS = ("nis",)
 VERDICTS = ("ok", "fault", "tuning")
 _RANK = {k: i for i, k in enumerate(FAULT_KINDS + TUNING_KINDS)}
 
@@ -50,6 +55,7 @@ class _Standing:
     count: int  #: states it was seen in
     worst: Violation  #: the largest value seen
     shown: Violation | None = None  #: as listed (rebuilt only when it changed)
+    passed: bool = False  #: a window of its kind passed since it was last seen
 
 
 class Verdict:
@@ -67,21 +73,27 @@ class Verdict:
         self.since: int | None = None  #: seq where the current verdict began
 
     def update(self, seq: int, found: list[Violation], suspects: tuple[int, ...], *,
-               pose_consistent: bool = False) -> str:
+               pose_consistent: bool = False, passed: tuple[str, ...] = ()) -> str:
         """Take the violations of state ``seq`` and the current suspects; the verdict.
         ``pose_consistent``: the truth says the pose covariance is right now (module
-        docstring: a NIS window below its band then does not make ``tuning``)."""
+        docstring: a NIS window below its band then does not make ``tuning``). ``passed``:
+        the kinds of :data:`CLEARED_BY_A_PASS` whose newest window, at this state, passed
+        (a failed window of the same state before it then counts as passed after)."""
         for v in found:
             key = (v.kind, tuple(sorted(v.ids)), below_band(v))  # two sides stand apart
             s = self._standing.get(key)
             if s is None:
                 self._standing[key] = _Standing(first=seq, last=seq, count=1, worst=v)
             else:
-                s.last, s.count, s.shown = seq, s.count + 1, None
+                s.last, s.count, s.shown, s.passed = seq, s.count + 1, None, False
                 if v.value > s.worst.value:
                     s.worst = v
             self._listed = None
-        expired = [k for k, s in self._standing.items() if seq - s.last > self.clear_after]
+        for key, s in self._standing.items():
+            if key[0] in passed:
+                s.passed = True
+        expired = [k for k, s in self._standing.items() if seq - s.last > self.clear_after
+                   and (s.passed or k[0] not in CLEARED_BY_A_PASS)]
         for key in expired:
             del self._standing[key]
             self._listed = None

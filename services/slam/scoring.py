@@ -76,6 +76,18 @@ class TruthTrack:
         return np.array([ax + f * (bx - ax), ay + f * (by - ay),
                          _wrap(at + f * _wrap(bt - at))])
 
+    def covers(self, t: float, *, within_s: float = 0.5, before_s: float = 0.0) -> bool:
+        """Whether the track has a sample within ``within_s`` of ``t`` and of every point
+        ``within_s`` apart over the ``before_s`` before it (no gap, start or end there)."""
+        s = self.stamps
+        for k in range(int(before_s / within_s) + 1):
+            at = t - k * within_s
+            i = int(np.searchsorted(s, at))
+            if not any(0 <= j < s.size and abs(float(s[j]) - at) <= within_s
+                       for j in (i - 1, i)):
+                return False
+        return True
+
     def _index_after(self, t: float) -> int:
         """``searchsorted(stamps, t, side="right")``, walking on from the last answer."""
         s = self.stamps

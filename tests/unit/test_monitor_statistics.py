@@ -180,3 +180,28 @@ def test_window_bands_follow_the_documented_distributions() -> None:
     results = dep.add(np.full(120, 3.0))
     assert len(results) == 2 and not results[0].failed and dep.sliding_mean == 3.0
 
+
+
+def test_a_failed_nis_window_stands_until_a_window_passes_however_many_states(
+        correct_run) -> None:
+    """Innovations sparse, as on real data: a timid first window (every S × 4), then 250
+    states whose innovations the monitor is not given (more than clear_after = 200), then the
+    run's own. Without a window in between there is no evidence the innovations fit again:
+    "tuning" throughout; the run's next windows pass and it clears."""
+    states, _ = correct_run
+    settings = MonitorSettings(nis_window=20)
+
+    def timid(s):
+        return s if s.innovation_covariances is None else dataclasses.replace(
+            s, innovation_covariances=s.innovation_covariances * 4.0)
+
+    probe = feed(Monitor(settings), [timid(s) for s in states])
+    failed = next(k for k, h in enumerate(probe) if h.violations)
+    quiet = range(failed + 1, failed + 251)
+    sparse = [timid(s) if k <= failed else dataclasses.replace(
+        s, innovations=None, innovation_covariances=None, innovation_ids=None)
+        if k in quiet else s for k, s in enumerate(states)]
+    healths = feed(Monitor(settings), sparse)
+    assert settings.clear_after == 200 and len(quiet) > settings.clear_after
+    assert {healths[k].verdict for k in quiet} == {"tuning"}
+    assert healths[-1].verdict == "ok" and not healths[-1].standing

@@ -78,3 +78,34 @@ def test_a_timid_nis_is_tuning_unless_the_truth_bears_the_pose_covariance_out() 
     assert other.verdict == "tuning"
     timid_nees = Violation(kind="nees", ids=(), step=1, value=0.01, bound=0.2)
     assert Verdict().update(1, [timid_nees], (), pose_consistent=True) == "tuning"
+
+
+def test_a_nis_violation_clears_only_after_a_nis_window_passed() -> None:
+    """Its windows come with innovations, which may be far apart: clear_after states without
+    a failed window are not evidence by themselves; a passing window after it is needed too."""
+    nis = Violation(kind="nis", ids=(), step=1, value=4.0, bound=3.7)
+    verdict = Verdict(clear_after=10)
+    verdict.update(1, [nis], ())
+    assert {verdict.update(k, [], ()) for k in range(2, 500)} == {"tuning"}  # no window
+    assert verdict.update(500, [], (), passed=("nis",)) == "ok"  # long ago, and one passed
+    # a pass soon after: it still stands its clear_after states, then clears
+    verdict.update(600, [nis], ())
+    verdict.update(603, [], (), passed=("nis",))
+    assert [verdict.update(k, [], ()) for k in (610, 611)] == ["tuning", "ok"]
+    # a new failure after a pass needs a new pass
+    verdict.update(700, [nis], ())
+    verdict.update(701, [], (), passed=("nis",))
+    verdict.update(702, [nis], ())
+    assert verdict.update(800, [], ()) == "tuning"
+    # the same state's newest window decides: failed then passed counts as passed after it
+    other = Verdict(clear_after=10)
+    other.update(1, [nis], (), passed=("nis",))
+    assert other.update(12, [], ()) == "ok"
+
+
+def test_a_nis_pass_clears_no_other_kind_and_other_kinds_keep_their_rule() -> None:
+    verdict = Verdict(clear_after=10)
+    verdict.update(1, [v("nees"), v("nis")], ())
+    assert verdict.update(5, [], (), passed=("nis",)) == "tuning"
+    assert [s.kind for s in verdict.standing()] == ["nees", "nis"]
+    assert verdict.update(12, [], ()) == "ok"  # the NEES by clear_after, the NIS by both

@@ -58,6 +58,16 @@ def test_truth_track_interpolates_the_angle_the_short_way_round() -> None:
     assert track.pose_at(-0.1) is None and track.pose_at(1.1) is None
 
 
+def test_truth_track_covers_a_stamp_with_no_gap_before_it() -> None:
+    stamps = np.r_[np.arange(0.0, 10.0, 0.1), np.arange(12.0, 20.0, 0.1)]  # a 2 s gap
+    track = scoring.TruthTrack(stamps, np.zeros((stamps.size, 3)), np.zeros(0, np.int64),
+                               np.zeros((0, 2)))
+    assert track.covers(5.0) and track.covers(10.3) and not track.covers(11.0)
+    assert track.covers(9.0, before_s=3.0) and not track.covers(13.0, before_s=3.0)
+    assert track.covers(15.5, before_s=3.0) and not track.covers(2.0, before_s=3.0)
+    assert not track.covers(20.6) and not track.covers(-0.6)
+
+
 def test_pose_nees_rigid_fit_and_band() -> None:
     P = np.diag([0.25, 0.25, 0.01])
     assert scoring.pose_nees(np.array([1.0, 0.0, 0.1]), P) == pytest.approx(4.0 + 1.0)
