@@ -1,7 +1,9 @@
 """The monitor's verdict on a third party's conservative filter (docs/protocol.md, Health
 ``verdict``): a NIS window below its band makes ``"tuning"`` without a truth, does not while
 the pose NEES against a truth is in its band, and makes it again once the truth is gone
-for longer than the monitor's clearance (docs/monitor.md, "The verdict").
+for longer than the monitor's clearance (docs/monitor.md, "The verdict"); and a failed NIS
+window stands, however many states come without innovations, until a NIS window passes
+(docs/monitor.md, "Clearance rule").
 
 The third party publishes, in lock step with the monitor's Health of each seq, states whose
 pose error is drawn from their own P (pose NEES ≈ 3) and whose innovations are drawn from
@@ -48,8 +50,10 @@ class Conservative:
             self.healths[int(health["seq"])] = health
             self.heard.notify_all()
 
-    def step(self, *, truth: bool) -> dict[str, Any]:
-        """One more state (after its truth, if ``truth``); the monitor's Health of it."""
+    def step(self, *, truth: bool, s_over: float | None = 4.0) -> dict[str, Any]:
+        """One more state (after its truth, if ``truth``); the monitor's Health of it. Its
+        innovations are drawn from S / ``s_over``; None: none (its sightings, say, all new
+        landmarks the state does not list: P unchanged, as in every state here)."""
         self.seq += 1
         stamp = 0.1 * self.seq
         true_pose = np.array([0.5 * np.cos(stamp), 0.5 * np.sin(stamp), stamp])
@@ -63,18 +67,19 @@ class Conservative:
         cov = np.zeros((3 + 2 * n, 3 + 2 * n))
         cov[:3, :3] = P_POSE
         cov[3:, 3:] = np.eye(2 * n) * SIGMA_LM ** 2
-        nu = self.rng.multivariate_normal(np.zeros(2), S / 4.0, INNOVATIONS)
+        fields: dict[str, Any] = {} if s_over is None else {
+            "innovation_ids": wire.array([LANDMARK_IDS[k % n] for k in range(INNOVATIONS)],
+                                         "<i8"),
+            "innovations": wire.array(self.rng.multivariate_normal(
+                np.zeros(2), S / s_over, INNOVATIONS), "<f8"),
+            "innovation_covariances": wire.array(np.repeat(S[None], INNOVATIONS, 0), "<f8")}
         state = wire.pack({
             "robot": ROBOT, "seq": self.seq, "stamp": stamp, "step": "update",
             "pose": wire.array([pose[0], pose[1], np.arctan2(np.sin(pose[2]),
                                                              np.cos(pose[2]))], "<f8"),
             "landmark_ids": wire.array(LANDMARK_IDS, "<i8"),
             "landmarks": wire.array(LANDMARKS + SIGMA_LM, "<f8"),  # feature NEES 2 each
-            "covariance": wire.array(cov.reshape(-1), "<f8"),
-            "innovation_ids": wire.array([LANDMARK_IDS[k % n] for k in range(INNOVATIONS)],
-                                         "<i8"),
-            "innovations": wire.array(nu, "<f8"),
-            "innovation_covariances": wire.array(np.repeat(S[None], INNOVATIONS, 0), "<f8")})
+            "covariance": wire.array(cov.reshape(-1), "<f8"), **fields})
         with self.heard:
             for _ in range(int(wire.PATIENCE_S / 5)):
                 self.states.put(state)  # again if unheard: a late subscriber, a lost sample
@@ -124,6 +129,33 @@ def test_a_timid_nis_is_ok_only_while_the_truth_bears_the_pose_out(router: int) 
             health = party.step(truth=False)
         assert health["verdict"] == "tuning" and timid_nis(health), health
         assert party.seq - stopped > 50 and ok_from > 30  # it did hold "ok" for a while
+    finally:
+        party.close()
+        monitor.stop()
+
+
+def test_a_failed_nis_window_stands_until_a_nis_window_passes(router: int) -> None:
+    monitor = launch("monitor", "--robot", ROBOT, "--connect", endpoint(router))
+    wait_ready(monitor, "monitor ready")
+    party = Conservative(router)
+    try:
+        wire.wait_matched(party.session, wire.key(ROBOT, "state"))
+        health = party.step(truth=False)
+        while not timid_nis(health):
+            assert party.seq < 100, f"no NIS window below its band by seq {party.seq}"
+            health = party.step(truth=False)
+        # states without innovations, more of them than the clearance: no window, no
+        # evidence
+        for _ in range(CLEAR_AFTER + 50):
+            health = party.step(truth=False, s_over=None)
+            assert health["verdict"] == "tuning" and timid_nis(health), health
+        # innovations as S says: once a window passed, and the clearance after the last
+        # failed one, "ok"
+        passed_from = party.seq
+        while health.get("verdict", "ok") != "ok":
+            assert party.seq < passed_from + 400, f"still {health['verdict']}"
+            health = party.step(truth=False, s_over=1.0)
+        assert not health.get("standing"), health
     finally:
         party.close()
         monitor.stop()
