@@ -117,8 +117,9 @@ class MonitorSettings:
         min=0.001, max=1.0, group=_BLAME)
     clear_after: int = setting(
         200, doc="a violation stands (and keeps the verdict) until this many further states "
-                 "were checked without it; a fault also stands while any suspect is named "
-                 "(docs/monitor.md)", unit="states", min=1, group=_BLAME)
+                 "were checked without it; a fault also stands while any suspect is named, a "
+                 "NIS violation until a NIS window passed after it (docs/monitor.md)",
+        unit="states", min=1, group=_BLAME)
     max_violations_per_kind: int = setting(
         20, doc="Health lists at most this many violations per kind (the largest); counts are "
                 "in the statistics (pairs_growing …) and the blame uses all of them", min=1,
