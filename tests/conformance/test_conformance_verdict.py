@@ -15,10 +15,12 @@ or a bound of states.
 from __future__ import annotations
 
 import threading
+from collections.abc import Iterator
 from typing import Any
 
 import kit_wire as wire
 import numpy as np
+import pytest
 from kit_procs import endpoint, launch, wait_ready
 
 ROBOT = "conservative"
@@ -96,66 +98,67 @@ def timid_nis(health: dict[str, Any]) -> bool:
                for v in health.get("standing", []))
 
 
-def test_a_timid_nis_is_ok_only_while_the_truth_bears_the_pose_out(router: int) -> None:
+@pytest.fixture
+def party(router: int) -> Iterator[Conservative]:
+    """A monitor process for the robot, and the third party matched to it."""
     monitor = launch("monitor", "--robot", ROBOT, "--connect", endpoint(router))
     wait_ready(monitor, "monitor ready")
-    party = Conservative(router)
+    third = Conservative(router)
     try:
-        wire.wait_matched(party.session, wire.key(ROBOT, "state"))
-        # no truth: once a NIS window has left its band from below, it is "tuning"
+        wire.wait_matched(third.session, wire.key(ROBOT, "state"))
+        yield third
+    finally:
+        third.close()
+        monitor.stop()
+
+
+def until_timid_nis(party: Conservative) -> dict[str, Any]:
+    """States without a truth until a NIS window stands below its band; that Health."""
+    health = party.step(truth=False)
+    while not timid_nis(health):
+        assert party.seq < 100, f"no NIS window below its band by seq {party.seq}"
         health = party.step(truth=False)
-        while not timid_nis(health):
-            assert party.seq < 100, f"no NIS window below its band by seq {party.seq}"
-            health = party.step(truth=False)
-        assert health["verdict"] == "tuning", health
-        for _ in range(20):
-            health = party.step(truth=False)
-            assert health["verdict"] == "tuning" and timid_nis(health), health
-        # a truth with every state: "ok" once a pose NEES window has passed, the NIS listed
-        while health.get("verdict", "ok") != "ok":
-            assert party.seq < 600, f"still {health['verdict']} at seq {party.seq}"
-            assert not any(v["kind"] == "nees" for v in health.get("standing", [])), health
-            health = party.step(truth=True)
-        assert timid_nis(health), health
-        ok_from = party.seq
-        for _ in range(50):
-            health = party.step(truth=True)
-            assert health.get("verdict", "ok") == "ok" and timid_nis(health), health
-        # the truth gone: "tuning" again, within the clearance and a NEES window of states
-        stopped = party.seq
-        while health.get("verdict", "ok") == "ok":
-            assert party.seq < stopped + CLEAR_AFTER + 150, (
-                f"still ok {party.seq - stopped} states after the last truth")
-            health = party.step(truth=False)
+    return health
+
+
+def test_a_timid_nis_is_ok_only_while_the_truth_bears_the_pose_out(
+        party: Conservative) -> None:
+    # no truth: once a NIS window has left its band from below, it is "tuning"
+    health = until_timid_nis(party)
+    assert health["verdict"] == "tuning", health
+    for _ in range(20):
+        health = party.step(truth=False)
         assert health["verdict"] == "tuning" and timid_nis(health), health
-        assert party.seq - stopped > 50 and ok_from > 30  # it did hold "ok" for a while
-    finally:
-        party.close()
-        monitor.stop()
-
-
-def test_a_failed_nis_window_stands_until_a_nis_window_passes(router: int) -> None:
-    monitor = launch("monitor", "--robot", ROBOT, "--connect", endpoint(router))
-    wait_ready(monitor, "monitor ready")
-    party = Conservative(router)
-    try:
-        wire.wait_matched(party.session, wire.key(ROBOT, "state"))
+    # a truth with every state: "ok" once a pose NEES window has passed, the NIS listed
+    while health.get("verdict", "ok") != "ok":
+        assert party.seq < 600, f"still {health['verdict']} at seq {party.seq}"
+        assert not any(v["kind"] == "nees" for v in health.get("standing", [])), health
+        health = party.step(truth=True)
+    assert timid_nis(health), health
+    ok_from = party.seq
+    for _ in range(50):
+        health = party.step(truth=True)
+        assert health.get("verdict", "ok") == "ok" and timid_nis(health), health
+    # the truth gone: "tuning" again, within the clearance and a NEES window of states
+    stopped = party.seq
+    while health.get("verdict", "ok") == "ok":
+        assert party.seq < stopped + CLEAR_AFTER + 150, (
+            f"still ok {party.seq - stopped} states after the last truth")
         health = party.step(truth=False)
-        while not timid_nis(health):
-            assert party.seq < 100, f"no NIS window below its band by seq {party.seq}"
-            health = party.step(truth=False)
-        # states without innovations, more of them than the clearance: no window, no
-        # evidence
-        for _ in range(CLEAR_AFTER + 50):
-            health = party.step(truth=False, s_over=None)
-            assert health["verdict"] == "tuning" and timid_nis(health), health
-        # innovations as S says: once a window passed, and the clearance after the last
-        # failed one, "ok"
-        passed_from = party.seq
-        while health.get("verdict", "ok") != "ok":
-            assert party.seq < passed_from + 400, f"still {health['verdict']}"
-            health = party.step(truth=False, s_over=1.0)
-        assert not health.get("standing"), health
-    finally:
-        party.close()
-        monitor.stop()
+    assert health["verdict"] == "tuning" and timid_nis(health), health
+    assert party.seq - stopped > 50 and ok_from > 30  # it did hold "ok" for a while
+
+
+def test_a_failed_nis_window_stands_until_a_nis_window_passes(party: Conservative) -> None:
+    health = until_timid_nis(party)
+    # states without innovations, more of them than the clearance: no window, no evidence
+    for _ in range(CLEAR_AFTER + 50):
+        health = party.step(truth=False, s_over=None)
+        assert health["verdict"] == "tuning" and timid_nis(health), health
+    # innovations as S says: once a window passed, and the clearance after the last
+    # failed one, "ok"
+    passed_from = party.seq
+    while health.get("verdict", "ok") != "ok":
+        assert party.seq < passed_from + 400, f"still {health['verdict']}"
+        health = party.step(truth=False, s_over=1.0)
+    assert not health.get("standing"), health
