@@ -28,9 +28,9 @@ from pathlib import Path
 import numpy as np
 
 from slamlens.common.config import load_settings
-from slamlens.common.errors import EstimationError
-from slamlens.common.messages import Health, Truth
+from slamlens.common.messages import Health
 from slamlens.common.verdict import conservative
+from slamlens.services.harness.monitored import monitored
 from slamlens.services.harness.mrclam_pipeline import DATA, PROFILE, TRUTH_SPAN_S
 from slamlens.services.monitor.monitor import Monitor
 from slamlens.services.monitor.settings import MonitorSettings
@@ -69,22 +69,10 @@ def timeline(robot: int) -> Timeline:
     run = load_mrclam(DATA, robot, robot_name=f"robot{robot}")
     est = Estimator(load_settings(EstimatorSettings, PROFILE, {"robot": f"robot{robot}"}))
     track = TruthTrack.from_mrclam(run)
-    monitor = Monitor(MonitorSettings())
     out = Timeline(robot)
-    monitor.check(est.to_state(seq=0, stamp=0.0, step="init"))
-    seq = 0
-    for message in run.events(truth=True):
-        if isinstance(message, Truth):
-            monitor.add_truth(message)
-            continue
-        try:
-            report = est.apply(message)
-        except EstimationError:
-            continue  # refused (counted by the estimator): no state, as in the service
-        seq += 1
-        state = est.to_state(seq=seq, stamp=message.stamp, report=report,
-                             step="predict" if report is None else "update")
-        out.add(message.stamp - run.t0, monitor.check(state),
+    for message, _report, health in monitored(est, Monitor(MonitorSettings()),
+                                               run.events(truth=True)):
+        out.add(message.stamp - run.t0, health,
                 track.covers(message.stamp, before_s=TRUTH_SPAN_S))
     return out
 

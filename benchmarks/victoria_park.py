@@ -38,10 +38,13 @@ import numpy as np
 
 from slamlens.common.config import load_settings
 from slamlens.common.messages import Health, Odometry
+from slamlens.services.harness.monitored import monitored
 from slamlens.services.monitor.monitor import Monitor
 from slamlens.services.monitor.settings import MonitorSettings
+from slamlens.services.monitor.stats import quadratic_forms_2x2
 from slamlens.services.slam import models
 from slamlens.services.slam.estimator import Estimator
+from slamlens.services.slam.observe_report import ObserveReport
 from slamlens.services.slam.settings import EstimatorSettings
 from slamlens.services.slam.victoria_park import load_victoria_park
 
@@ -77,27 +80,26 @@ class ParkRun:
         self.fault_seen |= health.verdict == "fault"
 
 
+def nis_of(report: ObserveReport) -> np.ndarray:
+    """The NIS of an update's innovations, as the monitor computes it."""
+    return quadratic_forms_2x2(report.innovations, report.innovation_covariances)
+
+
 def park_run(linearisation: str) -> ParkRun:
     """The profile with ``linearisation`` over the whole file, every state checked."""
     run = load_victoria_park(DATA)
     est = Estimator(replace(load_settings(EstimatorSettings, PROFILE, {"robot": run.robot}),
                             linearisation=linearisation))
-    monitor = Monitor(MonitorSettings())
     out = ParkRun(linearisation)
-    monitor.check(est.to_state(seq=0, stamp=0.0, step="init"))
     dead = np.zeros(3)
-    for seq, message in enumerate(run.events(), start=1):
-        report = est.apply(message)
+    for message, report, health in monitored(est, Monitor(MonitorSettings()), run.events()):
         if report is not None:
-            out.nis.extend(float(nu @ np.linalg.solve(S, nu)) for nu, S in
-                           zip(report.innovations, report.innovation_covariances, strict=True))
+            out.nis.extend(nis_of(report).tolist())
         if isinstance(message, Odometry):
             dead = models.motion(dead, v=message.v, w=message.w, dt=message.dt)
             out.odometry_path.append((dead[0], dead[1]))
             out.path.append((est.pose[0], est.pose[1]))
-        state = est.to_state(seq=seq, stamp=message.stamp, report=report,
-                             step="predict" if report is None else "update")
-        out.add(message.stamp, monitor.check(state))
+        out.add(message.stamp, health)
     out.landmarks = np.array(est.landmarks)
     return out
 
@@ -173,8 +175,7 @@ def grid_row(setting: tuple[float, float, float]) -> str:
     for message in load_victoria_park(DATA).events():
         report = est.apply(message)
         if report is not None:
-            nis.extend(float(nu @ np.linalg.solve(S, nu)) for nu, S in
-                       zip(report.innovations, report.innovation_covariances, strict=True))
+            nis.extend(nis_of(report).tolist())
     values = np.array(nis)
     windows = values[:values.size // 50 * 50].reshape(-1, 50).mean(axis=1)
     lo, hi = chi2.ppf([0.025, 0.975], 100) / 50
