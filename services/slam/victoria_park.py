@@ -217,7 +217,10 @@ def load_victoria_park(path: str | Path, *, robot: str = "robot1",
     index = {int(p): k for k, p in enumerate(poses)}
     landmarks = np.array(landmark_rows, dtype=float).reshape(-1, 7)
     on_chain = np.array([int(p) in index for p in landmarks[:, 0]], dtype=bool)
-    stats.bad_lines += int(np.count_nonzero(~on_chain))
+    if not on_chain.all():
+        stats.bad_lines += int(np.count_nonzero(~on_chain))
+        stats.first_bad = stats.first_bad or (
+            f"LANDMARK from pose {int(landmarks[~on_chain][0, 0])}, not on the odometry's chain")
     landmarks = landmarks[on_chain]
     k = np.array([index[int(p)] for p in landmarks[:, 0]], dtype=float)
     sightings = np.column_stack([k, landmarks[:, 1:4]])
