@@ -18,9 +18,9 @@ linearisations:
 It starts from the settings' initial pose and its σ. It does not model what MRCLAM and the
 tests never send (two sightings of one new landmark in one batch under FEJ / OC, anonymous
 ids, the plausibility bounds) and refuses a planted fault. For the
-experiments it can carry two states beside robot and map (:class:`Extra`): a Gauss-Markov
-range bias per landmark and a range scale for the camera; neither moves N, the global
-directions (their rows of N are 0).
+experiments it can carry states beside robot and map (:class:`Extra`): a Gauss-Markov
+range bias per landmark, and the camera's range scale, bearing offset and bearing scale
+(constants); none moves N, the global directions (their rows of N are 0).
 """
 
 from __future__ import annotations
@@ -45,6 +45,8 @@ class Extra:
     white: float = 1.0  #: the white range σ as a share of the profile's
     scale_sd: float = 0.0  #: σ_ε
     motion: float = 1.0  #: the profile's motion σ times this (1/c undoes its NEES scale)
+    offset_sd: float = 0.0  #: σ of the camera's bearing offset δ (its yaw on the robot), rad
+    bearing_scale_sd: float = 0.0  #: σ of its bearing scale s: z_φ = (1 + s)·φ + δ
 
     def label(self) -> str:
         parts = []
@@ -52,6 +54,10 @@ class Extra:
             parts.append(f"bias σ {self.bias_sd} m τ {self.bias_tau:g} s white ×{self.white}")
         if self.scale_sd:
             parts.append(f"scale σ {self.scale_sd}")
+        if self.offset_sd:
+            parts.append(f"bearing offset σ {self.offset_sd}")
+        if self.bearing_scale_sd:
+            parts.append(f"bearing scale σ {self.bearing_scale_sd}")
         if self.motion != 1.0:
             parts.append(f"motion σ ×{self.motion}")
         return ", ".join(parts) or "none (the shipped filter)"
@@ -71,6 +77,11 @@ class DenseEkf:
             raise ValueError(f"a dense EKF plants no faults ({settings.fault!r})")
         self.s, self.extra, self.kind = settings, extra, settings.linearisation
         self.base = 4 if extra.scale_sd else 3
+        self.camera: dict[str, int] = {}  #: "offset" / "scale" → its row, when carried
+        for name, sd in (("offset", extra.offset_sd), ("scale", extra.bearing_scale_sd)):
+            if sd:
+                self.camera[name] = self.base
+                self.base += 1
         self.block = 3 if extra.bias_sd else 2
         size = self.base + self.block * CAPACITY
         self.x, self.P = np.zeros(size), np.zeros((size, size))
@@ -78,6 +89,10 @@ class DenseEkf:
         self.P[:3, :3] = np.diag(np.square(settings.initial_pose_sigma))
         if extra.scale_sd:
             self.P[3, 3] = extra.scale_sd ** 2
+        if self.camera:
+            rows = list(self.camera.values())
+            self.P[rows, rows] = [sd ** 2 for sd in (extra.offset_sd, extra.bearing_scale_sd)
+                                  if sd]
         self.n = self.base
         self.index: dict[int, int] = {}  #: landmark id → first row of its block
         self.first: dict[int, np.ndarray] = {}  #: FEJ's first estimates
@@ -89,6 +104,11 @@ class DenseEkf:
     @property
     def scale(self) -> float:
         return 1.0 + float(self.x[3]) if self.extra.scale_sd else 1.0
+
+    def bearing_camera(self) -> tuple[float, float]:
+        """The camera's bearing offset δ and scale s as estimated (0 when not carried)."""
+        return tuple(float(self.x[self.camera[k]]) if k in self.camera else 0.0
+                     for k in ("offset", "scale"))  # type: ignore[return-value]
 
     def apply(self, message: Odometry | Observations) -> list[tuple[np.ndarray, np.ndarray]]:
         """One input; the (ν, S) of the observations applied."""
@@ -174,12 +194,18 @@ class DenseEkf:
         dx, dy = x[a] - x[0], x[a + 1] - x[1]
         r = math.hypot(dx, dy)
         bias = float(x[a + 2]) if self.extra.bias_sd else 0.0
+        offset, bscale = self.bearing_camera()
+        phi = _wrap(math.atan2(dy, dx) - x[2])
         nu = np.array([z_range - (self.scale * r + bias),
-                       _wrap(z_bearing - (math.atan2(dy, dx) - x[2]))])
+                       _wrap(z_bearing - ((1.0 + bscale) * phi + offset))])
         h0, h1 = self._rows(lid, a)
         H = np.zeros((2, n))
         H[0, [0, 1, 2, a, a + 1]] = h0 * self.scale
-        H[1, [0, 1, 2, a, a + 1]] = h1
+        H[1, [0, 1, 2, a, a + 1]] = h1 * (1.0 + bscale)
+        if "offset" in self.camera:
+            H[1, self.camera["offset"]] = 1.0
+        if "scale" in self.camera:
+            H[1, self.camera["scale"]] = phi
         if self.extra.scale_sd:
             H[0, 3] = r
         if self.extra.bias_sd:
@@ -201,9 +227,11 @@ class DenseEkf:
 
     def initialise(self, lid: int, z_range: float, z_bearing: float, stamp: float) -> None:
         """A new landmark's block: Gv (at FEJ's robot point but for ``standard``), Gz, and
-        ∂ℓ/∂ε, ∂ℓ/∂b when carried."""
+        ∂ℓ/∂ε, ∂ℓ/∂b, ∂ℓ/∂δ, ∂ℓ/∂s when carried."""
         x, P, n, a = self.x, self.P, self.n, self.n
-        c, s = math.cos(x[2] + z_bearing), math.sin(x[2] + z_bearing)
+        offset, bscale = self.bearing_camera()
+        phi = (z_bearing - offset) / (1.0 + bscale)  #: the bearing the camera's reading says
+        c, s = math.cos(x[2] + phi), math.sin(x[2] + phi)
         rr = z_range / self.scale
         mx, my = x[0] + rr * c, x[1] + rr * s
         p = x[:2] if self.kind == "standard" else self.propagated
@@ -211,7 +239,12 @@ class DenseEkf:
         G[:, :3] = [[1.0, 0.0, -(my - p[1])], [0.0, 1.0, mx - p[0]]]
         if self.extra.scale_sd:
             G[:, 3] = [-rr / self.scale * c, -rr / self.scale * s]
-        Gz = np.array([[c / self.scale, -rr * s], [s / self.scale, rr * c]])
+        turn = rr / (1.0 + bscale)  #: ∂ℓ/∂z_φ's length
+        Gz = np.array([[c / self.scale, -turn * s], [s / self.scale, turn * c]])
+        if "offset" in self.camera:  # ∂φ/∂δ = −1/(1 + s)
+            G[:, self.camera["offset"]] = [turn * s, -turn * c]
+        if "scale" in self.camera:  # ∂φ/∂s = −φ/(1 + s)
+            G[:, self.camera["scale"]] = [turn * s * phi, -turn * c * phi]
         R = np.diag([self.range_variance(z_range, z_bearing), self.s.sigma_bearing ** 2])
         P[a:a + 2, :n] = G @ P[:n, :n]
         P[:n, a:a + 2] = P[a:a + 2, :n].T
