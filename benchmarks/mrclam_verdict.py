@@ -9,9 +9,9 @@ those with a NIS window below its band standing (docs/monitor.md, "The verdict":
 not "tuning", while the pose NEES is in its band), and draws each robot's sliding NIS and
 pose NEES window means against their bands, shading where the verdict was "tuning", where
 a timid NIS stood under "ok", and where the dataset has no ground truth over the last
-3 s (robot 1's last 128 s, a 2 s gap of robot 4's and the 3 s after it: time for the pose
-NEES window to judge again): there a timid NIS makes "tuning" (docs/monitor.md). The
-check: no Health other than "ok" where the dataset has a truth.
+3 s (robot 1's last 128 s, a 2 s gap of robot 4's and the 3 s after it): there the truth's
+latest word on the pose covariance stands (docs/monitor.md, "The verdict"). The check (the
+target of docs/benchmarks.md): no Health other than "ok", the truth or not.
 
 Run: ``.venv/bin/python benchmarks/mrclam_verdict.py [--robots 1,2,3,4,5] [--out
 docs/figures/mrclam_verdict.png] [--jobs 2]`` (about 45 s of one core per robot).
@@ -77,8 +77,13 @@ def timeline(robot: int) -> Timeline:
     return out
 
 
-def tuning_with_truth(line: Timeline) -> int:
-    """Healths not "ok" where the dataset has a ground truth (the target: none)."""
+def not_ok(line: Timeline) -> int:
+    """Healths not "ok" (the target: none)."""
+    return sum(v != "ok" for v in line.verdicts)
+
+
+def not_ok_with_truth(line: Timeline) -> int:
+    """Healths not "ok" where the dataset has a ground truth."""
     return sum(v != "ok" and t for v, t in zip(line.verdicts, line.truth, strict=True))
 
 
@@ -88,8 +93,8 @@ def summary(line: Timeline) -> str:
     no_truth = len(line.truth) - sum(line.truth)
     return (f"robot {line.robot}: {len(line.verdicts)} Healths: "
             + ", ".join(f"{k} {n}" for k, n in sorted(verdicts.items()))
-            + f" ({tuning_with_truth(line)} not 'ok' where the dataset has a truth; "
-              f"{no_truth} Healths where it has none)"
+            + f" ({not_ok(line)} not 'ok', {not_ok_with_truth(line)} of them where the "
+              f"dataset has a truth; {no_truth} Healths where it has none)"
             + f"; a NIS window below its band standing under 'ok' in {timid_ok} "
               f"({timid_ok / max(1, len(line.verdicts)):.1%})")
 
@@ -98,7 +103,7 @@ def title(line: Timeline) -> str:
     verdicts = ", ".join(f"{k} {n}" for k, n in sorted(Counter(line.verdicts).items()))
     share = sum(line.conservative) / max(1, len(line.verdicts))
     return (f"MRCLAM dataset 6, robot {line.robot}, deploy/mrclam.toml: {verdicts} "
-            f"({tuning_with_truth(line)} not 'ok' where the dataset has a truth); a timid NIS "
+            f"({not_ok(line)} not 'ok'); a timid NIS "
             f"under 'ok' in {share:.1%}")
 
 
@@ -154,7 +159,7 @@ def main() -> int:
         print(summary(line), flush=True)
     draw(lines, Path(args.out))
     print(f"wrote {args.out}")
-    return 0 if all(tuning_with_truth(line) == 0 for line in lines) else 1
+    return 0 if all(not_ok(line) == 0 for line in lines) else 1
 
 
 if __name__ == "__main__":

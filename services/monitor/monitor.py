@@ -214,8 +214,7 @@ class Monitor:
         self._states += 1
         verdict = self._verdict.update(
             state.seq, [_finite(v) for v in found], suspects,
-            pose_consistent=self._truth.pose_nees_in_band(
-                state.seq, within=self.settings.clear_after),
+            pose_consistent=self._truth.pose_nees_in_band(),
             passed=("nis",) if self._nis_passed else ())
         self._nis_passed = False
         return Health(robot=state.robot, seq=state.seq, stamp=state.stamp, ok=not found,

@@ -91,11 +91,13 @@ class TruthTracker:
         #: (seq, passed) of the newest pose NEES window judged (None: none since the start)
         self._pose_window: tuple[int, bool] | None = None
 
-    def pose_nees_in_band(self, seq: int, *, within: int) -> bool:
-        """Whether the newest pose NEES window judged passed, ``within`` states of ``seq``:
-        the truth says the pose covariance is right now (False without a recent truth)."""
+    def pose_nees_in_band(self) -> bool:
+        """Whether the newest pose NEES window judged since the estimator's start passed:
+        the truth's latest word is that the pose covariance is right. It stands until a
+        window fails, however many states come without a truth (as a failed NIS window
+        stands until one passes; docs/monitor.md, "The verdict"). False before any."""
         w = self._pose_window
-        return w is not None and w[1] and seq - w[0] <= within
+        return w is not None and w[1]
 
     def take_late(self) -> list[Violation]:
         """The NEES window results of states whose truth came after them, once each."""

@@ -11,11 +11,14 @@ violations that stand and gives one word for them:
 * ``tuning`` — only the statistical tests fail (NEES / NIS outside their bands): the filter
   is overconfident or its models do not fit the data, but it computes what it should;
 * ``ok`` — nothing stands, or only a NIS window *below* its band while the truth says the
-  pose covariance is right (the newest pose NEES window passed, none stands failed): the
-  innovations are smaller than S, so S is conservative, and the state's covariance — what
-  the verdict is about — is borne out by the truth. Real sensors do this when their errors
-  persist between sightings (R then holds a part the innovations do not see). It stays
-  listed in the standing violations; without a truth it makes ``tuning``.
+  pose covariance is right (the newest pose NEES window judged passed, none stands
+  failed): the innovations are smaller than S, so S is conservative, and the state's
+  covariance — what the verdict is about — is borne out by the truth. Real sensors do this
+  when their errors persist between sightings (R then holds a part the innovations do not
+  see). It stays listed in the standing violations. The truth's word stands until a pose
+  NEES window fails, also where the truth stops (a robot out of the motion-capture area):
+  evidence stands until evidence contradicts it, as for a failed NIS window below.
+  Without any truth a timid NIS makes ``tuning``.
 
 Clearance rule (docs/monitor.md): a violation stands from the state it was seen in until
 ``clear_after`` further states were checked without it (same kind, same ids); a ``fault``
@@ -75,7 +78,7 @@ class Verdict:
     def update(self, seq: int, found: list[Violation], suspects: tuple[int, ...], *,
                pose_consistent: bool = False, passed: tuple[str, ...] = ()) -> str:
         """Take the violations of state ``seq`` and the current suspects; the verdict.
-        ``pose_consistent``: the truth says the pose covariance is right now (module
+        ``pose_consistent``: the truth's latest word is that the pose covariance is right (module
         docstring: a NIS window below its band then does not make ``tuning``). ``passed``:
         the kinds of :data:`CLEARED_BY_A_PASS` whose newest window, at this state, passed
         (a failed window of the same state before it then counts as passed after)."""

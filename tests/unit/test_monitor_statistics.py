@@ -172,6 +172,29 @@ def test_a_timid_nis_with_the_truth_bearing_the_pose_out_is_ok(correct_run) -> N
         "tuning"}
 
 
+def test_the_truths_word_on_the_pose_stands_until_a_nees_window_fails(correct_run) -> None:
+    """The same timid run, the truth given only for its first 10 s, then none for more
+    states than the clearance, then a truth half a metre off the robot: "ok" (the NIS
+    listed) from the first passed pose NEES window through the truthless stretch — the
+    truth's word stands until evidence contradicts it — then "tuning" once a NEES window
+    fails."""
+    states, truths = correct_run
+    timid = [s if s.innovation_covariances is None else dataclasses.replace(
+        s, innovation_covariances=s.innovation_covariances * 4.0) for s in states]
+    off = [dataclasses.replace(t, pose=np.asarray(t.pose) + [0.5, 0.0, 0.0])
+           for t in truths if t.stamp > 23.0]
+    settings = MonitorSettings(nis_window=20)
+    healths = feed(Monitor(settings), timid, [t for t in truths if t.stamp <= 10.0] + off)
+    stamps = np.array([h.stamp for h in healths])
+    first_ok = next(k for k, h in enumerate(healths) if h.verdict == "ok" and h.standing)
+    blind = np.nonzero((stamps > 10.0) & (stamps <= 23.0))[0]
+    assert stamps[first_ok] <= 10.0 and blind.size > settings.clear_after
+    assert all(healths[k].verdict == "ok" and healths[k].standing[0].kind == "nis"
+               for k in range(first_ok, int(blind[-1]) + 1))
+    assert healths[-1].verdict == "tuning"
+    assert "nees" in {v.kind for v in healths[-1].standing}
+
+
 def test_window_bands_follow_the_documented_distributions() -> None:
     ind = WindowTest(dof=2, window=50, alpha=1e-3, dependent=False)
     assert (ind.lo, ind.hi) == pytest.approx(tuple(chi2.ppf([5e-4, 1 - 5e-4], 100) / 50))
