@@ -1,11 +1,12 @@
 """Each MRCLAM dataset 6 robot's camera against the ground truth, and what calibrating it
 does to the filter — the measurements behind docs/consistency.md, "Robot 4's camera".
 
-1. **The camera.** Every sighting of a landmark while there is ground truth: its bearing
-   error (measured − true, gross errors beyond 0.3 rad left out) regressed on
-   (1, bearing b, turn rate ω) — an offset (the camera's yaw on the robot), a bearing
-   scale (its field of view) and a latency (a camera reporting a picture δ s old sees
-   the bearing of δ·ω ago) — and the range's median measured / true ratio (its scale).
+1. **The camera.** Every sighting of a landmark while there is ground truth, through
+   services/slam/camera_fit.py (what ``slamlens tune`` reports): its bearing error
+   (measured − true, gross errors left out) regressed on (1, bearing b, turn rate ω) — an
+   offset (the camera's yaw on the robot), a bearing scale (its field of view) and a
+   latency (a camera reporting a picture δ s old sees the bearing of δ·ω ago) — and the
+   range's median measured / true ratio (its scale).
 2. ``--evaluate``: the estimator offline, each robot with the profile fitted on the
    other four (benchmarks/profiles/without-robotK.toml), on its sightings as recorded;
    with the latency measured on the *other four* taken off every sighting's stamp; and
@@ -24,32 +25,21 @@ import argparse
 import math
 import sys
 from concurrent.futures import ProcessPoolExecutor
-from dataclasses import dataclass, replace
+from dataclasses import replace
 
 import numpy as np
 
 from slamlens.common.messages import Observations
 from slamlens.services.harness.mrclam_pipeline import DATA, left_out_profile
+from slamlens.services.slam.camera_fit import CameraFit, fit_camera
 from slamlens.services.slam.mrclam import MrclamRun, load_mrclam
 from slamlens.services.slam.scoring import TruthTrack, evaluate
 
 ROBOTS = (1, 2, 3, 4, 5)
-GROSS_BEARING = 0.3  #: rad: bearing errors beyond this are misreads, left out
-GROSS_RANGE = 0.5  #: m: range errors beyond this are misreads, left out of the scale
 RATE_HALF_S = 0.05  #: the truth's turn rate is its heading change over ±this, s
 EARLY_S = 120.0  #: the short calibration: the run's first this many seconds
-
-
-@dataclass(frozen=True)
-class Camera:
-    """One camera's errors: bearing = true·(1 + scale) + offset + latency·ω (+ noise);
-    range = true · range_scale (+ noise)."""
-
-    offset: float = 0.0  #: rad
-    scale: float = 0.0  #: bearing error per rad of bearing
-    latency: float = 0.0  #: s
-    range_scale: float = 1.0  #: median measured / true range
-    sightings: int = 0
+#: a camera with no error: the sightings as recorded
+PERFECT = CameraFit(offset=0.0, scale=0.0, range_scale=1.0, sightings=0, latency=0.0)
 
 
 def _wrap(a: float) -> float:
@@ -78,38 +68,33 @@ def sightings(run: MrclamRun, until_s: float = math.inf) -> np.ndarray:
     return np.array(rows).reshape(-1, 5)
 
 
-def fit_camera(rows: np.ndarray) -> Camera:
-    """The camera's offset, bearing scale and latency (least squares on the bearing
-    errors) and its range scale (median ratio), gross errors left out."""
-    good = np.abs(rows[:, 2]) < GROSS_BEARING
-    X = np.column_stack([np.ones(good.sum()), rows[good, 0], rows[good, 1]])
-    (offset, scale, latency), *_ = np.linalg.lstsq(X, rows[good, 2], rcond=None)
-    fair = np.abs(rows[:, 3] - rows[:, 4]) < GROSS_RANGE
-    return Camera(float(offset), float(scale), float(latency),
-                  float(np.median(rows[fair, 3] / rows[fair, 4])), int(good.sum()))
+def camera_of(rows: np.ndarray) -> CameraFit:
+    """:func:`fit_camera` of :func:`sightings` rows, with the latency column."""
+    return fit_camera(rows[:, 0], rows[:, 2], rows[:, 3], rows[:, 3] - rows[:, 4],
+                      rates=rows[:, 1])
 
 
-def calibrated(run: MrclamRun, camera: Camera) -> MrclamRun:
+def calibrated(run: MrclamRun, camera: CameraFit) -> MrclamRun:
     """``run`` with ``camera``'s errors taken off its sightings (stamps moved back by its
     latency, ranges ÷ its scale, bearings less offset and scale)."""
     m = run.measurements.copy()
-    m[:, 0] -= camera.latency
+    m[:, 0] -= camera.latency or 0.0
     m[:, 2] /= camera.range_scale
     m[:, 3] = (m[:, 3] - camera.offset) / (1.0 + camera.scale)
     order = np.argsort(m[:, 0], kind="stable")
     return replace(run, measurements=m[order])
 
 
-def report_cameras(cameras: dict[int, Camera]) -> None:
+def report_cameras(cameras: dict[int, CameraFit]) -> None:
     print("the cameras against the truth: bearing error = offset + scale·b + latency·ω; "
           "range scale = median measured / true")
     for k, c in cameras.items():
         print(f"  robot {k}: {c.sightings:5d} sightings  offset {math.degrees(c.offset):+.2f}°  "
-              f"bearing scale {c.scale:+.2%}  latency {c.latency * 1e3:4.0f} ms  "
+              f"bearing scale {c.scale:+.2%}  latency {(c.latency or 0.0) * 1e3:4.0f} ms  "
               f"range scale {c.range_scale:.4f}")
 
 
-def score(robot: int, variant: str, camera: Camera) -> str:
+def score(robot: int, variant: str, camera: CameraFit) -> str:
     """One offline run of ``robot`` with its left-out profile, ``camera`` taken off."""
     run = calibrated(load_mrclam(DATA, robot), camera)
     e = evaluate(run, left_out_profile(robot))
@@ -117,15 +102,15 @@ def score(robot: int, variant: str, camera: Camera) -> str:
             f"map {e.landmark_rmse_rigid:.3f} m")
 
 
-def report_filter(cameras: dict[int, Camera]) -> None:
+def report_filter(cameras: dict[int, CameraFit]) -> None:
     """Part 2 (two processes)."""
     jobs = []
     for k in cameras:
-        others = float(np.mean([c.latency for j, c in cameras.items() if j != k]))
-        early = fit_camera(sightings(load_mrclam(DATA, k), EARLY_S))
-        jobs += [(k, "as recorded", Camera()),
+        others = float(np.mean([c.latency or 0.0 for j, c in cameras.items() if j != k]))
+        early = camera_of(sightings(load_mrclam(DATA, k), EARLY_S))
+        jobs += [(k, "as recorded", PERFECT),
                  (k, f"latency of the other four ({others * 1e3:.0f} ms) off",
-                  Camera(latency=others)),
+                  replace(PERFECT, latency=others)),
                  (k, f"own camera from its first {EARLY_S:.0f} s",
                   replace(early, latency=0.0)),
                  (k, "own camera from its whole run (oracle)",
@@ -142,7 +127,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--evaluate", action="store_true",
                         help="also run the estimator with the cameras calibrated (≈ 1 min)")
     args = parser.parse_args(argv)
-    cameras = {k: fit_camera(sightings(load_mrclam(DATA, k))) for k in ROBOTS}
+    cameras = {k: camera_of(sightings(load_mrclam(DATA, k))) for k in ROBOTS}
     report_cameras(cameras)
     if args.evaluate:
         report_filter(cameras)

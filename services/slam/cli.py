@@ -351,6 +351,8 @@ def _run_tune(args: argparse.Namespace) -> int:
         if pool is not None:
             pool.shutdown(cancel_futures=True)
     result = min(fits, key=tuning.in_sample_rank)
+    for line in tuning.camera_lines(result.fit.cameras):
+        print(line, file=sys.stderr, flush=True)
     if len(fits) > 1:  # no robot left out to judge by: the fit's own figures decide
         notes = [f"chosen by the fit itself (no robot left out): {r.linearisation} pooled "
                  f"NEES {r.pooled_nees:.2f}, {'in' if r.passes() else 'NOT in'} its band"

@@ -44,6 +44,7 @@ from scipy import optimize, stats
 
 from slamlens.common.errors import ConfigError
 from slamlens.common.geometry import wrap_angle
+from slamlens.services.slam.camera_fit import CameraFit, fit_camera, odd_cameras
 from slamlens.services.slam.mrclam import MrclamRun
 from slamlens.services.slam.scoring import (
     NEES_WINDOW,
@@ -219,6 +220,8 @@ class NoiseFit:
     #: per robot number: the fraction of its measurements another landmark explains
     #: (a misidentified barcode: :func:`misidentified`); none enter the fit (trimmed)
     misidentified: dict[int, float] = field(default_factory=dict)
+    #: per robot number: its camera's systematic errors (docs/estimator.md, the cameras)
+    cameras: dict[int, CameraFit] = field(default_factory=dict)
 
 
 def fit_noise(runs: Sequence[MrclamRun], *, motion_model: str = "spec",
@@ -261,7 +264,21 @@ def fit_noise(runs: Sequence[MrclamRun], *, motion_model: str = "spec",
                     bearing_outliers=float(np.mean(np.abs(sensor.bearing_errors) >
                                                    TRIM_SIGMA * sigma_b)),
                     misidentified={int(k): float(np.mean(wrong[sensor.robots == k]))
-                                   for k in np.unique(sensor.robots)})
+                                   for k in np.unique(sensor.robots)},
+                    cameras=cameras(sensor, ~wrong))
+
+
+def cameras(sensor: SensorResiduals, keep: np.ndarray) -> dict[int, CameraFit]:
+    """Each robot's camera from its measurements in ``keep`` (misread barcodes left out)."""
+    out = {}
+    for k in np.unique(sensor.robots):
+        mine = keep & (sensor.robots == k)
+        try:
+            out[int(k)] = fit_camera(sensor.bearings[mine], sensor.bearing_errors[mine],
+                                     sensor.ranges[mine], sensor.range_errors[mine])
+        except ValueError:
+            continue  # too few fair sightings to say
+    return out
 
 
 # ---------------------------------------------------------------------------------- tune
@@ -424,6 +441,7 @@ def profile_toml(result: TuneResult, *, header: Sequence[str] = (),
            else "every σ") + f" (pooled pose NEES before: {_pooled_nees(result.before):.2f},"
         f" after: {result.pooled_nees:.2f})",
     ]
+    lines += [f"# {line}" for line in camera_lines(result.fit.cameras)]
     for e in result.after:
         lines.append(f"# {e.robot} (fitted on): pose NEES {e.nees_mean:.2f}, "
                      f"{e.window_fraction():.0%} of {NEES_WINDOW}-state windows in "
@@ -438,6 +456,19 @@ def profile_toml(result: TuneResult, *, header: Sequence[str] = (),
         if key in result.values:
             lines.append(f"{key} = {_number(result.values[key])}  # {MEANING[key]}")
     return "\n".join(lines) + "\n"
+
+
+def camera_lines(fits: dict[int, CameraFit]) -> list[str]:
+    """The cameras against the truth, and those the lab should calibrate (one line each)."""
+    if not fits:
+        return []
+    lines = ["cameras against the truth (bearing offset and scale, range scale): "
+             + "; ".join(f"robot{k} {c.text()}" for k, c in sorted(fits.items()))]
+    for k, what in sorted(odd_cameras(fits).items()):
+        lines.append(f"robot{k}'s camera differs from the others' ({', '.join(what)}): "
+                     "calibrate it — a profile fitted on other robots cannot hold that "
+                     "(docs/estimator.md)")
+    return lines
 
 
 def _number(value: float) -> str:
