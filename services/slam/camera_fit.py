@@ -47,7 +47,7 @@ class CameraFit:
     latency: float | None = None  #: s, when the turn rates were given
 
     def text(self) -> str:
-        """E.g. "bearing −1.30° +3.82 %, range ×1.0201"."""
+        """E.g. "bearing −1.28° +3.74%, range ×1.0197"."""
         lag = "" if self.latency is None else f", latency {self.latency * 1e3:.0f} ms"
         return (f"bearing {math.degrees(self.offset):+.2f}° {self.scale:+.2%}, "
                 f"range ×{self.range_scale:.4f}{lag}").replace("-", "−")
