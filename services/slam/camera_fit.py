@@ -26,6 +26,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from slamlens.common.errors import SourceError
+
 #: |bearing error| (rad) and |range error| (m) beyond these are misreads, left out
 GROSS_BEARING = 0.3
 GROSS_RANGE = 0.5
@@ -56,12 +58,13 @@ class CameraFit:
 def fit_camera(bearings: np.ndarray, bearing_errors: np.ndarray, ranges: np.ndarray,
                range_errors: np.ndarray, rates: np.ndarray | None = None) -> CameraFit:
     """The camera of these sightings: measured bearings and ranges, their errors against
-    the truth (z − h), and optionally the truth's turn rate at each (rad/s)."""
+    the truth (z − h), and optionally the truth's turn rate at each (rad/s). Fewer than
+    three fair sightings: :class:`SourceError`."""
     b, eb = np.asarray(bearings, float), np.asarray(bearing_errors, float)
     r, er = np.asarray(ranges, float), np.asarray(range_errors, float)
     fair = (np.abs(eb) < GROSS_BEARING) & (np.abs(er) < GROSS_RANGE) & (r - er > 0)
     if fair.sum() < 3:
-        raise ValueError(f"{int(fair.sum())} fair sightings: too few to fit a camera")
+        raise SourceError(f"{int(fair.sum())} fair sightings: too few to fit a camera")
     columns = [np.ones(int(fair.sum())), b[fair]]
     if rates is not None:
         columns.append(np.asarray(rates, float)[fair])

@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 from scipy import optimize, stats
 
-from slamlens.common.errors import ConfigError
+from slamlens.common.errors import ConfigError, SourceError
 from slamlens.common.geometry import wrap_angle
 from slamlens.services.slam.camera_fit import CameraFit, fit_camera, odd_cameras
 from slamlens.services.slam.mrclam import MrclamRun
@@ -276,7 +276,7 @@ def cameras(sensor: SensorResiduals, keep: np.ndarray) -> dict[int, CameraFit]:
         try:
             out[int(k)] = fit_camera(sensor.bearings[mine], sensor.bearing_errors[mine],
                                      sensor.ranges[mine], sensor.range_errors[mine])
-        except ValueError:
+        except SourceError:
             continue  # too few fair sightings to say
     return out
 

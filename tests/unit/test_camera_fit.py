@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from slamlens.common.errors import SourceError
 from slamlens.services.slam import tuning
 from slamlens.services.slam.camera_fit import CameraFit, fit_camera, odd_cameras
 from slamlens.services.slam.mrclam import load_mrclam
@@ -54,7 +55,7 @@ def test_a_simulated_cameras_errors_are_recovered_through_misreads() -> None:
 
 
 def test_too_few_fair_sightings_is_a_clear_error() -> None:
-    with pytest.raises(ValueError, match="too few"):
+    with pytest.raises(SourceError, match="too few"):
         fit_camera(np.zeros(2), np.zeros(2), np.ones(2), np.zeros(2))
 
 
