@@ -3,7 +3,9 @@ measurements behind docs/consistency.md, "Why the NIS is low on real data".
 
 1. **Odometry.** Over windows of T seconds, the heading change the ground truth shows minus
    the one the commanded turn rates integrate to: its mean per second (a turn-rate bias)
-   and its variance per second (constant in T for white noise, growing for correlated).
+   and its variance per second (constant in T for white noise, growing for correlated);
+   and over windows of 4 s the distance the truth travelled against the commanded one
+   (the median ratio: the commanded speed's scale).
 2. **Range.** Every sighting of a landmark against the range the ground truth gives (both
    poses from Vicon): the error's standard deviation, and the part that changes between
    consecutive sightings of one landmark less than a second apart (sd of their difference
@@ -13,7 +15,8 @@ measurements behind docs/consistency.md, "Why the NIS is low on real data".
    on four robots, applied to the fifth: the standard deviation left on the fifth.
 4. ``--evaluate``: the estimator (offline, each robot with its left-out profile
    benchmarks/profiles/without-robotK.toml) as shipped, with each robot's own turn-rate bias
-   removed from its odometry (an oracle: it uses the truth), with the sensor σ scaled down
+   removed from its odometry (an oracle: it uses the truth), with its commanded speeds
+   scaled by the other four robots' median ratio (part 1), with the sensor σ scaled down
    until the mean NIS is near 2, with the iterated update (``update_iterations`` 10), and
    with the left-out range calibration applied (the range σ then the sd it leaves on the
    four, constant): pose NEES, NIS (mean, median, share of the monitor's 50-innovation
@@ -64,6 +67,9 @@ SENSOR_KEYS = ("sigma_range", "sigma_bearing", "sigma_range_per_m")
 SENSOR_SCALE = 0.35
 #: the iterated update's budget tried (``update_iterations``, docs/estimator.md)
 ITERATIONS = 10
+SPEED_WINDOW_S = 4.0  #: windows of the speed-scale measurement
+SPEED_MIN_M = 0.15  #: … that count: the commanded distance at least this
+SPEED_STEP = 10  #: the truth's path is measured between every SPEED_STEP-th sample
 
 
 def _wrap(a: np.ndarray | float) -> np.ndarray | float:
@@ -85,6 +91,23 @@ def heading_errors(run: MrclamRun, truth: TruthTrack) -> dict[float, np.ndarray]
                 if poses[i] is not None and poses[j] is not None]
         out[T] = np.array(errs)
     return out
+
+
+def speed_ratio(run: MrclamRun) -> float:
+    """Median over SPEED_WINDOW_S windows of the distance the truth travelled over the
+    commanded one (Σ v·dt)."""
+    odo, gt = run.odometry, run.groundtruth
+    dt = np.diff(odo[:, 0])
+    ratios = []
+    for a in np.arange(max(odo[0, 0], gt[0, 0]), min(odo[-1, 0], gt[-1, 0]) - SPEED_WINDOW_S,
+                       SPEED_WINDOW_S):
+        steps = (odo[:-1, 0] >= a) & (odo[:-1, 0] < a + SPEED_WINDOW_S)
+        commanded = float(np.sum(odo[:-1][steps, 1] * dt[steps]))
+        path = gt[(gt[:, 0] >= a) & (gt[:, 0] <= a + SPEED_WINDOW_S), 1:3][::SPEED_STEP]
+        if commanded > SPEED_MIN_M and len(path) > 1:
+            ratios.append(float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1)))
+                          / commanded)
+    return float(np.median(ratios))
 
 
 def range_errors(run: MrclamRun, truth: TruthTrack) -> np.ndarray:
@@ -156,7 +179,8 @@ def report_errors(runs: dict[int, MrclamRun]) -> dict[int, np.ndarray]:
         errs = heading_errors(run, truth)
         rates = "  ".join(f"{np.var(errs[T]) / T:.4f}" for T in WINDOWS_S)
         bias = float(np.mean(errs[4.0]) / 4.0)
-        print(f"  robot {k}: turn-rate bias {bias:+.4f} rad/s; variance per s {rates} rad²/s")
+        print(f"  robot {k}: turn-rate bias {bias:+.4f} rad/s; variance per s {rates} rad²/s;"
+              f" truth / commanded distance {speed_ratio(run):.4f}")
         tables[k] = range_errors(run, truth)
     print("range: error against the truth; the part that changes between consecutive "
           f"sightings (< {CONSECUTIVE_S:g} s apart) of one landmark")
@@ -178,10 +202,10 @@ def report_errors(runs: dict[int, MrclamRun]) -> dict[int, np.ndarray]:
 
 
 def _inputs(run: MrclamRun, turn_bias: float, calibration: tuple[tuple[str, ...], np.ndarray]
-            | None) -> Iterator[Odometry | Observations]:
+            | None, speed: float = 1.0) -> Iterator[Odometry | Observations]:
     for m in run.events(truth=False):
         if isinstance(m, Odometry):
-            yield replace(m, w=m.w + turn_bias) if turn_bias else m
+            yield replace(m, w=m.w + turn_bias, v=m.v * speed)
         elif calibration is not None:
             terms, coef = calibration
             r, b = np.asarray(m.ranges, float), np.asarray(m.bearings, float)
@@ -193,7 +217,7 @@ def _inputs(run: MrclamRun, turn_bias: float, calibration: tuple[tuple[str, ...]
 def evaluate(robot: int, variant: str, turn_bias: float,
              calibration: tuple[tuple[str, ...], np.ndarray] | None,
              sigma_range: float | None, sensor_scale: float = 1.0,
-             iterations: int = 1) -> str:
+             iterations: int = 1, speed: float = 1.0) -> str:
     """One offline run of ``robot`` with its left-out profile (with ``sigma_range`` its
     range σ, the range-dependent terms off; every sensor σ × ``sensor_scale``; the
     iterated update with ``iterations``); a table row."""
@@ -206,7 +230,7 @@ def evaluate(robot: int, variant: str, turn_bias: float,
                        **{key: getattr(settings, key) * sensor_scale for key in SENSOR_KEYS})
     est = Estimator(replace(settings, robot=run.robot))
     scorer = Scorer(TruthTrack.from_mrclam(run), robot=run.robot)
-    for m in _inputs(run, turn_bias, calibration):
+    for m in _inputs(run, turn_bias, calibration, speed):
         try:
             rep = est.apply(m)
         except EstimationError:
@@ -224,10 +248,13 @@ def evaluate(robot: int, variant: str, turn_bias: float,
 
 def report_filter(runs: dict[int, MrclamRun], tables: dict[int, np.ndarray]) -> None:
     """Print part 4 (two processes)."""
-    jobs = []
+    jobs: list[tuple] = []
+    speeds = {k: speed_ratio(run) for k, run in runs.items()}
     for k, run in runs.items():
         bias = float(np.mean(heading_errors(run, TruthTrack.from_mrclam(run))[4.0]) / 4.0)
+        speed = float(np.median([s for j, s in speeds.items() if j != k]))
         jobs += [(k, "left-out profile", 0.0, None, None, 1.0, 1),
+                 (k, f"speeds × {speed:.3f} (the others')", 0.0, None, None, 1.0, 1, speed),
                  (k, f"sensor σ × {SENSOR_SCALE}", 0.0, None, None, SENSOR_SCALE, 1),
                  (k, "turn-rate bias removed", bias, None, None, 1.0, 1),
                  (k, f"iterated update (K = {ITERATIONS})", 0.0, None, None, 1.0,
@@ -240,6 +267,7 @@ def report_filter(runs: dict[int, MrclamRun], tables: dict[int, np.ndarray]) -> 
     print(f"the filter, each robot with its left-out profile (NIS windows of "
           f"{NIS_WINDOW}, band [{NIS_LO:.2f}, {NIS_HI:.2f}]; map: "
           "landmark RMSE after a rigid fit)")
+    jobs = [job if len(job) == 8 else (*job, 1.0) for job in jobs]  # speed 1 but where set
     with ProcessPoolExecutor(2) as pool:
         for row in pool.map(evaluate, *zip(*jobs, strict=True)):
             print(row, flush=True)
