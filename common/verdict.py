@@ -22,6 +22,9 @@ WORDS = {"ok": "ok", "fault": "estimator fault",
 
 #: why a NIS window below its band may stand under "ok" (docs/monitor.md, "The verdict")
 CONSERVATIVE = "NIS below its band while the pose NEES is in its band: S is conservative"
+#: states after the newest pose NEES window judged beyond which that "ok" names its seq
+#: (the truth stopped; its word stands until a window fails — docs/monitor.md)
+TRUTH_QUIET_STATES = 50
 
 #: what each kind of violation is, as a reader names it
 KIND_NAMES = {"pair": "pair", "feature": "feature", "prediction": "prediction",
@@ -94,7 +97,12 @@ def summary_text(health: Health, *, max_items: int = 3) -> str:
     more); suspects 3, 12" — what the top bar, the legend and the terminal say."""
     text = verdict_text(health)
     if health.verdict == "ok":
-        return f"{text} ({CONSERVATIVE})" if conservative(health) else text
+        if not conservative(health):
+            return text
+        judged = health.statistics.get("nees_pose_judged_seq")
+        if judged is not None and health.seq - judged > TRUTH_QUIET_STATES:
+            return f"{text} ({CONSERVATIVE}; pose NEES last judged at seq {int(judged)})"
+        return f"{text} ({CONSERVATIVE})"
     heads: list[str] = []
     for v in health.standing:
         head = violation_head(v)

@@ -229,6 +229,8 @@ class TruthTracker:
             stats["nees_pose_window_mean"] = self._nees_pose.sliding_mean
             stats["nees_pose_window_lo"] = self._nees_pose.lo
             stats["nees_pose_window_hi"] = self._nees_pose.hi
+        if self._pose_window is not None:  # whose word the verdict stands on
+            stats["nees_pose_judged_seq"] = float(self._pose_window[0])
         return out
 
     def _nees(self, pose: np.ndarray, Pvv: np.ndarray, ids: np.ndarray, landmarks: np.ndarray,

@@ -143,10 +143,12 @@ def test_a_timid_nis_is_ok_while_the_truths_word_bears_the_pose_out(
     for _ in range(50):
         health = party.step(truth=True)
         assert health.get("verdict", "ok") == "ok" and timid_nis(health), health
-    # the truth gone: its word stands, past the clearance
+    # the truth gone: its word stands, past the clearance, and the Health says whose it is
+    stopped = party.seq
     for _ in range(CLEAR_AFTER + 50):
         health = party.step(truth=False)
         assert health.get("verdict", "ok") == "ok" and timid_nis(health), health
+        assert health["statistics"]["nees_pose_judged_seq"] <= stopped, health
     # a truth 10 cm off, against a pose σ of 1 cm: once a NEES window fails, "tuning"
     contradicted = party.seq
     while health.get("verdict", "ok") == "ok":

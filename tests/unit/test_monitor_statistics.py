@@ -12,6 +12,7 @@ from scipy.stats import chi2
 
 from slamlens.common.geometry import wrap_angle
 from slamlens.common.messages import Health, SlamState
+from slamlens.common.verdict import summary_text
 from slamlens.services.monitor.monitor import Monitor
 from slamlens.services.monitor.settings import MonitorSettings
 from slamlens.services.monitor.stats import WindowTest
@@ -191,6 +192,12 @@ def test_the_truths_word_on_the_pose_stands_until_a_nees_window_fails(correct_ru
     assert stamps[first_ok] <= 10.0 and blind.size > settings.clear_after
     assert all(healths[k].verdict == "ok" and healths[k].standing[0].kind == "nis"
                for k in range(first_ok, int(blind[-1]) + 1))
+    # … and says on what: the seq of the last pose NEES window judged, before the stretch
+    judged = healths[int(blind[-1])].statistics["nees_pose_judged_seq"]
+    assert judged < healths[int(blind[0])].seq
+    assert summary_text(healths[int(blind[-1])]).endswith(
+        f"; pose NEES last judged at seq {int(judged)})")
+    assert "last judged" not in summary_text(healths[int(blind[0]) - 1])
     assert healths[-1].verdict == "tuning"
     assert "nees" in {v.kind for v in healths[-1].standing}
 

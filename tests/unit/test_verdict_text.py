@@ -77,3 +77,11 @@ def test_ok_with_a_timid_nis_standing_says_why_it_is_ok() -> None:
     low = Violation("nis", (), 899, 0.5, bound=0.9, first_step=60, count=300)
     assert summary_text(health(standing=(low,))) == (
         "ok (NIS below its band while the pose NEES is in its band: S is conservative)")
+    # the truth judged the pose recently: nothing more to say; long ago: when
+    recent = health(standing=(low,), statistics={"nees_pose_judged_seq": 880.0})
+    assert summary_text(recent) == summary_text(health(standing=(low,)))
+    old = health(standing=(low,), statistics={"nees_pose_judged_seq": 412.0})
+    assert summary_text(old) == (
+        "ok (NIS below its band while the pose NEES is in its band: S is conservative; "
+        "pose NEES last judged at seq 412)")
+    assert summary_text(health(statistics={"nees_pose_judged_seq": 412.0})) == "ok"
