@@ -29,6 +29,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from slamlens.common.geometry import wrap_angle
 from slamlens.common.messages import Observations
 from slamlens.services.harness.mrclam_pipeline import DATA, left_out_profile
 from slamlens.services.slam.camera_fit import CameraFit, fit_camera
@@ -40,10 +41,6 @@ RATE_HALF_S = 0.05  #: the truth's turn rate is its heading change over ±this, 
 EARLY_S = 120.0  #: the short calibration: the run's first this many seconds
 #: a camera with no error: the sightings as recorded
 PERFECT = CameraFit(offset=0.0, scale=0.0, range_scale=1.0, sightings=0, latency=0.0)
-
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
 
 
 def sightings(run: MrclamRun, until_s: float = math.inf) -> np.ndarray:
@@ -59,11 +56,11 @@ def sightings(run: MrclamRun, until_s: float = math.inf) -> np.ndarray:
         if any(p is None for p in poses):
             continue
         before, pose, after = poses
-        rate = _wrap(after[2] - before[2]) / (2 * RATE_HALF_S)
+        rate = float(wrap_angle(after[2] - before[2])) / (2 * RATE_HALF_S)
         for lid, r, b in zip(m.ids, m.ranges, m.bearings, strict=True):
             if lid in where:
                 dx, dy = where[lid][0] - pose[0], where[lid][1] - pose[1]
-                error = _wrap(b - _wrap(math.atan2(dy, dx) - pose[2]))
+                error = float(wrap_angle(b - wrap_angle(math.atan2(dy, dx) - pose[2])))
                 rows.append((b, rate, error, r, math.hypot(dx, dy)))
     return np.array(rows).reshape(-1, 5)
 
@@ -102,12 +99,12 @@ def score(robot: int, variant: str, camera: CameraFit) -> str:
             f"map {e.landmark_rmse_rigid:.3f} m")
 
 
-def report_filter(cameras: dict[int, CameraFit]) -> None:
+def report_filter(runs: dict[int, MrclamRun], cameras: dict[int, CameraFit]) -> None:
     """Part 2 (two processes)."""
     jobs = []
     for k in cameras:
         others = float(np.mean([c.latency or 0.0 for j, c in cameras.items() if j != k]))
-        early = camera_of(sightings(load_mrclam(DATA, k), EARLY_S))
+        early = camera_of(sightings(runs[k], EARLY_S))
         jobs += [(k, "as recorded", PERFECT),
                  (k, f"latency of the other four ({others * 1e3:.0f} ms) off",
                   replace(PERFECT, latency=others)),
@@ -127,10 +124,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--evaluate", action="store_true",
                         help="also run the estimator with the cameras calibrated (≈ 1 min)")
     args = parser.parse_args(argv)
-    cameras = {k: camera_of(sightings(load_mrclam(DATA, k))) for k in ROBOTS}
+    runs = {k: load_mrclam(DATA, k) for k in ROBOTS}
+    cameras = {k: camera_of(sightings(run)) for k, run in runs.items()}
     report_cameras(cameras)
     if args.evaluate:
-        report_filter(cameras)
+        report_filter(runs, cameras)
     return 0
 
 

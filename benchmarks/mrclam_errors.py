@@ -267,10 +267,14 @@ def report_filter(runs: dict[int, MrclamRun], tables: dict[int, np.ndarray]) -> 
     print(f"the filter, each robot with its left-out profile (NIS windows of "
           f"{NIS_WINDOW}, band [{NIS_LO:.2f}, {NIS_HI:.2f}]; map: "
           "landmark RMSE after a rigid fit)")
-    jobs = [job if len(job) == 8 else (*job, 1.0) for job in jobs]  # speed 1 but where set
     with ProcessPoolExecutor(2) as pool:
-        for row in pool.map(evaluate, *zip(*jobs, strict=True)):
+        for row in pool.map(_evaluate_job, jobs):
             print(row, flush=True)
+
+
+def _evaluate_job(job: tuple) -> str:
+    """:func:`evaluate` of one job's arguments (the later ones may be left at their default)."""
+    return evaluate(*job)
 
 
 def main(argv: list[str] | None = None) -> int:
