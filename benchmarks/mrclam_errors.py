@@ -4,8 +4,11 @@ measurements behind docs/consistency.md, "Why the NIS is low on real data".
 1. **Odometry.** Over windows of T seconds, the heading change the ground truth shows minus
    the one the commanded turn rates integrate to: its mean per second (a turn-rate bias)
    and its variance per second (constant in T for white noise, growing for correlated);
-   and over windows of 4 s the distance the truth travelled against the commanded one
-   (the median ratio: the commanded speed's scale).
+   and the commanded speed's scale: over windows of 2 s in which the truth turned less than
+   0.2 rad, the truth's displacement over the one the commanded (v, ω) integrate to (the
+   median ratio); beside it, for comparison, the length of the truth's path over the
+   commanded distance in 4 s windows, measured between every 5th, 10th and 25th truth
+   sample — a measure the Vicon path's jitter and wiggle make depend on that spacing.
 2. **Range.** Every sighting of a landmark against the range the ground truth gives (both
    poses from Vicon): the error's standard deviation, and the part that changes between
    consecutive sightings of one landmark less than a second apart (sd of their difference
@@ -16,11 +19,13 @@ measurements behind docs/consistency.md, "Why the NIS is low on real data".
 4. ``--evaluate``: the estimator (offline, each robot with its left-out profile
    benchmarks/profiles/without-robotK.toml) as shipped, with each robot's own turn-rate bias
    removed from its odometry (an oracle: it uses the truth), with its commanded speeds
-   scaled by the other four robots' median ratio (part 1), with the sensor σ scaled down
+   scaled by the other four robots' median ratio (part 1: the displacement's, and the
+   path length's between every 10th sample), with the sensor σ scaled down
    until the mean NIS is near 2, with the iterated update (``update_iterations`` 10), and
    with the left-out range calibration applied (the range σ then the sd it leaves on the
    four, constant): pose NEES, NIS (mean, median, share of the monitor's 50-innovation
-   windows outside its band) and the map's shape (landmark RMSE after a rigid fit).
+   windows outside its band), the map's shape (landmark RMSE after a rigid fit) and its
+   size against the truth (the similarity fit's scale).
 
 Run: ``.venv/bin/python benchmarks/mrclam_errors.py [--evaluate]`` (≈ 20 s; ``--evaluate``
 ≈ 2 min on 2 cores).
@@ -49,7 +54,7 @@ from slamlens.services.harness.mrclam_pipeline import (
 )
 from slamlens.services.slam.estimator import Estimator
 from slamlens.services.slam.mrclam import MrclamRun, load_mrclam
-from slamlens.services.slam.scoring import Scorer, TruthTrack
+from slamlens.services.slam.scoring import Scorer, TruthTrack, similarity_fit
 
 ROBOTS = (1, 2, 3, 4, 5)
 WINDOWS_S = (0.25, 1.0, 4.0, 32.0)
@@ -67,9 +72,11 @@ SENSOR_KEYS = ("sigma_range", "sigma_bearing", "sigma_range_per_m")
 SENSOR_SCALE = 0.35
 #: the iterated update's budget tried (``update_iterations``, docs/estimator.md)
 ITERATIONS = 10
-SPEED_WINDOW_S = 4.0  #: windows of the speed-scale measurement
-SPEED_MIN_M = 0.15  #: … that count: the commanded distance at least this
-SPEED_STEP = 10  #: the truth's path is measured between every SPEED_STEP-th sample
+SPEED_WINDOW_S = 2.0  #: windows of the speed-scale measurement
+SPEED_MIN_M = 0.1  #: … that count: the commanded displacement at least this
+SPEED_MAX_TURN = 0.2  #: … and the truth's heading change at most this, rad
+PATH_WINDOW_S = 4.0  #: windows of the path-length comparison
+PATH_STEPS = (5, 10, 25)  #: its truth path measured between every k-th sample
 
 
 def _wrap(a: np.ndarray | float) -> np.ndarray | float:
@@ -94,17 +101,38 @@ def heading_errors(run: MrclamRun, truth: TruthTrack) -> dict[float, np.ndarray]
 
 
 def speed_ratio(run: MrclamRun) -> float:
-    """Median over SPEED_WINDOW_S windows of the distance the truth travelled over the
-    commanded one (Σ v·dt)."""
+    """Median over SPEED_WINDOW_S windows (truth turning < SPEED_MAX_TURN) of the truth's
+    displacement over the one the commanded (v, ω) integrate to from the same heading."""
+    odo = run.odometry
+    t, v, w = odo[:, 0], odo[:, 1], odo[:, 2]
+    ratios = []
+    for a in np.arange(t[0], t[-1] - SPEED_WINDOW_S, SPEED_WINDOW_S):
+        p_a, p_b = run.pose_at(a), run.pose_at(a + SPEED_WINDOW_S)
+        if p_a is None or p_b is None or abs(float(_wrap(p_b[2] - p_a[2]))) > SPEED_MAX_TURN:
+            continue
+        i0 = max(int(np.searchsorted(t, a, side="right")) - 1, 0)
+        i1 = int(np.searchsorted(t, a + SPEED_WINDOW_S, side="left"))
+        dt = np.diff(np.clip(t[i0:i1 + 1], a, a + SPEED_WINDOW_S))
+        heading = np.concatenate([[0.0], np.cumsum(w[i0:i0 + dt.size] * dt)])[:-1]
+        step = v[i0:i0 + dt.size] * dt
+        commanded = math.hypot(float(step @ np.cos(heading)), float(step @ np.sin(heading)))
+        if commanded > SPEED_MIN_M:
+            ratios.append(math.hypot(p_b[0] - p_a[0], p_b[1] - p_a[1]) / commanded)
+    return float(np.median(ratios))
+
+
+def path_ratio(run: MrclamRun, every: int) -> float:
+    """Median over PATH_WINDOW_S windows of the truth's path length (between every
+    ``every``-th sample) over the commanded distance Σ v·dt: what the spacing does to it."""
     odo, gt = run.odometry, run.groundtruth
     dt = np.diff(odo[:, 0])
     ratios = []
-    for a in np.arange(max(odo[0, 0], gt[0, 0]), min(odo[-1, 0], gt[-1, 0]) - SPEED_WINDOW_S,
-                       SPEED_WINDOW_S):
-        steps = (odo[:-1, 0] >= a) & (odo[:-1, 0] < a + SPEED_WINDOW_S)
+    for a in np.arange(max(odo[0, 0], gt[0, 0]), min(odo[-1, 0], gt[-1, 0]) - PATH_WINDOW_S,
+                       PATH_WINDOW_S):
+        steps = (odo[:-1, 0] >= a) & (odo[:-1, 0] < a + PATH_WINDOW_S)
         commanded = float(np.sum(odo[:-1][steps, 1] * dt[steps]))
-        path = gt[(gt[:, 0] >= a) & (gt[:, 0] <= a + SPEED_WINDOW_S), 1:3][::SPEED_STEP]
-        if commanded > SPEED_MIN_M and len(path) > 1:
+        path = gt[(gt[:, 0] >= a) & (gt[:, 0] <= a + PATH_WINDOW_S), 1:3][::every]
+        if commanded > 0.15 and len(path) > 1:
             ratios.append(float(np.sum(np.linalg.norm(np.diff(path, axis=0), axis=1)))
                           / commanded)
     return float(np.median(ratios))
@@ -180,7 +208,9 @@ def report_errors(runs: dict[int, MrclamRun]) -> dict[int, np.ndarray]:
         rates = "  ".join(f"{np.var(errs[T]) / T:.4f}" for T in WINDOWS_S)
         bias = float(np.mean(errs[4.0]) / 4.0)
         print(f"  robot {k}: turn-rate bias {bias:+.4f} rad/s; variance per s {rates} rad²/s;"
-              f" truth / commanded distance {speed_ratio(run):.4f}")
+              f" truth / commanded displacement {speed_ratio(run):.4f} (path length, "
+              "truth samples every " + ", ".join(f"{k}th {path_ratio(run, k):.4f}"
+                                                 for k in PATH_STEPS) + ")")
         tables[k] = range_errors(run, truth)
     print("range: error against the truth; the part that changes between consecutive "
           f"sightings (< {CONSECUTIVE_S:g} s apart) of one landmark")
@@ -241,20 +271,26 @@ def evaluate(robot: int, variant: str, turn_bias: float,
     e = scorer.finish(est.landmark_ids, est.landmarks, est.diagnostics())
     nis = e.nis if e.nis is not None else np.zeros(0)
     outside = sum(nis_windows_out(nis))
+    mapped = np.asarray(e.landmarks)
+    _, map_scale = similarity_fit(mapped, mapped + e.landmark_errors)
     return (f"  robot {robot}  {variant:<28} NEES {e.nees_mean:6.2f}  NIS mean "
             f"{e.nis_mean:4.2f} median {float(np.median(nis)):4.2f} (1.39)  windows outside "
-            f"{outside:4.0%}  map {e.landmark_rmse_rigid:.3f} m")
+            f"{outside:4.0%}  map {e.landmark_rmse_rigid:.3f} m (its scale "
+            f"{1 / map_scale:.4f})")
 
 
 def report_filter(runs: dict[int, MrclamRun], tables: dict[int, np.ndarray]) -> None:
     """Print part 4 (two processes)."""
     jobs: list[tuple] = []
     speeds = {k: speed_ratio(run) for k, run in runs.items()}
+    paths = {k: path_ratio(run, 10) for k, run in runs.items()}
     for k, run in runs.items():
         bias = float(np.mean(heading_errors(run, TruthTrack.from_mrclam(run))[4.0]) / 4.0)
         speed = float(np.median([s for j, s in speeds.items() if j != k]))
+        path = float(np.median([s for j, s in paths.items() if j != k]))
         jobs += [(k, "left-out profile", 0.0, None, None, 1.0, 1),
                  (k, f"speeds × {speed:.3f} (the others')", 0.0, None, None, 1.0, 1, speed),
+                 (k, f"speeds × {path:.3f} (path, 10th)", 0.0, None, None, 1.0, 1, path),
                  (k, f"sensor σ × {SENSOR_SCALE}", 0.0, None, None, SENSOR_SCALE, 1),
                  (k, "turn-rate bias removed", bias, None, None, 1.0, 1),
                  (k, f"iterated update (K = {ITERATIONS})", 0.0, None, None, 1.0,
