@@ -97,9 +97,11 @@ def heading_errors(run: MrclamRun, truth: TruthTrack) -> dict[float, np.ndarray]
     out: dict[float, np.ndarray] = {}
     for T in WINDOWS_S:
         n = max(1, round(T / step))
-        errs = [float(_wrap(poses[j][2] - poses[i][2] - (turned[j] - turned[i])))
-                for i in range(0, len(odo) - n, max(1, n // 2)) for j in (i + n,)
-                if poses[i] is not None and poses[j] is not None]
+        errs = []
+        for i in range(0, len(odo) - n, max(1, n // 2)):
+            a, b = poses[i], poses[i + n]
+            if a is not None and b is not None:
+                errs.append(float(_wrap(b[2] - a[2] - (turned[i + n] - turned[i]))))
         out[T] = np.array(errs)
     return out
 
@@ -149,7 +151,7 @@ def range_errors(run: MrclamRun, truth: TruthTrack) -> np.ndarray:
     rows = []
     for m in run.events(truth=False):
         pose = truth.pose_at(m.stamp) if isinstance(m, Observations) else None
-        if pose is None:
+        if pose is None or not isinstance(m, Observations):
             continue
         for lid, r, b in zip(m.ids, m.ranges, m.bearings, strict=True):
             if lid in where:
@@ -242,13 +244,15 @@ def _inputs(run: MrclamRun, turn_bias: float, calibration: tuple[tuple[str, ...]
         if isinstance(m, Odometry):
             yield replace(m, w=m.w + turn_bias, v=m.v * speed)
             continue
+        if not isinstance(m, Observations):
+            continue  # no truth was asked for
         if every_s:  # one sighting of a landmark per every_s seconds
             keep = [i for i, lid in enumerate(m.ids) if m.stamp - last.get(lid, -math.inf)
                     >= every_s]
             last.update((m.ids[i], m.stamp) for i in keep)
-            m = replace(m, ids=[m.ids[i] for i in keep],
-                        ranges=[m.ranges[i] for i in keep],
-                        bearings=[m.bearings[i] for i in keep])
+            rows = np.array(keep, dtype=int)
+            m = replace(m, ids=np.asarray(m.ids)[rows], ranges=np.asarray(m.ranges)[rows],
+                        bearings=np.asarray(m.bearings)[rows])
             if not keep:
                 continue
         if calibration is not None:
