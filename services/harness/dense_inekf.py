@@ -57,6 +57,10 @@ class DenseInvariantEkf:
         self.n = 3
         self.index: dict[int, int] = {}  #: landmark id → first row of its block
         self.gated = 0
+        # the predicts' noise not yet added to P (landmarks do not move between updates,
+        # so a run of predicts adds A to the robot block, c·bᵀ across and s·b bᵀ to the map,
+        # b = (l₁y, −l₁x, …): O(1) a predict, O(n²) once before P is next read)
+        self._A, self._c, self._s = np.zeros((3, 3)), np.zeros(3), 0.0
 
     def apply(self, message: Odometry | Observations) -> list[tuple[np.ndarray, np.ndarray]]:
         """One input; the (ν, S) of the observations applied."""
@@ -67,17 +71,30 @@ class DenseInvariantEkf:
                             message.bearings.tolist())
 
     def predict(self, v: float, w: float, dt: float) -> None:
-        x, n, th = self.x, self.n, float(self.x[2])
+        x, th = self.x, float(self.x[2])
         x[0] += v * dt * math.cos(th)
         x[1] += v * dt * math.sin(th)
         x[2] = _wrap(th + w * dt)
-        G = np.zeros((n, 2))
-        G[0, 0], G[1, 0] = dt * math.cos(th), dt * math.sin(th)  # the speed noise
-        G[2, 1] = dt  # the turn noise, and through the adjoint −Ω t̂′·dt on every t
-        G[0, 1], G[1, 1] = x[1] * dt, -x[0] * dt
-        G[3:n:2, 1] = x[4:n + 1:2] * dt
-        G[4:n:2, 1] = -x[3:n:2] * dt
-        self.P[:n, :n] += (G * [self.noise.var_v, self.noise.var_w]) @ G.T
+        speed = np.array([dt * math.cos(th), dt * math.sin(th), 0.0])  # the speed noise
+        turn = np.array([x[1] * dt, -x[0] * dt, dt])  # the turn noise: −Ω p̂′·dt, dt …
+        qv, qw = self.noise.var_v, self.noise.var_w  # … and −Ω l̂·dt on every landmark
+        self._A += qv * np.outer(speed, speed) + qw * np.outer(turn, turn)
+        self._c += qw * dt * turn
+        self._s += qw * dt * dt
+
+    def flush(self) -> None:
+        """Add the pending predicts' noise to P (module docstring: P += G Q Gᵀ each)."""
+        if not (self._s or self._A.any()):
+            return
+        x, P, n = self.x, self.P, self.n
+        b = np.empty(n - 3)
+        b[0::2], b[1::2] = x[4:n + 1:2], -x[3:n:2]
+        P[:3, :3] += self._A
+        cross = np.outer(self._c, b)
+        P[:3, 3:n] += cross
+        P[3:n, :3] += cross.T
+        P[3:n, 3:n] += self._s * np.outer(b, b)
+        self._A, self._c, self._s = np.zeros((3, 3)), np.zeros(3), 0.0
 
     def observe(self, ids: list[int], ranges: list[float],
                 bearings: list[float]) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -98,25 +115,25 @@ class DenseInvariantEkf:
 
     def update(self, lid: int, z_range: float,
                z_bearing: float) -> tuple[np.ndarray, np.ndarray] | None:
+        self.flush()
         x, P, n, a = self.x, self.P, self.n, self.index[lid]
         dx, dy = x[a] - x[0], x[a + 1] - x[1]
         q = dx * dx + dy * dy
         r = math.sqrt(q)
         nu = np.array([z_range - r, _wrap(z_bearing - (math.atan2(dy, dx) - x[2]))])
-        H = np.zeros((2, n))
-        H[0, [0, 1, a, a + 1]] = [-dx / r, -dy / r, dx / r, dy / r]
-        H[1, [0, 1, a, a + 1]] = [dy / q, -dx / q, -dy / q, dx / q]
-        PHt = P[:n, :n] @ H.T
-        S = H @ PHt + np.diag([self.noise.range_variance(z_range, z_bearing),
-                               self.noise.var_b])
+        rows = [0, 1, a, a + 1]  # H's nonzero columns (none for θ)
+        H = np.array([[-dx / r, -dy / r, dx / r, dy / r],
+                      [dy / q, -dx / q, -dy / q, dx / q]])
+        PHt = P[:n, rows] @ H.T
+        S = H @ PHt[rows] + np.diag([self.noise.range_variance(z_range, z_bearing),
+                                     self.noise.var_b])
         gate = self.s.innovation_gate_chi2
         if gate and float(nu @ np.linalg.solve(S, nu)) > gate:
             self.gated += 1
             return None
-        K = np.linalg.solve(S, PHt.T).T
+        K = np.linalg.solve(S, PHt.T).T  # P Hᵀ S⁻¹
         self.retract(K @ nu)
-        P[:n, :n] -= K @ S @ K.T
-        P[:n, :n] = 0.5 * (P[:n, :n] + P[:n, :n].T)
+        P[:n, :n] -= K @ PHt.T  # K S Kᵀ = P Hᵀ S⁻¹ H P
         return nu, S
 
     def retract(self, d: np.ndarray) -> None:
@@ -135,6 +152,7 @@ class DenseInvariantEkf:
         x[2] = _wrap(float(x[2]) + al)
 
     def initialise(self, lid: int, z_range: float, z_bearing: float) -> None:
+        self.flush()
         x, P, n, a = self.x, self.P, self.n, self.n
         c, s = math.cos(x[2] + z_bearing), math.sin(x[2] + z_bearing)
         x[a], x[a + 1] = x[0] + z_range * c, x[1] + z_range * s
@@ -163,10 +181,11 @@ class DenseInvariantEkf:
     def pose_covariance(self) -> np.ndarray:
         """The robot block of T P Tᵀ (the standard error's covariance)."""
         T = self.transform()[:3, :3]
-        return T @ self.P[:3, :3] @ T.T
+        return T @ (self.P[:3, :3] + self._A) @ T.T
 
     def covariance(self) -> np.ndarray:
         """The whole standard-error covariance T P Tᵀ."""
+        self.flush()
         T = self.transform()
         n = self.n
         return T @ self.P[:n, :n] @ T.T
