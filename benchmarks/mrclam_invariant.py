@@ -104,7 +104,8 @@ def simulated_nees(world_name: str, seed: int, loops: int | None) -> np.ndarray:
     def score(stamp: float) -> None:
         e = truth[stamp] - ekf.pose
         e[2] = wrap_angle(e[2])
-        out.append(float(e @ np.linalg.solve(ekf.pose_covariance, e)))
+        P = ekf.pose_covariance  # singular before the first step (the start is the frame)
+        out.append(float(e @ np.linalg.solve(P, e)) if np.linalg.cond(P) < 1e12 else math.nan)
 
     for event in Simulator(world, seed=seed, loops=loops).events():
         if isinstance(event, Truth):
@@ -125,6 +126,8 @@ def report_simulated(pool: Executor, world: str, loops: int | None, seeds: int) 
     runs = list(pool.map(simulated_nees, [world] * seeds, range(seeds), [loops] * seeds))
     length = min(len(r) for r in runs)
     stacked = np.array([r[:length] for r in runs])
+    stacked = stacked[:, int(np.argmax(np.isfinite(stacked).any(axis=0))):]  # from the start
+    length = stacked.shape[1]
     finite = np.all(np.isfinite(stacked), axis=1)
     mean = stacked.mean(axis=0)
     lo, hi = stats.chi2.ppf([0.025, 0.975], POSE_DOF * seeds) / seeds

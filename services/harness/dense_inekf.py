@@ -133,7 +133,8 @@ class DenseInvariantEkf:
             return None
         K = np.linalg.solve(S, PHt.T).T  # P Hᵀ S⁻¹
         self.retract(K @ nu)
-        P[:n, :n] -= K @ PHt.T  # K S Kᵀ = P Hᵀ S⁻¹ H P
+        V = PHt @ np.linalg.inv(np.linalg.cholesky(S)).T  # K S Kᵀ = V Vᵀ, symmetric
+        P[:n, :n] -= V @ V.T
         return nu, S
 
     def retract(self, d: np.ndarray) -> None:
