@@ -13,7 +13,8 @@ so δ = T(x̂)·ξ with T = I + c eθᵀ, c = (Ω p̂, 0, Ω l̂₁, …). In ξ
 * **Predict** (v, ω held for dt, the standard model): the mean as the standard filter moves
   it; F = I exactly; the speed noise enters ξp along (cos θ̂, sin θ̂)·dt, the turn noise ξθ
   by dt and every translation t by −Ω t̂′·dt (its adjoint), so P += G Q Gᵀ with G of
-  n × 2 (O(n²) a step).
+  n × 2 — summed over the predicts between two updates (the landmarks do not move) and
+  added once before P is next read: O(1) a predict.
 * **Update** of landmark j: d = l̂ⱼ − p̂; H has no θ column — range (−dᵀ, dᵀ)/r on (p, lⱼ),
   bearing (Ω d)ᵀ(−1, 1)/r² — so H·N = 0 for global translation and rotation about the
   origin (N constant in ξ) whatever the estimate; K, P as the EKF; the mean moves by
@@ -50,6 +51,10 @@ class DenseInvariantEkf:
     def __init__(self, settings: EstimatorSettings, capacity: int = CAPACITY) -> None:
         if any(settings.initial_pose_sigma):
             raise ValueError("an uncertain initial pose is not modelled here")
+        if settings.sigma_distance or settings.sigma_turn or \
+                settings.sigma_heading_per_distance or settings.update_iterations > 1:
+            raise ValueError("the opt-in motion terms and the iterated update are not "
+                             "modelled here (the standard model's σv, σω only)")
         self.s, self.noise = settings, NoiseModel.of(settings)
         size = 3 + 2 * capacity
         self.x, self.P = np.zeros(size), np.zeros((size, size))

@@ -6,6 +6,7 @@ the simulated paper world against the truth (Monte-Carlo)."""
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -154,3 +155,10 @@ def test_in_the_standard_error_predict_and_new_landmarks_are_the_ekfs(seed: int)
     R = np.diag([ekf.noise.range_variance(zr, zb), ekf.noise.var_b])
     P2 = np.block([[P1, P1 @ G.T], [G @ P1, G @ P1 @ G.T + Gz @ R @ Gz.T]])
     np.testing.assert_allclose(ekf.covariance(), P2, rtol=1e-9, atol=1e-12)
+
+
+@pytest.mark.parametrize("change", [{"sigma_distance": 0.1}, {"update_iterations": 3},
+                                    {"initial_pose_sigma": (0.1, 0.0, 0.0)}])
+def test_what_the_dense_filter_does_not_model_is_refused(change: dict[str, object]) -> None:
+    with pytest.raises(ValueError, match="not modelled"):
+        DenseInvariantEkf(replace(EstimatorSettings(), **change))  # type: ignore[arg-type]
