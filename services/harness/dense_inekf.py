@@ -34,15 +34,12 @@ import math
 
 import numpy as np
 
+from slamlens.common.geometry import wrap_angle
 from slamlens.common.messages import Observations, Odometry
 from slamlens.services.slam.noise_model import NoiseModel
 from slamlens.services.slam.settings import EstimatorSettings
 
 CAPACITY = 400  #: landmarks the matrices are sized for
-
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2.0 * math.pi) - math.pi
 
 
 class DenseInvariantEkf:
@@ -79,7 +76,7 @@ class DenseInvariantEkf:
         x, th = self.x, float(self.x[2])
         x[0] += v * dt * math.cos(th)
         x[1] += v * dt * math.sin(th)
-        x[2] = _wrap(th + w * dt)
+        x[2] = float(wrap_angle(th + w * dt))
         speed = np.array([dt * math.cos(th), dt * math.sin(th), 0.0])  # the speed noise
         turn = np.array([x[1] * dt, -x[0] * dt, dt])  # the turn noise: −Ω p̂′·dt, dt …
         qv, qw = self.noise.var_v, self.noise.var_w  # … and −Ω l̂·dt on every landmark
@@ -125,20 +122,21 @@ class DenseInvariantEkf:
         dx, dy = x[a] - x[0], x[a + 1] - x[1]
         q = dx * dx + dy * dy
         r = math.sqrt(q)
-        nu = np.array([z_range - r, _wrap(z_bearing - (math.atan2(dy, dx) - x[2]))])
+        nu = np.array([z_range - r, float(wrap_angle(z_bearing - (math.atan2(dy, dx) - x[2])))])
         rows = [0, 1, a, a + 1]  # H's nonzero columns (none for θ)
         H = np.array([[-dx / r, -dy / r, dx / r, dy / r],
                       [dy / q, -dx / q, -dy / q, dx / q]])
         PHt = P[:n, rows] @ H.T
         S = H @ PHt[rows] + np.diag([self.noise.range_variance(z_range, z_bearing),
                                      self.noise.var_b])
+        inv_ls = np.linalg.inv(np.linalg.cholesky(S))  # S = L_S L_Sᵀ
+        u = inv_ls @ nu  # ‖u‖² = νᵀ S⁻¹ ν
         gate = self.s.innovation_gate_chi2
-        if gate and float(nu @ np.linalg.solve(S, nu)) > gate:
+        if gate and float(u @ u) > gate:
             self.gated += 1
             return None
-        K = np.linalg.solve(S, PHt.T).T  # P Hᵀ S⁻¹
-        self.retract(K @ nu)
-        V = PHt @ np.linalg.inv(np.linalg.cholesky(S)).T  # K S Kᵀ = V Vᵀ, symmetric
+        V = PHt @ inv_ls.T  # K = V L_S⁻¹, so Kν = V u and K S Kᵀ = V Vᵀ (symmetric)
+        self.retract(V @ u)
         P[:n, :n] -= V @ V.T
         return nu, S
 
@@ -155,7 +153,7 @@ class DenseInvariantEkf:
         steps = np.column_stack([d[rows], d[rows + 1]])
         moved = points @ np.array([[c, -s], [s, c]]).T + steps @ V.T
         x[rows], x[rows + 1] = moved[:, 0], moved[:, 1]
-        x[2] = _wrap(float(x[2]) + al)
+        x[2] = float(wrap_angle(float(x[2]) + al))
 
     def initialise(self, lid: int, z_range: float, z_bearing: float) -> None:
         self.flush()
@@ -170,9 +168,10 @@ class DenseInvariantEkf:
         self.index[lid] = a
         self.n += 2
 
-    def transform(self) -> np.ndarray:
-        """T(x̂): the standard error from the invariant one, δ = T ξ."""
-        x, n = self.x, self.n
+    def transform(self, rows: int | None = None) -> np.ndarray:
+        """T(x̂): the standard error from the invariant one, δ = T ξ (its first ``rows``
+        rows and columns: 3 = the robot's block)."""
+        x, n = self.x, self.n if rows is None else rows
         T = np.eye(n)
         T[0, 2], T[1, 2] = -x[1], x[0]
         T[3:n:2, 2] = -x[4:n + 1:2]
@@ -186,7 +185,7 @@ class DenseInvariantEkf:
     @property
     def pose_covariance(self) -> np.ndarray:
         """The robot block of T P Tᵀ (the standard error's covariance)."""
-        T = self.transform()[:3, :3]
+        T = self.transform(3)
         return T @ (self.P[:3, :3] + self._A) @ T.T
 
     def covariance(self) -> np.ndarray:
