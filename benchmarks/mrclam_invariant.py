@@ -24,18 +24,17 @@ import math
 import sys
 from concurrent.futures import Executor, ProcessPoolExecutor
 from dataclasses import dataclass, replace
+from functools import partial
 
 import numpy as np
 from scipy import stats
 
-from slamlens.common.geometry import wrap_angle
 from slamlens.common.messages import Truth
 from slamlens.services.harness.dense_inekf import DenseInvariantEkf
 from slamlens.services.harness.mrclam_pipeline import DATA, left_out_profile
-from slamlens.services.slam.consistency import world_settings
+from slamlens.services.slam import consistency
 from slamlens.services.slam.mrclam import load_mrclam
 from slamlens.services.slam.scoring import POSE_DOF, Scorer, TruthTrack
-from slamlens.services.slam.sim import Simulator
 from slamlens.services.slam.world import load_world
 
 ROBOTS = (1, 2, 3, 4, 5)
@@ -94,32 +93,11 @@ def fit_motion(robot: int, pool: Executor) -> tuple[float, float, int]:
 
 
 def simulated_nees(world_name: str, seed: int, loops: int | None) -> np.ndarray:
-    """One seed of a simulated world: the pose NEES after each event with a truth."""
+    """One seed of a simulated world: the pose NEES after each event (NaN while P_vv is
+    singular), scored as the estimator's Monte-Carlo scores it."""
     world = load_world(world_name)
-    ekf = DenseInvariantEkf(world_settings(world), capacity=world.n_landmarks)
-    truth: dict[float, np.ndarray] = {}
-    out: list[float] = []
-    pending: list[float] = []
-
-    def score(stamp: float) -> None:
-        e = truth[stamp] - ekf.pose
-        e[2] = wrap_angle(e[2])
-        P = ekf.pose_covariance  # singular before the first step (the start is the frame)
-        out.append(float(e @ np.linalg.solve(P, e)) if np.linalg.cond(P) < 1e12 else math.nan)
-
-    for event in Simulator(world, seed=seed, loops=loops).events():
-        if isinstance(event, Truth):
-            truth[event.stamp] = np.array(event.pose)
-            for stamp in pending:
-                score(stamp)
-            pending.clear()
-            continue
-        ekf.apply(event)
-        if event.stamp in truth:
-            score(event.stamp)
-        else:
-            pending.append(event.stamp)
-    return np.array(out)
+    return consistency.run(world, seed=seed, loops=loops,
+                           make=partial(DenseInvariantEkf, capacity=world.n_landmarks)).nees
 
 
 def report_simulated(pool: Executor, world: str, loops: int | None, seeds: int) -> None:

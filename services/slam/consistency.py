@@ -6,25 +6,42 @@ NEES = eᵀ P_vv⁻¹ e against the truth at that stamp. Over M seeds the mean N
 χ²(3M)-distributed for a consistent filter, which gives the two-sided band used by the
 tests and the plot in ``docs/consistency.md`` (Bar-Shalom, Li & Kirubarajan, §5.4).
 
-Also used by the tests of the covariance theorem: :func:`run` can collect every state.
+Also used by the tests of the covariance theorem: :func:`run` can collect every state. It
+scores any filter that applies the simulator's inputs and says its pose (:class:`PoseFilter`,
+e.g. the dense invariant EKF of services/harness/dense_inekf.py), the Estimator by default.
 """
 
 from __future__ import annotations
 
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Callable, Iterable, Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 from scipy import stats
 
+from slamlens.common.errors import ConfigError
 from slamlens.common.geometry import wrap_angle
-from slamlens.common.messages import Odometry, SlamState, Truth
+from slamlens.common.messages import Observations, Odometry, SlamState, Truth
 from slamlens.services.slam.ekf import RefusedStepError
 from slamlens.services.slam.estimator import Estimator
+from slamlens.services.slam.observe_report import ObserveReport
 from slamlens.services.slam.settings import EstimatorSettings
 from slamlens.services.slam.sim import Simulator
 from slamlens.services.slam.world import World
+
+
+class PoseFilter(Protocol):
+    """What :func:`run` scores: a filter fed the simulator's inputs that says its pose."""
+
+    @property
+    def pose(self) -> np.ndarray: ...
+
+    @property
+    def pose_covariance(self) -> np.ndarray: ...
+
+    def apply(self, message: Odometry | Observations) -> object: ...
 
 
 @dataclass(frozen=True)
@@ -53,11 +70,17 @@ def world_settings(world: World, *, linearisation: str = "standard",
 
 def run(world: World, *, seed: int, settings: EstimatorSettings | None = None,
         loops: int | None = None, anonymous: bool = False,
-        collect_states: bool = False) -> Run:
-    """Apply one seeded simulation to a fresh estimator; score the pose after each event."""
+        collect_states: bool = False,
+        make: Callable[[EstimatorSettings], PoseFilter] = Estimator) -> Run:
+    """Apply one seeded simulation to a fresh filter (``make(settings)``, the Estimator by
+    default); score the pose after each event. Collecting states needs the Estimator."""
     settings = settings or world_settings(world)
     sim = Simulator(world, seed=seed, loops=loops, anonymous=anonymous)
-    est = Estimator(settings)
+    est = make(settings)
+    #: the filter whose states are collected (the Estimator's, when asked for)
+    keeper = est if collect_states and isinstance(est, Estimator) else None
+    if collect_states and keeper is None:
+        raise ConfigError("only the Estimator makes states to collect")
     truth_pose: dict[float, np.ndarray] = {}
     stamps: list[float] = []
     steps: list[str] = []
@@ -65,8 +88,8 @@ def run(world: World, *, seed: int, settings: EstimatorSettings | None = None,
     states: list[SlamState] = []
     seq = refused = 0
     pending: list[tuple[str, float]] = []
-    if collect_states:
-        states.append(est.to_state(seq=0, stamp=0.0, step="init"))
+    if keeper is not None:
+        states.append(keeper.to_state(seq=0, stamp=0.0, step="init"))
 
     def score(step: str, stamp: float) -> None:
         e = truth_pose[stamp] - est.pose
@@ -88,14 +111,18 @@ def run(world: World, *, seed: int, settings: EstimatorSettings | None = None,
             pending.clear()
             continue
         seq += 1
-        report = None
+        report: ObserveReport | None = None
         step = "predict" if isinstance(event, Odometry) else "update"
         try:
-            report = est.apply(event)
+            if keeper is None:
+                est.apply(event)
+            else:
+                report = keeper.apply(event)
         except RefusedStepError:  # the service counts it and goes on: so does the run
             refused += 1
-        if collect_states:
-            states.append(est.to_state(seq=seq, stamp=event.stamp, step=step, report=report))
+        if keeper is not None:
+            states.append(keeper.to_state(seq=seq, stamp=event.stamp, step=step,
+                                          report=report))
         if event.stamp in truth_pose:
             score(step, event.stamp)
         else:
