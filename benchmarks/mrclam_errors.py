@@ -45,6 +45,7 @@ from dataclasses import replace
 import numpy as np
 
 from slamlens.common.errors import EstimationError
+from slamlens.common.geometry import wrap_angle
 from slamlens.common.messages import Observations, Odometry
 from slamlens.services.harness.mrclam_pipeline import (
     DATA,
@@ -83,10 +84,6 @@ PATH_WINDOW_S = 4.0  #: windows of the path-length comparison
 PATH_STEPS = (5, 10, 25)  #: its truth path measured between every k-th sample
 
 
-def _wrap(a: np.ndarray | float) -> np.ndarray | float:
-    return (np.asarray(a) + math.pi) % (2 * math.pi) - math.pi
-
-
 def heading_errors(run: MrclamRun, truth: TruthTrack) -> dict[float, np.ndarray]:
     """Per window length T: truth heading change − commanded one, windows half overlapping."""
     odo = [m for m in run.events(truth=False) if isinstance(m, Odometry)]
@@ -101,7 +98,7 @@ def heading_errors(run: MrclamRun, truth: TruthTrack) -> dict[float, np.ndarray]
         for i in range(0, len(odo) - n, max(1, n // 2)):
             a, b = poses[i], poses[i + n]
             if a is not None and b is not None:
-                errs.append(float(_wrap(b[2] - a[2] - (turned[i + n] - turned[i]))))
+                errs.append(float(wrap_angle(b[2] - a[2] - (turned[i + n] - turned[i]))))
         out[T] = np.array(errs)
     return out
 
@@ -114,7 +111,7 @@ def speed_ratio(run: MrclamRun) -> float:
     ratios = []
     for a in np.arange(t[0], t[-1] - SPEED_WINDOW_S, SPEED_WINDOW_S):
         p_a, p_b = run.pose_at(a), run.pose_at(a + SPEED_WINDOW_S)
-        if p_a is None or p_b is None or abs(float(_wrap(p_b[2] - p_a[2]))) > SPEED_MAX_TURN:
+        if p_a is None or p_b is None or abs(float(wrap_angle(p_b[2] - p_a[2]))) > SPEED_MAX_TURN:
             continue
         i0 = max(int(np.searchsorted(t, a, side="right")) - 1, 0)
         i1 = int(np.searchsorted(t, a + SPEED_WINDOW_S, side="left"))
