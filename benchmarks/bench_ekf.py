@@ -3,7 +3,7 @@ dense textbook EKF measured in the same run.
 
     .venv/bin/python benchmarks/bench_ekf.py           # full run (about a minute)
     .venv/bin/python benchmarks/bench_ekf.py --quick   # smoke run (a few seconds)
-    .venv/bin/python benchmarks/bench_ekf.py --fej-only   # FEJ, OC, OC iterated / standard
+    .venv/bin/python benchmarks/bench_ekf.py --fej-only   # FEJ, OC, OC iter., invariant / std
 
 Targets (docs/estimator.md): update at n = 1000 ≤ 1.3× the streaming floor (one read + one
 write of an N×N float64 matrix, timed as ``np.add(A, 0.0, out=A)`` on a contiguous array);
@@ -198,27 +198,29 @@ def batch_text(n: int, rng: np.random.Generator, *, reps: int, batch: int = 4) -
 ITERATIONS = 10
 
 
-def fej_text(n: int, *, reps: int, rounds: int = 7) -> str:
-    """FEJ, OC and OC with the iterated update against the standard linearisation
-    (docs/estimator.md, "Linearisation", "The iterated update"):
-    the same map built by each, then one ``Estimator.predict`` + ``observe`` of one
-    landmark (the whole path: bookkeeping, input checks, guard) timed for each, interleaved
-    in rounds so that load from other work hits all alike. Medians of the rounds' medians,
-    in CPU time of this thread (a descheduled thread's wait is not the kernel's cost)."""
-    lins = ("standard", "fej", "oc", "oc+iterated")
+def fej_text(n: int, *, reps: int, rounds: int = 7, batch: int = 1) -> str:
+    """FEJ, OC, OC with the iterated update and the invariant EKF against the standard
+    linearisation (docs/estimator.md, "Linearisation", "The iterated update", "The
+    invariant EKF"): the same map built by each, then one ``Estimator.predict`` +
+    ``observe`` of ``batch`` landmarks (the whole path: bookkeeping, input checks, guard)
+    timed for each, interleaved in rounds so that load from other work hits all alike.
+    Medians of the rounds' medians, in CPU time of this thread (a descheduled thread's wait
+    is not the kernel's cost). A batch of several shows what the invariant EKF's pass per
+    update costs against the others' one deferred pass per batch."""
+    lins = ("standard", "fej", "oc", "oc+iterated", "invariant")
     ests = {lin: mapped_estimator(n, np.random.default_rng(n), settings=EstimatorSettings(
         linearisation=lin.partition("+")[0],
         update_iterations=ITERATIONS if lin.endswith("+iterated") else 1)) for lin in lins}
-    ids = np.array([0], dtype=np.int64)
+    ids = np.arange(batch, dtype=np.int64)
 
     def step(est: Estimator) -> Callable[[], None]:
         x = est.store.x
 
         def go() -> None:
             est.predict(v=0.2, w=0.1, dt=0.01, stamp=1.0)
-            z = models.observe(x[:3], x[3:5])
-            est.observe(ids=ids, ranges=[float(z[0]) + 1e-3], bearings=[float(z[1])],
-                        stamp=1.0)
+            z = [models.observe(x[:3], x[3 + 2 * k:5 + 2 * k]) for k in range(batch)]
+            est.observe(ids=ids, ranges=[float(r) + 1e-3 for r, _ in z],
+                        bearings=[float(b) for _, b in z], stamp=1.0)
         return go
 
     times: dict[str, list[float]] = {lin: [] for lin in lins}
@@ -232,8 +234,10 @@ def fej_text(n: int, *, reps: int, rounds: int = 7) -> str:
         ratios = [f / s for s, f in zip(times["standard"], times[lin], strict=True)]
         parts.append(f"{med[lin]:.1f} µs {lin} (ratio {med[lin] / med['standard']:.3f}, per "
                      f"round {min(ratios):.3f}–{max(ratios):.3f})")
-    return (f"FEJ, OC, OC iterated vs standard at n = {n}: Estimator predict+update (thread CPU) "
-            f"{med['standard']:.1f} µs standard, " + ", ".join(parts))
+    what = "one update" if batch == 1 else f"a batch of {batch} updates"
+    return (f"FEJ, OC, OC iterated, invariant vs standard at n = {n}, {what}: Estimator "
+            f"predict+observe (thread CPU) {med['standard']:.1f} µs standard, "
+            + ", ".join(parts))
 
 
 def row_text(r: dict[str, float]) -> str:
@@ -272,17 +276,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sizes", default="15,100,500,1000", help="landmark counts n")
     parser.add_argument("--rows-only", action="store_true", help=argparse.SUPPRESS)
     parser.add_argument("--fej-only", action="store_true",
-                        help="only the FEJ / standard, OC / standard and OC iterated / "
-                             "standard cost ratios (at n = 15, 100, 1000)")
+                        help="only the FEJ, OC, OC iterated and invariant / standard cost "
+                             "ratios (at n = 15, 100, 1000; and a batch of 4 at n = 1000)")
     args = parser.parse_args(argv)
     sizes = [int(v) for v in args.sizes.split(",")]
     rng = np.random.default_rng(0)
     if args.fej_only:
         print(f"load average {os.getloadavg()[0]:.2f}, BLAS env "
               f"{os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}")
-        for n in (15, 100, 1000):
+        for n, batch in ((15, 1), (100, 1), (1000, 1), (1000, 4)):
             print(fej_text(n, reps=(300 if n <= 100 else 30) if args.quick
-                           else (7000 if n <= 100 else 350)), flush=True)
+                           else (7000 if n <= 100 else 350), batch=batch), flush=True)
         return 0
 
     if not args.rows_only:

@@ -31,7 +31,7 @@ import numpy as np
 
 from slamlens.common.arrays import frozen_array
 from slamlens.common.messages import Health, SlamState, Truth, Violation
-from slamlens.services.monitor import checks, theorems
+from slamlens.services.monitor import checks, invariant, theorems
 from slamlens.services.monitor.blame import Evidence, blame_weights
 from slamlens.services.monitor.screen import Screen, Screened
 from slamlens.services.monitor.settings import MonitorSettings
@@ -184,10 +184,14 @@ class Monitor:
         with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
             found += theorems.check_alone(s, state, structure_clean=screened.structure,
                                           psd_clean=screened.psd)
-            if prev is not None:
+            both = None if prev is None else invariant.compared(prev, state)
+            if both is not None:  # the invariant EKF compares its updates in ξ
+                pair = screened.pair if both[1] is state else None
                 pairs, direct, more = theorems.check_against(
-                    s, prev, state, stats, screened.pair, before=screened.before)
+                    s, *both, stats, pair, before=screened.before)
                 found += more
+            elif prev is not None:
+                stats["growth_unchecked"] = 1.0
             found += self._statistics(state, stats, screened.terms)
             found += self._check_unobservable(state, screened, stats)
         found += self._truth.take_late()
@@ -249,7 +253,8 @@ class Monitor:
         found = self._unobservable.step(state, factor)
         stats.update(found.statistics)
         v = found.violation(state, rtol=s.rtol_unobservable,
-                            theorem=s.check_unobservable == "always" or declares_fej(state))
+                            theorem=s.check_unobservable == "always" or declares_fej(state)
+                            or invariant.declares_invariant(state))
         return [] if v is None else [v]
 
     # -- statistics ----------------------------------------------------------------------

@@ -11,7 +11,9 @@ predictions only add noise, a new landmark appends a Schur complement). The stan
 Jacobians break that, and I grows at its updates: the spurious information that makes it
 overconfident in the map's heading.
 
-The monitor rebuilds N from the states alone, as FEJ chooses it: the robot row at the pose
+The invariant EKF (``linearisation.invariant``) keeps them unobservable at its latest
+estimates (:mod:`~slamlens.services.monitor.invariant`): N is taken at the state's own.
+For FEJ the monitor rebuilds N from the states alone, as FEJ chooses it: the robot row at the pose
 of the last *predict* (or init) state, each landmark's row at its estimate in the first
 state that has it; so it needs every state from the one where a landmark appeared (it
 says when it cannot: ``unobservable_unknown``). I is computed from the Cholesky factor of
@@ -30,6 +32,7 @@ import numpy as np
 from scipy import linalg
 
 from slamlens.common.messages import SlamState, Violation
+from slamlens.services.monitor.invariant import declares_invariant
 
 #: refinement steps at most, and the relative size of the last correction that says the
 #: information is determined (else P is too close to singular along N: skipped, like NEES)
@@ -195,15 +198,22 @@ class UnobservableCheck:
         determined; ``factor`` is the PSD screen's Cholesky factor (None: P not PD)."""
         out = Finding()
         ids = state.landmark_ids.tolist()
-        unknown = sum(1 for i in ids if i in self._unknown)
+        invariant = declares_invariant(state)
+        unknown = 0 if invariant else sum(1 for i in ids if i in self._unknown)
         if unknown:
             out.statistics["unobservable_unknown"] = float(unknown)
         # a state whose I cannot be had is skipped, not a break of the chain: I is
         # non-increasing along every state, so the next one compares with the last known
-        if factor is None or unknown or self.robot.xy is None:
+        if invariant:  # N at the state's own estimates (invariant.py)
+            points = null_space(np.asarray(state.pose[:2], dtype=float), state.landmarks)
+        elif factor is None or unknown or self.robot.xy is None:
             return out
-        first = np.array([self._first[i] for i in ids], dtype=float).reshape(-1, 2)
-        info = information(state.covariance, factor, null_space(self.robot.xy, first))
+        else:
+            first = np.array([self._first[i] for i in ids], dtype=float).reshape(-1, 2)
+            points = null_space(self.robot.xy, first)
+        if factor is None:
+            return out
+        info = information(state.covariance, factor, points)
         if info is None:
             return out
         out.sd_now = heading_sd_deg(info)

@@ -27,6 +27,7 @@ from slamlens.common.errors import ConfigError
 from slamlens.common.progress import count_bar, enabled, time_bar
 from slamlens.common.status import Report, announce, counts_of
 from slamlens.services.slam.settings import (
+    INVARIANT,
     LINEARISATIONS,
     EstimatorSettings,
     ReplaySettings,
@@ -297,6 +298,17 @@ def _run_summary(args: argparse.Namespace) -> int:
     return 0
 
 
+def _linearisations(s: TuneSettings) -> list[str]:
+    """The linearisations ``slamlens tune`` fits for: the one named, or all of them — but
+    the invariant EKF, which has no iterated update, with ``--update-iterations`` > 1."""
+    out = [lin for lin in LINEARISATIONS if s.linearisation in (lin, "all")
+           and not (lin == INVARIANT and s.update_iterations > 1)]
+    if not out:
+        raise ConfigError("the invariant EKF has no iterated update: leave out "
+                          "--update-iterations or choose another --linearisation")
+    return out
+
+
 def _run_tune(args: argparse.Namespace) -> int:
     from slamlens.services.slam import crossval, scoring, tuning
     from slamlens.services.slam.mrclam import load_mrclam
@@ -319,7 +331,7 @@ def _run_tune(args: argparse.Namespace) -> int:
         step = "scoring the robot left out" if number == 0 else f"pass {number}"
         return bar(f"tune ({what}) {step} (σ × {scale:.3f})", total)
 
-    linearisations = [lin for lin in LINEARISATIONS if s.linearisation in (lin, "all")]
+    linearisations = _linearisations(s)
     notes: list[str] = []
     cv: crossval.CrossValidation | None = None
     pool = ProcessPoolExecutor(s.jobs) if s.jobs > 1 and len(runs) > 1 else None

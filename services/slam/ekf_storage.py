@@ -113,10 +113,26 @@ def _dsyrk() -> Callable[..., None] | None:
     operand, which would defeat in-place work on the view ``L[:N, :N]`` of a larger buffer;
     the raw BLAS symbol (exported by scipy.linalg.cython_blas as a PyCapsule) takes lda/ldc.
     """
+    # void dsyrk(char *uplo, char *trans, int *n, int *k, double *alpha, double *a,
+    #            int *lda, double *beta, double *c, int *ldc)
+    return _blas("dsyrk", 10)
+
+
+@functools.cache
+def _dsyr2k() -> Callable[..., None] | None:
+    """BLAS ``dsyr2k`` (C ← α(A Bᵀ + B Aᵀ) + βC) as :func:`_dsyrk` finds ``dsyrk``."""
+    # void dsyr2k(char *uplo, char *trans, int *n, int *k, double *alpha, double *a,
+    #             int *lda, double *b, int *ldb, double *beta, double *c, int *ldc)
+    return _blas("dsyr2k", 12)
+
+
+def _blas(name: str, nargs: int) -> Callable[..., None] | None:
+    """The raw BLAS symbol ``name`` of scipy.linalg.cython_blas (all ``nargs`` arguments
+    pointers), or None."""
     try:
         from scipy.linalg import cython_blas
 
-        capsule = cython_blas.__pyx_capi__["dsyrk"]
+        capsule = cython_blas.__pyx_capi__[name]
         get_name = ctypes.pythonapi.PyCapsule_GetName
         get_name.restype = ctypes.c_char_p
         get_name.argtypes = [ctypes.py_object]
@@ -128,10 +144,7 @@ def _dsyrk() -> Callable[..., None] | None:
         return None
     if not address:
         return None
-    vp = ctypes.c_void_p
-    # void dsyrk(char *uplo, char *trans, int *n, int *k, double *alpha, double *a,
-    #            int *lda, double *beta, double *c, int *ldc)
-    proto = ctypes.CFUNCTYPE(None, vp, vp, vp, vp, vp, vp, vp, vp, vp, vp)
+    proto = ctypes.CFUNCTYPE(None, *([ctypes.c_void_p] * nargs))
     return proto(address)
 
 
@@ -146,9 +159,12 @@ class SyrkArgs:
         self.alpha = ctypes.c_double(-1.0)
         self.beta = ctypes.c_double(1.0)
         self.lda = ctypes.c_int(0)
+        self.ldb = ctypes.c_int(0)
         self.ldc = ctypes.c_int(0)
+        self.one = ctypes.c_double(1.0)
         self.addr = {name: ctypes.addressof(getattr(self, name))
-                     for name in ("uplo", "trans", "n", "k", "alpha", "beta", "lda", "ldc")}
+                     for name in ("uplo", "trans", "n", "k", "alpha", "beta", "lda", "ldb",
+                                  "ldc", "one")}
 
 
 def downdate_lower(L: np.ndarray, vt: np.ndarray, N: int, *, args: SyrkArgs | None = None,
@@ -178,3 +194,33 @@ def downdate_lower(L: np.ndarray, vt: np.ndarray, N: int, *, args: SyrkArgs | No
     ad = a.addr
     fn(ad["uplo"], ad["trans"], ad["n"], ad["k"], ad["alpha"], vt.ctypes.data, ad["lda"],
        ad["beta"], L.ctypes.data, ad["ldc"])
+
+
+def rank2k_lower(L: np.ndarray, at: np.ndarray, bt: np.ndarray, N: int, *,
+                 args: SyrkArgs | None = None, use_blas: bool = True) -> None:
+    """L[:N, :N] += A Bᵀ + B Aᵀ on (at least) the lower triangle, in place; A = at[:, :N]ᵀ,
+    B = bt[:, :N]ᵀ (N×k each, k = their rows): one pass over P, BLAS ``dsyr2k`` on the
+    strided view (the invariant EKF's update, :mod:`slamlens.services.slam.ekf_invariant`).
+    ``use_blas=False`` forces the numpy fallback (tests compare the two)."""
+    k = at.shape[0]
+    fn = _dsyr2k() if use_blas else None
+    ok = (k > 0 and bt.shape[0] == k and fn is not None and L.dtype == np.float64
+          and at.dtype == np.float64 and bt.dtype == np.float64
+          and L.strides[1] == 8 and at.strides[1] == 8 and bt.strides[1] == 8
+          and L.strides[0] >= 8 * N and at.strides[0] >= 8 * N and bt.strides[0] >= 8 * N)
+    if not ok:
+        product = at[:, :N].T @ bt[:, :N]
+        block = L[:N, :N]
+        block += product
+        block += product.T
+        return
+    assert fn is not None
+    a = SyrkArgs() if args is None else args
+    a.n.value = N
+    a.k.value = k
+    a.lda.value = at.strides[0] // 8
+    a.ldb.value = bt.strides[0] // 8
+    a.ldc.value = L.strides[0] // 8
+    ad = a.addr
+    fn(ad["uplo"], ad["trans"], ad["n"], ad["k"], ad["one"], at.ctypes.data, ad["lda"],
+       bt.ctypes.data, ad["ldb"], ad["one"], L.ctypes.data, ad["ldc"])

@@ -221,11 +221,13 @@ class Estimator:
         """Running counts published in every state (docs/protocol.md ``diagnostics``):
         ``gated``, ``refused_updates`` (S not PD) and ``refused.<reason>`` per reason; and
         ``linearisation.fej`` = 1 when the filter keeps FEJ's linearisation points and
-        unobservable directions (``fej`` and ``oc``: the monitor then holds it to their
-        theorems, docs/monitor.md)."""
+        unobservable directions (``fej`` and ``oc``), ``linearisation.invariant`` = 1 for
+        the invariant EKF: the monitor then holds it to their theorems (docs/monitor.md)."""
         out = self.checks.diagnostics()
         if self.store.fej is not None:
             out["linearisation.fej"] = 1.0
+        if self.store.invariant:
+            out["linearisation.invariant"] = 1.0
         return out
 
     def linearisation_points(self) -> dict[str, Any] | None:

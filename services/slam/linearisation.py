@@ -32,9 +32,10 @@ from collections.abc import Mapping, Sequence
 from typing import Any
 
 from slamlens.common.errors import EstimationError
-from slamlens.services.slam.settings import FEJ, LINEARISATIONS, OC, STANDARD
+from slamlens.services.slam.settings import FEJ, INVARIANT, LINEARISATIONS, OC, STANDARD
 
-__all__ = ["FEJ", "LINEARISATIONS", "OC", "STANDARD", "FirstEstimates", "fused"]
+__all__ = ["FEJ", "INVARIANT", "LINEARISATIONS", "OC", "STANDARD", "FirstEstimates",
+           "fused"]
 
 
 class FirstEstimates:

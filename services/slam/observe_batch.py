@@ -3,17 +3,17 @@
 
 A known id updates, an unknown id is mapped, id −1 is associated first
 (:mod:`slamlens.services.slam.association`: a landmark's id, a fresh one, or not applied).
-With FEJ a batch's new landmarks are mapped after its updates, several sightings of one
-fused (:func:`~slamlens.services.slam.linearisation.fused`). What each observation did goes
-into a :class:`~slamlens.services.slam.observe_report.BatchRecord`; what was not applied
-is counted (:class:`~slamlens.services.slam.input_checks.InputChecks`). No I/O.
+With FEJ, OC and the invariant EKF a batch's new landmarks are mapped after its updates,
+several sightings of one fused (:func:`~slamlens.services.slam.linearisation.fused`). What
+each observation did goes into a :class:`~slamlens.services.slam.observe_report.BatchRecord`;
+what was not applied is counted (:class:`~slamlens.services.slam.input_checks.InputChecks`). No I/O.
 """
 
 from __future__ import annotations
 
 import logging
 
-from slamlens.services.slam import association, ekf
+from slamlens.services.slam import association, ekf, ekf_invariant
 from slamlens.services.slam.input_checks import InputChecks, observation_text
 from slamlens.services.slam.linearisation import fused
 from slamlens.services.slam.noise_model import NoiseModel
@@ -63,14 +63,19 @@ class BatchApplier:
                 return
             lid = found
         j = store.index.get(lid)
-        if j is None and store.fej is not None:
-            batch.hold_new(lid, z_r, z_b, var_r)  # FEJ: mapped after the batch's updates
+        if j is None and store.holds_new:
+            batch.hold_new(lid, z_r, z_b, var_r)  # mapped after the batch's updates
             return
         try:
             if j is None:
                 store.initialise(lid, z_r, z_b, var_range=var_r, var_bearing=self.noise.var_b,
                                  guard=self.guard)
                 batch.new.append(lid)
+            elif store.invariant:
+                out = ekf_invariant.update(
+                    store.x, store.L, store.n, j, z_range=z_r, z_bearing=z_b, var_range=var_r,
+                    var_bearing=self.noise.var_b, ws=store.ws, gate=self.innovation_gate,
+                    guard=self.guard)
             else:
                 out = ekf.update(store.x, store.L, store.n, j, z_range=z_r, z_bearing=z_b,
                                  var_range=var_r, var_bearing=self.noise.var_b, ws=store.ws,
@@ -106,9 +111,10 @@ class BatchApplier:
         batch.assigned.append(-1)
 
     def _map_unmapped(self, batch: BatchRecord, stamp: float) -> None:
-        """FEJ: the batch's new landmarks, mapped after its updates (so that no update of
-        the batch moves them: a state publishes a new landmark at its first estimate, which
-        a monitor takes as its linearisation point); sightings of one landmark fused."""
+        """The batch's new landmarks, mapped after its updates (FEJ: so that no update of
+        the batch moves them — a state publishes a new landmark at its first estimate, which
+        a monitor takes as its linearisation point; the invariant EKF: so that no update's
+        retraction moves them); sightings of one landmark fused."""
         for lid, sightings in batch.unmapped.items():
             z_r, z_b, var_r, var_b = fused(sightings, self.noise.var_b)
             try:

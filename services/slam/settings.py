@@ -18,8 +18,8 @@ from slamlens.common.errors import ConfigError
 NONE, MAP_UPDATE, CROSS_COVARIANCE = "none", "map-update", "cross-covariance"
 FAULT_KINDS = (NONE, MAP_UPDATE, CROSS_COVARIANCE)
 #: where the estimator's Jacobians are evaluated (services/slam/linearisation.py)
-STANDARD, FEJ, OC = "standard", "fej", "oc"
-LINEARISATIONS = (STANDARD, FEJ, OC)
+STANDARD, FEJ, OC, INVARIANT = "standard", "fej", "oc", "invariant"
+LINEARISATIONS = (STANDARD, FEJ, OC, INVARIANT)
 
 
 def check_fault(kind: str, feature_ids: tuple[int, ...], magnitude: float | None) -> None:
@@ -166,7 +166,8 @@ class TuneSettings:
     gate_chi2: float = setting(13.82, doc="innovation gate written into the profile (χ²₂ "
                                           "99.9 %); 0 = none", min=0.0)
     linearisation: str = setting(
-        "all", doc="the estimator's linearisation to fit for: standard, fej, oc, or all = "
+        "all", doc="the estimator's linearisation to fit for: standard, fej, oc, invariant, or "
+                   "all = "
                    "fit each and choose by the robots left out (by the fit itself with one "
                    "robot or --no-cross-validate)", choices=(*LINEARISATIONS, "all"))
     update_iterations: int = setting(
@@ -256,8 +257,12 @@ class EstimatorSettings:
                       "rotation stay unobservable and the filter does not grow overconfident "
                       "in the map's heading; oc = Observability-Constrained Jacobians (each "
                       "H at the latest estimates, made blind to FEJ's unobservable "
-                      "directions: the same guarantee with Jacobians nearer the truth) "
-                      "(docs/estimator.md)", choices=LINEARISATIONS)
+                      "directions: the same guarantee with Jacobians nearer the truth); "
+                      "invariant = the invariant EKF (the error of the group SE(2) of robot "
+                      "and map: H at the latest estimates, each update's step taken by the "
+                      "group's exponential and P carried to the new estimate; the same "
+                      "guarantee without first estimates) (docs/estimator.md)",
+        choices=LINEARISATIONS)
     update_iterations: int = setting(
         1, doc="the iterated EKF: at most this many linearisations of each update, each at "
                "the estimate the last one gave (a step that would raise the update's cost "
@@ -364,6 +369,9 @@ class EstimatorSettings:
                 raise ConfigError(f"setting {name!r}: expected 3 finite numbers, got {value!r}")
         if any(s < 0 for s in self.initial_pose_sigma):
             raise ConfigError("setting 'initial_pose_sigma': standard deviations must be ≥ 0")
+        if self.linearisation == INVARIANT and self.update_iterations > 1:
+            raise ConfigError("settings 'linearisation' invariant and 'update_iterations' > 1: "
+                              "the iterated update is not defined for the invariant EKF")
         try:
             check_fault(self.fault, self.faulty_features, self.fault_magnitude)
         except ConfigError as exc:

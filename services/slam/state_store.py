@@ -17,7 +17,7 @@ import numpy as np
 
 from slamlens.common.messages import SlamState
 from slamlens.services.slam import ekf
-from slamlens.services.slam.linearisation import FEJ, OC, FirstEstimates
+from slamlens.services.slam.linearisation import FEJ, INVARIANT, OC, FirstEstimates
 from slamlens.services.slam.settings import EstimatorSettings
 
 log = logging.getLogger("slamlens.estimator")
@@ -43,6 +43,9 @@ class StateStore:
                     if settings.linearisation in (FEJ, OC) else None)
         #: OC-EKF: H at the estimates, projected so that it leaves N (of ``fej``) unobserved
         self.oc = settings.linearisation == OC
+        #: the invariant EKF: each update's step by the group's exponential
+        #: (:mod:`~slamlens.services.slam.ekf_invariant`)
+        self.invariant = settings.linearisation == INVARIANT
         self.n = 0  #: landmarks in the map
         self.ids: list[int] = []  #: landmark ids in state order
         self.index: dict[int, int] = {}  #: landmark id → state order
@@ -58,6 +61,12 @@ class StateStore:
     def robot_point(self) -> Any:
         """Where the robot's Jacobians are evaluated: FEJ's point, or None (the estimate)."""
         return None if self.fej is None else self.fej.robot
+
+    @property
+    def holds_new(self) -> bool:
+        """Whether a batch's new landmarks are mapped after its updates (FEJ, OC and the
+        invariant EKF: docs/estimator.md)."""
+        return self.fej is not None or self.invariant
 
     def linearisation(self, j: int) -> dict[str, Any]:
         """How an update of landmark ``j`` is linearised, as ekf.update's keywords: FEJ's
