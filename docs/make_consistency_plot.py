@@ -5,7 +5,9 @@
   the iterated update (``--linearisation fej|oc``, ``--update-iterations 10``,
   docs/estimator.md) on the paper scenario (3 loops and 15) and a
   long run of the large world (1000 landmarks, its 2 loops), each over ``--seeds`` seeds,
-  with the χ² band; and the table of docs/consistency.md ("Linearisation"), printed.
+  with the χ² band; and the table of docs/consistency.md ("Linearisation"), printed;
+* ``docs/figures/nees_invariant.png`` (``--compare --filters invariant --output …``): the
+  invariant EKF (``--linearisation invariant``) on the same runs.
 
 Run: ``.venv/bin/python docs/make_consistency_plot.py [--seeds 20]`` or ``… --compare
 [--seeds 50] [--large-seeds 50] [--processes 2] [--cache DIR]`` (about 90 min on 2 cores,
@@ -45,7 +47,9 @@ CASES = (("paper, 3 loops (54 s)", "paper", 3), ("paper, 15 loops (272 s)", "pap
          ("large, 2 loops (880 s, n = 1000)", "large", 2))
 #: the filters compared: a linearisation, "+iterated" with the iterated update
 #: (``update_iterations`` = :data:`ITERATIONS`, docs/estimator.md)
-LINEARISATIONS = ("standard", "fej", "oc", "oc+iterated")
+LINEARISATIONS = ("standard", "fej", "oc", "oc+iterated", "invariant")
+COLOURS = dict(zip(LINEARISATIONS, ("tab:red", "tab:blue", "tab:purple", "tab:orange",
+                                    "tab:brown"), strict=True))
 ITERATIONS = 10
 #: the mean leaves the band "for good" when it stays out this many events in a row
 OUT_RUN = 50
@@ -119,7 +123,8 @@ def fifths(mc: MonteCarlo) -> list[float]:
 
 
 def compare(seeds: int, processes: int, cache: Path | None, output: Path,
-            large_seeds: int | None = None, cached_only: bool = False) -> None:
+            large_seeds: int | None = None, cached_only: bool = False,
+            filters: tuple[str, ...] = LINEARISATIONS) -> None:
     fig, axes = plt.subplots(len(CASES), 1, figsize=(9, 3.3 * len(CASES)), dpi=100)
     print("| run | linearisation | seeds (non-finite) | events inside the band | time average "
           "| mean per fifth of the run | leaves the band for good (≥ 50 events) at |")
@@ -127,8 +132,8 @@ def compare(seeds: int, processes: int, cache: Path | None, output: Path,
     for ax, (label, world, loops) in zip(axes, CASES, strict=True):
         n = large_seeds if world == "large" and large_seeds else seeds
         band = None
-        colours = ("tab:red", "tab:blue", "tab:purple", "tab:orange")
-        for linearisation, colour in zip(LINEARISATIONS, colours, strict=True):
+        for linearisation in filters:
+            colour = COLOURS[linearisation]
             mc, kept = runs_of(world, loops, linearisation, n, processes, cache, cached_only)
             band = (mc.lower, mc.upper)
             shown = np.clip(mc.mean_nees, 1e-2, 1e6)
@@ -176,8 +181,16 @@ def main() -> None:
     parser.add_argument("--cached-only", action="store_true",
                         help="--compare: draw from the runs --cache holds, computing none "
                              "(each row says how many seeds it has)")
+    parser.add_argument("--filters", default=",".join(LINEARISATIONS[:4]),
+                        help="--compare: the filters drawn, of "
+                             f"{', '.join(LINEARISATIONS)} (docs/figures/nees_invariant.png: "
+                             "--filters invariant)")
     parser.add_argument("--output", default="")
     args = parser.parse_args()
+    filters = tuple(f for f in args.filters.split(",") if f)
+    unknown = [f for f in filters if f not in LINEARISATIONS]
+    if unknown or not filters:
+        parser.error(f"--filters: {unknown or 'none'}; choose from {', '.join(LINEARISATIONS)}")
     figures = REPO / "docs" / "figures"
     if args.compare:
         cache = Path(args.cache) if args.cache else None
@@ -185,7 +198,7 @@ def main() -> None:
             cache.mkdir(parents=True, exist_ok=True)
         compare(args.seeds or 50, args.processes, cache,
                 Path(args.output or figures / "nees_linearisation.png"), args.large_seeds,
-                args.cached_only)
+                args.cached_only, filters)
         return
     output = args.output or str(figures / "nees.png")
     mc = monte_carlo(load_world("paper"), range(args.seeds or 20))

@@ -48,16 +48,17 @@ def update(x: np.ndarray, L: np.ndarray, n: int, j: int, *, z_range: float,
     out = ekf.update(x, L, n, j, z_range=z_range, z_bearing=z_bearing, var_range=var_range,
                      var_bearing=var_bearing, ws=ws, gate=gate, guard=guard, defer=True)
     vt = ws.pending[0:2, :N]  # the standard update's V ᵀ, its downdate held back
-    try:
-        u = retract(x, prior, N)
-        if guard is not None and not float(np.abs(x[:N]).max()) <= ekf.STATE_LIMIT:
-            raise ekf.RefusedStepError("non-finite", f"update of landmark {j} would make "
-                                                     "the state non-finite")
-    except ekf.RefusedStepError:
-        x[:N] = prior
-        ws.deferred = 0
-        raise
-    _reset(L, N, ws, vt, u)
+    u = retract(x, prior, N)
+    at, bt = _factors(L, N, ws, vt, u)
+    if guard is not None:
+        try:
+            _check(L, N, x, vt, at[0], bt[0], j)
+        except ekf.RefusedStepError:
+            x[:N] = prior
+            ws.deferred = 0
+            raise
+    rank2k_lower(L, at, bt, N, args=ws.syrk)
+    ws.deferred = 0
     return out
 
 
@@ -87,18 +88,33 @@ def retract(x: np.ndarray, prior: np.ndarray, N: int) -> np.ndarray:
     return u
 
 
-def _reset(L: np.ndarray, N: int, ws: ekf.Workspace, vt: np.ndarray, u: np.ndarray) -> None:
-    """L ← J (P − V Vᵀ) Jᵀ as one rank-6 symmetric pass (module docstring); the held-back
-    downdate is consumed."""
+def _factors(L: np.ndarray, N: int, ws: ekf.Workspace, vt: np.ndarray,
+             u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """A, B (as rows) with J (P − V Vᵀ) Jᵀ = P + A Bᵀ + B Aᵀ (module docstring): A = [u,
+    −v₁/2, −v₂/2], B = [w, v₁, v₂], w = P′eθ + (P′_θθ/2) u, P′ = P − V Vᵀ."""
     robot_columns(L, N, ws.cols)  # row θ of P is ws.cols[2]
-    v_theta = vt[:, 2]
-    p = ws.cols[2, :N] - v_theta @ vt  # P' eθ
-    p_tt = float(p[2])
+    p = ws.cols[2, :N] - vt[:, 2] @ vt  # P′ eθ
     at = np.empty((3, N))
     bt = np.empty((3, N))
     at[0] = u
     np.multiply(vt, -0.5, out=at[1:3])
-    bt[0] = p + 0.5 * p_tt * u
+    np.multiply(u, 0.5 * float(p[2]), out=bt[0])
+    bt[0] += p
     bt[1:3] = vt
-    rank2k_lower(L, at, bt, N, args=ws.syrk)
-    ws.deferred = 0
+    return at, bt
+
+
+@np.errstate(over="ignore", invalid="ignore")
+def _check(L: np.ndarray, N: int, x: np.ndarray, vt: np.ndarray, u: np.ndarray,
+           w: np.ndarray, j: int) -> None:
+    """The guard (:class:`ekf.Guard`) on what the steps after the standard update write:
+    the state and the new variances, diag(P′) + 2 u∘w, finite (J P′ Jᵀ is a congruence
+    with det J = 1, so no variance goes negative but by rounding, and each covariance is
+    bounded by its two variances)."""
+    if not float(np.abs(x[:N]).max()) <= ekf.STATE_LIMIT:
+        raise ekf.RefusedStepError("non-finite", f"update of landmark {j} would make the "
+                                                 "state non-finite")
+    diag = np.diagonal(L)[:N] - (vt * vt).sum(axis=0) + 2.0 * u * w
+    if not float(np.abs(diag).max()) <= ekf.COVARIANCE_LIMIT:
+        raise ekf.RefusedStepError("non-finite", f"update of landmark {j} would make P "
+                                                 "non-finite")

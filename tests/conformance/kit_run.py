@@ -78,12 +78,17 @@ def simulate(seed: int = 7, steps: int = 150) -> list[Input]:
     return out
 
 
-def oracle(inputs: list[Input]) -> DenseEkf:
-    """The dense EKF after every input, in order."""
-    ekf = DenseEkf(**SIGMA)
+def oracle(inputs: list[Input], make: type[DenseEkf] = DenseEkf) -> DenseEkf:
+    """The dense EKF (or ``make``'s) after every input, in order."""
+    ekf = make(**SIGMA)
     for item in inputs:
-        if item.leaf == "odometry":
-            ekf.predict(item.fields["v"], item.fields["w"], item.fields["dt"])
-        else:
-            ekf.observe(item.fields["ids"], item.fields["ranges"], item.fields["bearings"])
+        apply(ekf, item)
     return ekf
+
+
+def apply(ekf: DenseEkf, item: Input) -> None:
+    """One input into the dense filter."""
+    if item.leaf == "odometry":
+        ekf.predict(item.fields["v"], item.fields["w"], item.fields["dt"])
+    else:
+        ekf.observe(item.fields["ids"], item.fields["ranges"], item.fields["bearings"])

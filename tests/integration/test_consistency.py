@@ -1,7 +1,7 @@
 """The estimator against independent statistics on the real simulator.
 
 * Consistency: Monte-Carlo NEES of the robot pose over 20 seeds, the paper scenario's
-  default run, against the two-sided 95 % χ²(3M)/M band (standard, FEJ and OC).
+  default run, against the two-sided 95 % χ²(3M)/M band (standard, FEJ, OC, invariant).
 * The covariance theorem (docs/monitor.md): on a correct run every P_d is non-increasing across
   every event (Loewner order); on a faulty run the pairs containing faulty features grow.
 """
@@ -20,9 +20,11 @@ WORLD = load_world("paper")
 
 
 @pytest.mark.parametrize(("linearisation", "iterations"),
-                         [("standard", 1), ("fej", 1), ("oc", 1), ("oc", 10)])
+                         [("standard", 1), ("fej", 1), ("oc", 1), ("oc", 10),
+                          ("invariant", 1)])
 def test_monte_carlo_nees_inside_chi2_band(linearisation: str, iterations: int) -> None:
-    # FEJ, OC and OC with the iterated update (docs/estimator.md) are held to the same:
+    # FEJ, OC, OC with the iterated update and the invariant EKF (docs/estimator.md) are
+    # held to the same:
     # consistent where the standard is (the heavy comparison, 50 seeds and the large world:
     # docs/make_consistency_plot.py)
     mc = monte_carlo(WORLD, range(20), linearisation=linearisation,
