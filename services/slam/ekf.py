@@ -39,6 +39,9 @@ from slamlens.services.slam.ekf_storage import (
     robot_rows_into,
     symmetric,
     symmetric_after_predict,
+    theta_row,
+    turn_lower,
+    turned_rows,
 )
 from slamlens.services.slam.models import wrap as _wrap
 
@@ -132,14 +135,20 @@ class Workspace:
     #: the V ᵀ rows of updates applied to x but not yet to L (:func:`update` with
     #: ``defer``; :func:`flush` applies them as one rank-2m downdate)
     pending: np.ndarray  # (2 · MAX_DEFERRED, capacity)
+    #: the invariant EKF's held-back steps to the new estimates
+    #: (:mod:`~slamlens.services.slam.ekf_invariant`): P = J L Jᵀ − Σ V Vᵀ with
+    #: J = I + turn·eθᵀ while ``turned``; never set by the other filters
+    turn: np.ndarray  # (capacity,)
     deferred: int = 0  #: rows of ``pending`` in use (2 per deferred update)
+    turned: bool = False
     syrk: SyrkArgs = field(default_factory=SyrkArgs)  # one per workspace (thread)
 
     @classmethod
     def for_capacity(cls, capacity: int) -> Workspace:
         return cls(cols=np.zeros((5, capacity)), wt=np.zeros((2, capacity)),
                    vt=np.zeros((2, capacity)), h5=np.zeros((2, 5)),
-                   pending=np.zeros((2 * MAX_DEFERRED, capacity)))
+                   pending=np.zeros((2 * MAX_DEFERRED, capacity)),
+                   turn=np.zeros(capacity))
 
     @property
     def capacity(self) -> int:
@@ -277,7 +286,8 @@ def update(x: np.ndarray, L: np.ndarray, n: int, j: int, *, z_range: float,
     m = ws.deferred
     xs = x[:N]
     if guard is not None:
-        _check_update(L, N, xs, vt, u0, u1, guard, j, ws.pending[:m])
+        _check_update(L, N, xs, vt, u0, u1, guard, j, ws.pending[:m],
+                      ws.turn[:N] if ws.turned else None)
     else:
         xs += u0 * vt[0]
         xs += u1 * vt[1]
@@ -399,6 +409,8 @@ def _gain_rows(L: np.ndarray, N: int, a: int, ws: Workspace, h0: Row, h1: Row) -
     cols = ws.cols
     robot_columns(L, N, cols)
     landmark_columns(L, N, a, cols[3:5])
+    if ws.turned:  # the invariant EKF's held-back J: the five columns of J L Jᵀ
+        turned_rows(cols[:, :N], ws.turn[:N], (0, 1, 2, a, a + 1))
     m = ws.deferred
     if m:  # P = L − Σ V Vᵀ of the held-back updates: its five columns
         held = ws.pending[:m]
@@ -432,8 +444,16 @@ def _inverse_cholesky(s00: float, s01: float, s11: float,
 
 def flush(L: np.ndarray, N: int, ws: Workspace) -> None:
     """Apply the downdates :func:`update` held back in ``ws`` (``defer``): one dsyrk of
-    rank 2m on the lower triangle. After it, ``L`` is the state's P again."""
-    if ws.deferred:
+    rank 2m on the lower triangle — with the invariant EKF's held-back J
+    (``ws.turned``), L ← J L Jᵀ − Σ V Vᵀ as one rank-2k dsyr2k
+    (:mod:`~slamlens.services.slam.ekf_invariant`). After it, ``L`` is the state's P
+    again."""
+    if ws.turned:
+        turn_lower(L, ws.turn[:N], ws.pending[:ws.deferred], N, args=ws.syrk)
+        ws.turn[:N] = 0.0
+        ws.turned = False
+        ws.deferred = 0
+    elif ws.deferred:
         downdate_lower(L, ws.pending[:ws.deferred], N, args=ws.syrk)
         ws.deferred = 0
 
@@ -442,7 +462,8 @@ def flush(L: np.ndarray, N: int, ws: Workspace) -> None:
 # need not warn (the decorator costs 0.4 µs a call)
 @np.errstate(over="ignore", invalid="ignore")
 def _check_update(L: np.ndarray, N: int, xs: np.ndarray, vt: np.ndarray, u0: float,
-                  u1: float, guard: Guard, j: int, held: np.ndarray) -> None:
+                  u1: float, guard: Guard, j: int, held: np.ndarray,
+                  turn: np.ndarray | None = None) -> None:
     """The guarded half of :func:`update`: checks the step (O(N), :class:`Guard`) and
     applies the state change x += V u; raises before writing anything.
 
@@ -457,6 +478,9 @@ def _check_update(L: np.ndarray, N: int, xs: np.ndarray, vt: np.ndarray, u0: flo
         # ‖V_i‖² ≤ (1 + rtol)·P_ii + atol: no variance goes negative; it also bounds V (P_ii
         # ≤ COVARIANCE_LIMIT) and refuses NaN, so no separate finiteness test is needed
         diag = np.diagonal(L)[:N]  # a strided view: N reads
+        if turn is not None:  # P_ii of J L Jᵀ: L_ii + 2 U_i L_θi + U_i² L_θθ
+            theta = theta_row(L, N)
+            diag = diag + turn * (2.0 * theta + turn * theta[2])
         if held.shape[0]:  # P_ii of the state: L_ii less the held-back downdates
             diag = diag - (held[:, :N] * held[:, :N]).sum(axis=0)
         excess = sq - diag * (1.0 + guard.psd_rtol)

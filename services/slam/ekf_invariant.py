@@ -12,10 +12,15 @@ P → P − K S Kᵀ):
 * the mean moves by the group's exponential, X̂⁺ = exp(T(x̂⁻)⁻¹ Kν)·X̂⁻: with α = (Kν)_θ
   every translation t̂ → R(α) t̂ + V(α)(Δt − α Ω t̂) and θ̂ → θ̂ + α (O(n));
 * P → J P Jᵀ, J = T(x̂⁺) T(x̂⁻)⁻¹ = I + u eθᵀ, u = Ω(x̂⁺ − x̂⁻) on each translation and
-  0 on θ — the covariance carried to the error at the new estimate. With the downdate
-  folded in: P → P − V Vᵀ + u wᵀ + w uᵀ, w = P'eθ + (P'_θθ/2) u (P' = P − V Vᵀ), one
-  symmetric rank-2k pass over P (:func:`~slamlens.services.slam.ekf_storage.rank2k_lower`,
-  k = 3), the standard update's O(n²).
+  0 on θ — the covariance carried to the error at the new estimate.
+
+Both are held back like the standard update's downdate (``ekf.update(defer=True)``): the
+J's of a batch compose to I + U eθᵀ (U = Σu, since eθᵀu = 0), each held-back V becomes
+J V = V + u V_θ (:func:`carry`), the next update reads P = J L Jᵀ − Σ V Vᵀ through them
+(five columns and the diagonal, O(mN)), and :func:`ekf.flush` applies it all as one
+symmetric rank-2k pass, L + U wᵀ + w Uᵀ − Σ V Vᵀ with w = L eθ + (L_θθ/2) U
+(:func:`~slamlens.services.slam.ekf_storage.turn_lower`, BLAS ``dsyr2k``): one pass over
+P a batch, as the standard filter's.
 
 In ξ no update gains information along global translation and rotation about the origin
 (H N = 0 at any estimate): at the estimates, N(x̂) = T N_ξ, the directions stay
@@ -31,7 +36,7 @@ import math
 import numpy as np
 
 from slamlens.services.slam import ekf
-from slamlens.services.slam.ekf_storage import rank2k_lower, robot_columns
+from slamlens.services.slam.ekf_storage import theta_row
 from slamlens.services.slam.models import wrap as _wrap
 
 
@@ -41,25 +46,42 @@ def update(x: np.ndarray, L: np.ndarray, n: int, j: int, *, z_range: float,
            ) -> tuple[float, float, float, float, float]:
     """The invariant update with one observation of landmark ``j``, in place (module
     docstring); what :func:`ekf.update` returns and raises, and, like it, nothing written
-    when it raises. Downdates held back by earlier updates are applied first."""
+    when it raises. Like the others' downdates, P's step to the new estimate is held back
+    in ``ws`` (:func:`carry`) until :func:`ekf.flush`."""
     N = 3 + 2 * n
-    ekf.flush(L, N, ws)
+    if ws.deferred + 2 >= ws.pending.shape[0]:
+        ekf.flush(L, N, ws)  # so that ekf.update holds this one back too
     prior = x[:N].copy()
     out = ekf.update(x, L, n, j, z_range=z_range, z_bearing=z_bearing, var_range=var_range,
                      var_bearing=var_bearing, ws=ws, gate=gate, guard=guard, defer=True)
-    vt = ws.pending[0:2, :N]  # the standard update's V ᵀ, its downdate held back
     u = retract(x, prior, N)
-    at, bt = _factors(L, N, ws, vt, u)
-    if guard is not None:
-        try:
-            _check(L, N, x, vt, at[0], bt[0], j)
-        except ekf.RefusedStepError:
-            x[:N] = prior
-            ws.deferred = 0
-            raise
-    rank2k_lower(L, at, bt, N, args=ws.syrk)
-    ws.deferred = 0
+    if guard is None:
+        carry(ws, N, u)
+        return out
+    m = ws.deferred
+    held, turn = ws.pending[:m, :N].copy(), ws.turn[:N].copy()
+    carry(ws, N, u)
+    try:
+        _check(L, N, x, ws, j)
+    except ekf.RefusedStepError:
+        x[:N] = prior
+        ws.pending[:m, :N] = held
+        ws.turn[:N] = turn
+        ws.turned = bool(turn.any())
+        ws.deferred = m - 2  # this update's V, held back by ekf.update, dropped
+        raise
     return out
+
+
+def carry(ws: ekf.Workspace, N: int, u: np.ndarray) -> None:
+    """Hold back P ← J P Jᵀ, J = I + u eθᵀ, with P = J₀ L J₀ᵀ − Σ V Vᵀ as ``ws`` holds it:
+    the J's compose to I + (U + u) eθᵀ (eθᵀu = 0) and each held V becomes J V = V + u V_θ."""
+    m = ws.deferred
+    if m:
+        held = ws.pending[:m, :N]
+        held += np.outer(held[:, 2], u)
+    ws.turn[:N] += u
+    ws.turned = True
 
 
 def retract(x: np.ndarray, prior: np.ndarray, N: int) -> np.ndarray:
@@ -88,33 +110,18 @@ def retract(x: np.ndarray, prior: np.ndarray, N: int) -> np.ndarray:
     return u
 
 
-def _factors(L: np.ndarray, N: int, ws: ekf.Workspace, vt: np.ndarray,
-             u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """A, B (as rows) with J (P − V Vᵀ) Jᵀ = P + A Bᵀ + B Aᵀ (module docstring): A = [u,
-    −v₁/2, −v₂/2], B = [w, v₁, v₂], w = P′eθ + (P′_θθ/2) u, P′ = P − V Vᵀ."""
-    robot_columns(L, N, ws.cols)  # row θ of P is ws.cols[2]
-    p = ws.cols[2, :N] - vt[:, 2] @ vt  # P′ eθ
-    at = np.empty((3, N))
-    bt = np.empty((3, N))
-    at[0] = u
-    np.multiply(vt, -0.5, out=at[1:3])
-    np.multiply(u, 0.5 * float(p[2]), out=bt[0])
-    bt[0] += p
-    bt[1:3] = vt
-    return at, bt
-
-
 @np.errstate(over="ignore", invalid="ignore")
-def _check(L: np.ndarray, N: int, x: np.ndarray, vt: np.ndarray, u: np.ndarray,
-           w: np.ndarray, j: int) -> None:
-    """The guard (:class:`ekf.Guard`) on what the steps after the standard update write:
-    the state and the new variances, diag(P′) + 2 u∘w, finite (J P′ Jᵀ is a congruence
+def _check(L: np.ndarray, N: int, x: np.ndarray, ws: ekf.Workspace, j: int) -> None:
+    """The guard (:class:`ekf.Guard`) on what the steps after the standard update make:
+    the state and P's variances, diag(J L Jᵀ − Σ V Vᵀ), finite (J P Jᵀ is a congruence
     with det J = 1, so no variance goes negative but by rounding, and each covariance is
     bounded by its two variances)."""
     if not float(np.abs(x[:N]).max()) <= ekf.STATE_LIMIT:
         raise ekf.RefusedStepError("non-finite", f"update of landmark {j} would make the "
                                                  "state non-finite")
-    diag = np.diagonal(L)[:N] - (vt * vt).sum(axis=0) + 2.0 * u * w
+    U, held = ws.turn[:N], ws.pending[:ws.deferred, :N]
+    theta = theta_row(L, N)
+    diag = np.diagonal(L)[:N] + U * (2.0 * theta + U * theta[2]) - (held * held).sum(axis=0)
     if not float(np.abs(diag).max()) <= ekf.COVARIANCE_LIMIT:
         raise ekf.RefusedStepError("non-finite", f"update of landmark {j} would make P "
                                                  "non-finite")

@@ -224,3 +224,42 @@ def rank2k_lower(L: np.ndarray, at: np.ndarray, bt: np.ndarray, N: int, *,
     ad = a.addr
     fn(ad["uplo"], ad["trans"], ad["n"], ad["k"], ad["one"], at.ctypes.data, ad["lda"],
        bt.ctypes.data, ad["ldb"], ad["one"], L.ctypes.data, ad["ldc"])
+
+
+# ---------------------------------------------------------------------------------------
+# the invariant EKF's held-back step J = I + U eθᵀ (services/slam/ekf_invariant.py)
+# ---------------------------------------------------------------------------------------
+
+
+def turned_rows(rows: np.ndarray, U: np.ndarray, which: tuple[int, ...]) -> None:
+    """``rows`` (rows ``which`` of L, row θ among them third) become those rows of
+    J L Jᵀ, J = I + U eθᵀ: row c ← L_c + U_c L_θ + U (L_θc + U_c L_θθ) (U_θ = 0)."""
+    theta = rows[2].copy()  # row θ of L
+    uc = U[list(which)]
+    t = rows[:, 2] + uc * theta[2]
+    rows += np.outer(uc, theta)
+    rows += np.outer(t, U)
+
+
+def theta_row(L: np.ndarray, N: int) -> np.ndarray:
+    """Row θ of the symmetric P stored in ``L`` (a new array, O(N))."""
+    out = np.empty(N)
+    out[0], out[1], out[2] = L[2, 0], L[2, 1], L[2, 2]
+    out[3:] = L[3:N, 2]
+    return out
+
+
+def turn_lower(L: np.ndarray, U: np.ndarray, vt: np.ndarray, N: int, *,
+               args: SyrkArgs | None = None) -> None:
+    """L ← J L Jᵀ − V Vᵀ (J = I + U eθᵀ, V = vt[:, :N]ᵀ) on the lower triangle, in place,
+    as one :func:`rank2k_lower` pass: J L Jᵀ = L + U wᵀ + w Uᵀ with w = L eθ + (L_θθ/2) U
+    (U_θ = 0), and −V Vᵀ = (−V/2) Vᵀ + V (−V/2)ᵀ."""
+    m = vt.shape[0]
+    theta = theta_row(L, N)
+    at, bt = np.empty((m + 1, N)), np.empty((m + 1, N))
+    at[0] = U
+    np.multiply(U, 0.5 * float(theta[2]), out=bt[0])
+    bt[0] += theta
+    np.multiply(vt[:, :N], -0.5, out=at[1:])
+    bt[1:] = vt[:, :N]
+    rank2k_lower(L, at, bt, N, args=args)
