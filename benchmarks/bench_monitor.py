@@ -11,6 +11,7 @@ machine is shared: run it a few times, quote medians; set OPENBLAS_NUM_THREADS=1
 monitor service should run) or see the latency of a multi-threaded Cholesky under load.
 
     .venv/bin/python benchmarks/bench_monitor.py [--states 200] [--quick] [--unobservable]
+    .venv/bin/python benchmarks/bench_monitor.py --invariant   # invariant EKF vs OC states
 """
 
 from __future__ import annotations
@@ -142,6 +143,27 @@ def unobservable_cost(sizes: tuple[int, ...], rounds: int) -> None:
               f"({100 * (on - off) / off:+.1f} %)", flush=True)
 
 
+def invariant_cost(sizes: tuple[int, ...], rounds: int) -> None:
+    """What checking the invariant EKF's states costs against OC's (docs/monitor.md, "The
+    invariant EKF's growth theorems are in its own error"): each update compared in ξ,
+    T⁻¹ P T⁻ᵀ of both states, with no help from the burst screen. The same run made by
+    each filter, both with the unobservable check on (auto), whole runs alternated."""
+    print("the invariant EKF's states against OC's: check() per state (CPU time of the "
+          "checking thread)")
+    for n in sizes:
+        count = 200 if n <= 100 else 12
+        runs = {lin: make_run(n, count, settings=EstimatorSettings(max_batch=0,
+                                                                   linearisation=lin))[0]
+                for lin in ("oc", "invariant")}
+        times: dict[str, list[float]] = {lin: [] for lin in runs}
+        for _ in range(rounds):
+            for lin, states in runs.items():
+                times[lin] += time_monitor(states, None, clock=time.thread_time_ns)
+        oc, inv = (statistics.median(times[lin]) for lin in ("oc", "invariant"))
+        print(f"  n = {n:>4}: oc {oc:>10.0f} µs, invariant {inv:>10.0f} µs "
+              f"(ratio {inv / oc:.2f})", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--states", type=int, default=200, help="states per size")
@@ -149,7 +171,14 @@ def main() -> None:
     parser.add_argument("--unobservable", action="store_true",
                         help="only the cost of the unobservable-directions check "
                              "(n = 15, 100, 1000)")
+    parser.add_argument("--invariant", action="store_true",
+                        help="only the cost of checking the invariant EKF's states against "
+                             "OC's (n = 15, 100, 1000)")
     args = parser.parse_args()
+    if args.invariant:
+        invariant_cost((15, 100) if args.quick else (15, 100, 1000),
+                       rounds=2 if args.quick else 5)
+        return
     if args.unobservable:
         unobservable_cost((15, 100) if args.quick else (15, 100, 1000),
                           rounds=2 if args.quick else 5)
