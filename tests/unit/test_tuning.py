@@ -142,11 +142,12 @@ def test_the_shipped_profile_is_one_for_the_dataset_and_loads() -> None:
     values = tomllib.loads(path.read_text())
     assert "robot" not in values  # not tuned per robot: --robot R picks the robot
     text = path.read_text()
-    # fitted on every robot of the dataset, judged on each left out, OC chosen by that
+    # fitted on every robot of the dataset, judged on each left out, every linearisation
+    # tried, the invariant EKF chosen by that
     assert "--robot-index 1,2,3,4,5" in text and "leave-one-robot-out" in text
-    assert "chosen: oc" in text
+    assert "--linearisation all" in text and "chosen: invariant" in text
     s = load_settings(EstimatorSettings, path, {"robot": "robot1"})
-    assert s.linearisation == "oc"
+    assert s.linearisation == "invariant"
     assert s.sigma_v > 0 and s.sigma_range_off_axis > 0 and s.innovation_gate_chi2 > 0
 
 
