@@ -167,6 +167,25 @@ class SyrkArgs:
                                   "ldc", "one")}
 
 
+def _in_place(N: int, *arrays: np.ndarray) -> bool:
+    """Whether BLAS can work on ``arrays`` where they lie: float64 rows of unit stride, each
+    row at least N long (a leading dimension ≥ N)."""
+    return all(a.dtype == np.float64 and a.strides[1] == 8 and a.strides[0] >= 8 * N
+               for a in arrays)
+
+
+def _filled(args: SyrkArgs | None, N: int, k: int, L: np.ndarray, a: np.ndarray,
+            b: np.ndarray | None = None) -> SyrkArgs:
+    """``args`` (or new ones) set for an N×N result in ``L`` from N×k operands ``a``
+    (and ``b``), each given by its rows."""
+    out = SyrkArgs() if args is None else args
+    out.n.value, out.k.value = N, k
+    out.lda.value = a.strides[0] // 8
+    out.ldb.value = (a if b is None else b).strides[0] // 8
+    out.ldc.value = L.strides[0] // 8
+    return out
+
+
 def downdate_lower(L: np.ndarray, vt: np.ndarray, N: int, *, args: SyrkArgs | None = None,
                    use_blas: bool = True) -> None:
     """L[:N, :N] −= V Vᵀ on (at least) the lower triangle, in place; V = vt[:, :N]ᵀ (N×k,
@@ -177,20 +196,13 @@ def downdate_lower(L: np.ndarray, vt: np.ndarray, N: int, *, args: SyrkArgs | No
     """
     k = vt.shape[0]
     fn = _dsyrk() if use_blas else None
-    ok = (k > 0 and fn is not None and L.dtype == np.float64 and vt.dtype == np.float64
-          and L.strides[1] == 8 and vt.strides[1] == 8
-          and L.strides[0] >= 8 * N and vt.strides[0] >= 8 * N)
-    if not ok:
+    if not (k > 0 and fn is not None and _in_place(N, L, vt)):
         # Fallback: one full product and subtraction (3 passes, same result on the triangle).
         block = L[:N, :N]
         block -= vt[:, :N].T @ vt[:, :N]
         return
     assert fn is not None
-    a = SyrkArgs() if args is None else args
-    a.n.value = N
-    a.k.value = k
-    a.lda.value = vt.strides[0] // 8
-    a.ldc.value = L.strides[0] // 8
+    a = _filled(args, N, k, L, vt)  # held: its ctypes fields are what the pointers name
     ad = a.addr
     fn(ad["uplo"], ad["trans"], ad["n"], ad["k"], ad["alpha"], vt.ctypes.data, ad["lda"],
        ad["beta"], L.ctypes.data, ad["ldc"])
@@ -204,23 +216,14 @@ def rank2k_lower(L: np.ndarray, at: np.ndarray, bt: np.ndarray, N: int, *,
     ``use_blas=False`` forces the numpy fallback (tests compare the two)."""
     k = at.shape[0]
     fn = _dsyr2k() if use_blas else None
-    ok = (k > 0 and bt.shape[0] == k and fn is not None and L.dtype == np.float64
-          and at.dtype == np.float64 and bt.dtype == np.float64
-          and L.strides[1] == 8 and at.strides[1] == 8 and bt.strides[1] == 8
-          and L.strides[0] >= 8 * N and at.strides[0] >= 8 * N and bt.strides[0] >= 8 * N)
-    if not ok:
+    if not (k > 0 and bt.shape[0] == k and fn is not None and _in_place(N, L, at, bt)):
         product = at[:, :N].T @ bt[:, :N]
         block = L[:N, :N]
         block += product
         block += product.T
         return
     assert fn is not None
-    a = SyrkArgs() if args is None else args
-    a.n.value = N
-    a.k.value = k
-    a.lda.value = at.strides[0] // 8
-    a.ldb.value = bt.strides[0] // 8
-    a.ldc.value = L.strides[0] // 8
+    a = _filled(args, N, k, L, at, bt)  # held: its ctypes fields are what the pointers name
     ad = a.addr
     fn(ad["uplo"], ad["trans"], ad["n"], ad["k"], ad["one"], at.ctypes.data, ad["lda"],
        bt.ctypes.data, ad["ldb"], ad["one"], L.ctypes.data, ad["ldc"])
