@@ -7,7 +7,7 @@
   long run of the large world (1000 landmarks, its 2 loops), each over ``--seeds`` seeds,
   with the χ² band; and the table of docs/consistency.md ("Linearisation"), printed;
 * ``docs/figures/nees_invariant.png`` (``--compare --filters invariant --output …``): the
-  invariant EKF (``--linearisation invariant``) on the same runs.
+  invariant EKF (``--linearisation invariant``) on the same runs (10.5 min on 2 cores).
 
 Run: ``.venv/bin/python docs/make_consistency_plot.py [--seeds 20]`` or ``… --compare
 [--seeds 50] [--large-seeds 50] [--processes 2] [--cache DIR]`` (about 90 min on 2 cores,
