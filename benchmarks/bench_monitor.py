@@ -41,7 +41,7 @@ from slamlens.services.slam.settings import EstimatorSettings  # noqa: E402
 
 def make_run(n: int, count: int, seed: int = 0, *,
              settings: EstimatorSettings | None = None) -> tuple[list[SlamState], list[Truth]]:
-    """``count`` states (after init) of the estimator among n landmarks on a ring."""
+    """The init state and ``count`` + 1 more of the estimator among n landmarks on a ring."""
     rng = np.random.default_rng(seed)
     angles = np.linspace(-0.45 * math.pi, 0.45 * math.pi, n)
     radii = rng.uniform(2.0, 4.0, n)
@@ -56,9 +56,12 @@ def make_run(n: int, count: int, seed: int = 0, *,
         b = np.arctan2(d[:, 1], d[:, 0]) - pose[2] + rng.normal(0, 0.02, which.size)
         return r, (b + math.pi) % (2 * math.pi) - math.pi
 
+    # the init state first: a monitor that did not see a landmark appear cannot place
+    # FEJ's (and OC's) linearisation points, and would skip their unobservable check
+    states: list[SlamState] = [est.to_state(seq=0, stamp=0.0, step="init")]
     r, b = measure(np.arange(n))
     est.observe(ids=ids, ranges=r, bearings=b, stamp=0.0)
-    states: list[SlamState] = [est.to_state(seq=0, stamp=0.0, step="update")]
+    states.append(est.to_state(seq=1, stamp=0.0, step="update"))
     truths: list[Truth] = []
     dt, v, w = 0.1, 0.1, 0.05
     for k in range(1, count // 2 + 1):
