@@ -23,7 +23,7 @@ hold the two equal on a real run). It can carry, beside robot and map:
 
 None is in the global rotation or translation, so OC's null space N is unchanged (their
 rows of N are 0) and the published marginal of robot and map would keep every covariance
-theorem. Each robot runs with its left-out profile (benchmarks/profiles/without-robotK.toml);
+theorem. Each robot runs with its left-out profile (benchmarks/profiles/oc/without-robotK.toml);
 printed: pose NEES, map shape (landmark RMSE after a rigid fit), NIS mean / median and the
 share of the monitor's 50-innovation NIS windows outside their band, the final ε, δ, s; and,
 for the runs without an extra state, where S comes from (median |ν|, √S and √R).
@@ -42,7 +42,12 @@ from concurrent.futures import ProcessPoolExecutor
 import numpy as np
 
 from slamlens.services.harness.dense_ekf import DenseEkf, Extra
-from slamlens.services.harness.mrclam_pipeline import DATA, left_out_profile, nis_windows_out
+from slamlens.services.harness.mrclam_pipeline import (
+    DATA,
+    OC_FOLDS,
+    left_out_profile,
+    nis_windows_out,
+)
 from slamlens.services.slam.mrclam import load_mrclam
 from slamlens.services.slam.scoring import (
     Evaluation,
@@ -59,7 +64,7 @@ def run(robot: int, extra: Extra) -> tuple[Evaluation, str, np.ndarray]:
     """The dense filter over one robot with its left-out profile; (scores, the final
     camera states in words, the applied sightings' (ν_r², ν_φ², S_rr, S_φφ, R_rr, R_φφ))."""
     data = load_mrclam(DATA, robot)
-    ekf = DenseEkf(left_out_profile(robot), extra)
+    ekf = DenseEkf(left_out_profile(robot, OC_FOLDS), extra)
     scorer = Scorer(TruthTrack.from_mrclam(data), robot=data.robot)
     for m in data.events(truth=False):
         for nu, S in ekf.apply(m):
@@ -103,7 +108,7 @@ def _job(args: tuple[int, Extra]) -> str:
 
 def _shipped(robot: int) -> str:
     return row("the shipped Estimator (reference)", robot,
-               evaluate(load_mrclam(DATA, robot), left_out_profile(robot)), "")
+               evaluate(load_mrclam(DATA, robot), left_out_profile(robot, OC_FOLDS)), "")
 
 
 EXTRAS = (Extra(), Extra(motion=0.44),

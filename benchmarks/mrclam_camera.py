@@ -7,8 +7,8 @@ does to the filter — the measurements behind docs/consistency.md, "Robot 4's c
    offset (the camera's yaw on the robot), a bearing scale (its field of view) and a
    latency (a camera reporting a picture δ s old sees the bearing of δ·ω ago) — and the
    range's median measured / true ratio (its scale).
-2. ``--evaluate``: the estimator offline, each robot with the profile fitted on the
-   other four (benchmarks/profiles/without-robotK.toml), on its sightings as recorded;
+2. ``--evaluate``: the estimator offline, each robot with the OC profile fitted on the
+   other four (benchmarks/profiles/oc/without-robotK.toml), on its sightings as recorded;
    with the latency measured on the *other four* taken off every sighting's stamp; and
    with its *own* camera calibrated (range ÷ scale, bearing − offset − scale·b) from the
    truth of its first 120 s, and from its whole run (an oracle: a lab calibrating that
@@ -31,7 +31,7 @@ import numpy as np
 
 from slamlens.common.geometry import wrap_angle
 from slamlens.common.messages import Observations
-from slamlens.services.harness.mrclam_pipeline import DATA, left_out_profile
+from slamlens.services.harness.mrclam_pipeline import DATA, OC_FOLDS, left_out_profile
 from slamlens.services.slam.camera_fit import CameraFit, fit_camera
 from slamlens.services.slam.mrclam import MrclamRun, load_mrclam
 from slamlens.services.slam.scoring import TruthTrack, evaluate
@@ -94,7 +94,7 @@ def report_cameras(cameras: dict[int, CameraFit]) -> None:
 def score(robot: int, variant: str, camera: CameraFit) -> str:
     """One offline run of ``robot`` with its left-out profile, ``camera`` taken off."""
     run = calibrated(load_mrclam(DATA, robot), camera)
-    e = evaluate(run, left_out_profile(robot))
+    e = evaluate(run, left_out_profile(robot, OC_FOLDS))
     return (f"  robot {robot}  {variant:<44} NEES {e.nees_mean:5.2f}  "
             f"map {e.landmark_rmse_rigid:.3f} m")
 

@@ -16,8 +16,8 @@ measurements behind docs/consistency.md, "Why the NIS is low on real data".
    sightings' errors by how far apart in time they are.
 3. **A range calibration, left out.** The range error regressed on the sighting's geometry
    on four robots, applied to the fifth: the standard deviation left on the fifth.
-4. ``--evaluate``: the estimator (offline, each robot with its left-out profile
-   benchmarks/profiles/without-robotK.toml) as shipped, with each robot's own turn-rate bias
+4. ``--evaluate``: the estimator (offline, each robot with its left-out OC profile,
+   benchmarks/profiles/oc/without-robotK.toml), with each robot's own turn-rate bias
    removed from its odometry (an oracle: it uses the truth), with its commanded speeds
    scaled by the other four robots' median ratio (part 1: the displacement's, and the
    path length's between every 10th sample), with one sighting of each landmark let
@@ -52,6 +52,7 @@ from slamlens.services.harness.mrclam_pipeline import (
     NIS_HI,
     NIS_LO,
     NIS_WINDOW,
+    OC_FOLDS,
     left_out_profile,
     nis_windows_out,
 )
@@ -268,7 +269,7 @@ def evaluate(robot: int, variant: str, turn_bias: float,
     range σ, the range-dependent terms off; every sensor σ × ``sensor_scale``; the
     iterated update with ``iterations``); a table row."""
     run = load_mrclam(DATA, robot)
-    settings = left_out_profile(robot)
+    settings = left_out_profile(robot, OC_FOLDS)
     if sigma_range is not None:
         settings = replace(settings, sigma_range=sigma_range, sigma_range_per_m=0.0,
                            sigma_range_off_axis=0.0)

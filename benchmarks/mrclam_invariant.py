@@ -3,7 +3,7 @@
 
 Each MRCLAM dataset 6 robot is run with the dense right-invariant EKF
 (services/harness/dense_inekf.py) and the noise of its left-out profile
-(benchmarks/profiles/without-robotK.toml, fitted on the other four robots with OC). The
+(benchmarks/profiles/oc/without-robotK.toml, fitted on the other four robots with OC). The
 profile's NEES scale was fitted for OC, so it is fitted again for this filter the way
 ``slamlens tune`` fits it: the motion σ multiplied by m until the pooled pose NEES of the
 *other four* robots is within 2 % of 3 (a secant on ln m; at most 6 passes). Then the robot
@@ -31,7 +31,7 @@ from scipy import stats
 
 from slamlens.common.messages import Truth
 from slamlens.services.harness.dense_inekf import DenseInvariantEkf
-from slamlens.services.harness.mrclam_pipeline import DATA, left_out_profile
+from slamlens.services.harness.mrclam_pipeline import DATA, OC_FOLDS, left_out_profile
 from slamlens.services.slam import consistency
 from slamlens.services.slam.mrclam import load_mrclam
 from slamlens.services.slam.scoring import POSE_DOF, Scorer, TruthTrack
@@ -56,7 +56,7 @@ class Scored:
 def score_robot(profile_of: int, robot: int, motion: float) -> Scored:
     """``robot``'s run with the left-out profile of ``profile_of``, motion σ × ``motion``."""
     run = load_mrclam(DATA, robot)
-    s = left_out_profile(profile_of)
+    s = left_out_profile(profile_of, OC_FOLDS)
     ekf = DenseInvariantEkf(replace(s, sigma_v=s.sigma_v * motion, sigma_w=s.sigma_w * motion,
                                     robot=run.robot))
     scorer = Scorer(TruthTrack.from_mrclam(run), robot=run.robot)

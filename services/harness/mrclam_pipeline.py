@@ -44,10 +44,15 @@ def _monitor_nis_band() -> tuple[int, float, float]:
 NIS_WINDOW, NIS_LO, NIS_HI = _monitor_nis_band()
 
 
-def left_out_profile(robot: int) -> EstimatorSettings:
-    """The profile fitted on the other four robots (benchmarks/profiles/without-robotK.toml)."""
-    return load_settings(EstimatorSettings,
-                         REPO / "benchmarks" / "profiles" / f"without-robot{robot}.toml")
+#: the fold profiles of the shipped profile's tune run, and those of OC's (the linearisation
+#: shipped before: the experiments of docs/consistency.md were measured with them)
+FOLDS = REPO / "benchmarks" / "profiles"
+OC_FOLDS = FOLDS / "oc"
+
+
+def left_out_profile(robot: int, folds: Path = FOLDS) -> EstimatorSettings:
+    """The profile fitted on the other four robots (``folds``/without-robotK.toml)."""
+    return load_settings(EstimatorSettings, folds / f"without-robot{robot}.toml")
 
 
 def nis_windows_out(nis: np.ndarray) -> tuple[float, float]:
