@@ -30,6 +30,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import linalg
+from scipy.linalg import lapack
 
 from slamlens.common.messages import SlamState, Violation
 from slamlens.services.monitor.invariant import declares_invariant
@@ -63,19 +64,23 @@ def null_space(robot_xy: np.ndarray, first: np.ndarray) -> np.ndarray:
 
 def information(P: np.ndarray, factor: np.ndarray, N: np.ndarray) -> np.ndarray | None:
     """Nᵀ P⁻¹ N from ``factor``, the lower Cholesky factor of sym(P) + tol·I: the solve is
-    refined against P (each step O(N²); it converges by tol/(λ + tol) a step); None when
-    it does not converge (P singular or nearly so along N)."""
-    S = 0.5 * (P + P.T)
-    y = linalg.cho_solve((factor, True), N, check_finite=False)
+    refined against sym(P) (each step O(N²); it converges by tol/(λ + tol) a step); None
+    when it does not converge (P singular or nearly so along N). LAPACK's ``dpotrs`` on the
+    factor's transpose (Fortran order as it lies: no copy), sym(P)·y as two products
+    (no symmetric copy of P)."""
+    upper = factor.T  # Lᵀ, the upper factor of the same matrix
+    y, info = lapack.dpotrs(upper, N, lower=0)
     for _ in range(REFINE_STEPS):
-        step = linalg.cho_solve((factor, True), N - S @ y, check_finite=False)
+        if info != 0:
+            return None
+        step, info = lapack.dpotrs(upper, N - 0.5 * (P @ y + P.T @ y), lower=0)
         y += step
         size, scale = float(np.abs(step).max()), float(np.abs(y).max())
         if not (math.isfinite(size) and math.isfinite(scale)):
             return None
         if size <= REFINE_RTOL * scale:
-            info = N.T @ y
-            return 0.5 * (info + info.T)
+            out = N.T @ y
+            return 0.5 * (out + out.T)
     return None
 
 
