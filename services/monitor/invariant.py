@@ -15,7 +15,8 @@ standard EKF's in δ (P_mm untouched) but adds the turn noise to every landmark 
   is not checked (``growth_unchecked``).
 
 The unobservable directions at a state's own estimates are T N_ξ, N_ξ constant
-(:mod:`~slamlens.services.monitor.unobservable`). Pure: arrays in, arrays out.
+(:mod:`~slamlens.services.monitor.unobservable`, where the flag is read). Pure: arrays in,
+arrays out.
 """
 
 from __future__ import annotations
@@ -26,24 +27,22 @@ import numpy as np
 
 from slamlens.common.errors import MessageError
 from slamlens.common.messages import SlamState
+from slamlens.services.monitor.unobservable import (
+    INVARIANT_FLAG,
+    declares_invariant,
+    null_space,
+)
 
-#: the diagnostics key by which an estimator says it is the invariant EKF
-INVARIANT_FLAG = "linearisation.invariant"
-
-
-def declares_invariant(state: SlamState) -> bool:
-    return bool(state.diagnostics and state.diagnostics.get(INVARIANT_FLAG, 0.0) == 1.0)
+__all__ = ["INVARIANT_FLAG", "compared", "declares_invariant", "invariant_covariance"]
 
 
 def invariant_covariance(state: SlamState) -> np.ndarray:
     """P_ξ = T⁻¹ P T⁻ᵀ at the state's estimates: T⁻¹ = I − c eθᵀ, so P_ξ = P − c pᵀ − p cᵀ
-    + P_θθ c cᵀ with p = P eθ (O(N²), no matrix product)."""
+    + P_θθ c cᵀ with p = P eθ (O(N²), no matrix product). c is the rotation about the
+    origin at the estimates (:func:`null_space`'s third column) without its θ entry."""
     P = state.covariance
-    c = np.zeros(P.shape[0])
-    c[0], c[1] = -state.pose[1], state.pose[0]
-    if state.n:
-        c[3::2] = -state.landmarks[:, 1]
-        c[4::2] = state.landmarks[:, 0]
+    c = null_space(np.asarray(state.pose[:2], dtype=float), state.landmarks)[:, 2].copy()
+    c[2] = 0.0
     p = 0.5 * (P[:, 2] + P[2, :])
     out = P - np.outer(c, p)
     out -= np.outer(p, c)

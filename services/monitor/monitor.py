@@ -43,7 +43,11 @@ from slamlens.services.monitor.stats import (
     window_detail,
 )
 from slamlens.services.monitor.truth import TruthTracker
-from slamlens.services.monitor.unobservable import UnobservableCheck, declares_fej
+from slamlens.services.monitor.unobservable import (
+    UnobservableCheck,
+    declares_fej,
+    declares_invariant,
+)
 from slamlens.services.monitor.verdict import Verdict
 
 log = logging.getLogger(__name__)
@@ -254,7 +258,7 @@ class Monitor:
         stats.update(found.statistics)
         v = found.violation(state, rtol=s.rtol_unobservable,
                             theorem=s.check_unobservable == "always" or declares_fej(state)
-                            or invariant.declares_invariant(state))
+                            or declares_invariant(state))
         return [] if v is None else [v]
 
     # -- statistics ----------------------------------------------------------------------

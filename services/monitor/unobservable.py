@@ -33,18 +33,27 @@ from scipy import linalg
 from scipy.linalg import lapack
 
 from slamlens.common.messages import SlamState, Violation
-from slamlens.services.monitor.invariant import declares_invariant
 
 #: refinement steps at most, and the relative size of the last correction that says the
 #: information is determined (else P is too close to singular along N: skipped, like NEES)
 REFINE_STEPS = 6
 REFINE_RTOL = 1e-10
-#: the diagnostics key by which an estimator says it linearises at first estimates
+#: the diagnostics keys by which an estimator says it linearises at first estimates, and
+#: that it is the invariant EKF (:mod:`~slamlens.services.monitor.invariant`)
 FEJ_FLAG = "linearisation.fej"
+INVARIANT_FLAG = "linearisation.invariant"
 
 
 def declares_fej(state: SlamState) -> bool:
-    return bool(state.diagnostics and state.diagnostics.get(FEJ_FLAG, 0.0) == 1.0)
+    return _declares(state, FEJ_FLAG)
+
+
+def declares_invariant(state: SlamState) -> bool:
+    return _declares(state, INVARIANT_FLAG)
+
+
+def _declares(state: SlamState, flag: str) -> bool:
+    return bool(state.diagnostics and state.diagnostics.get(flag, 0.0) == 1.0)
 
 
 def null_space(robot_xy: np.ndarray, first: np.ndarray) -> np.ndarray:
