@@ -33,13 +33,13 @@ from slamlens.services.slam import ekf_iterated
 from slamlens.services.slam.ekf_storage import (
     SyrkArgs,
     downdate_lower,
+    held_diagonal,
     landmark_columns,
     lower_from_symmetric,
     robot_columns,
     robot_rows_into,
     symmetric,
     symmetric_after_predict,
-    theta_row,
     turn_lower,
     turned_rows,
 )
@@ -477,12 +477,7 @@ def _check_update(L: np.ndarray, N: int, xs: np.ndarray, vt: np.ndarray, u0: flo
     else:
         # ‖V_i‖² ≤ (1 + rtol)·P_ii + atol: no variance goes negative; it also bounds V (P_ii
         # ≤ COVARIANCE_LIMIT) and refuses NaN, so no separate finiteness test is needed
-        diag = np.diagonal(L)[:N]  # a strided view: N reads
-        if turn is not None:  # P_ii of J L Jᵀ: L_ii + 2 U_i L_θi + U_i² L_θθ
-            theta = theta_row(L, N)
-            diag = diag + turn * (2.0 * theta + turn * theta[2])
-        if held.shape[0]:  # P_ii of the state: L_ii less the held-back downdates
-            diag = diag - (held[:, :N] * held[:, :N]).sum(axis=0)
+        diag = held_diagonal(L, N, held, turn)  # P_ii through the held-back steps
         excess = sq - diag * (1.0 + guard.psd_rtol)
         worst = float(excess.max())
         if not worst <= guard.atol:

@@ -36,7 +36,7 @@ import math
 import numpy as np
 
 from slamlens.services.slam import ekf
-from slamlens.services.slam.ekf_storage import theta_row
+from slamlens.services.slam.ekf_storage import held_diagonal
 from slamlens.services.slam.models import wrap as _wrap
 
 
@@ -119,9 +119,7 @@ def _check(L: np.ndarray, N: int, x: np.ndarray, ws: ekf.Workspace, j: int) -> N
     if not float(np.abs(x[:N]).max()) <= ekf.STATE_LIMIT:
         raise ekf.RefusedStepError("non-finite", f"update of landmark {j} would make the "
                                                  "state non-finite")
-    U, held = ws.turn[:N], ws.pending[:ws.deferred, :N]
-    theta = theta_row(L, N)
-    diag = np.diagonal(L)[:N] + U * (2.0 * theta + U * theta[2]) - (held * held).sum(axis=0)
+    diag = held_diagonal(L, N, ws.pending[:ws.deferred], ws.turn[:N])
     if not float(np.abs(diag).max()) <= ekf.COVARIANCE_LIMIT:
         raise ekf.RefusedStepError("non-finite", f"update of landmark {j} would make P "
                                                  "non-finite")

@@ -252,6 +252,20 @@ def theta_row(L: np.ndarray, N: int) -> np.ndarray:
     return out
 
 
+def held_diagonal(L: np.ndarray, N: int, held: np.ndarray,
+                  turn: np.ndarray | None = None) -> np.ndarray:
+    """The diagonal of P = J L Jᵀ − Σ V Vᵀ, the steps a workspace holds back (V = the rows
+    of ``held``; J = I + turn·eθᵀ, or I for None): L_ii + 2 U_i L_θi + U_i² L_θθ − ‖V_i‖²
+    (O(mN)); a strided view of L's diagonal when nothing is held."""
+    diag = np.diagonal(L)[:N]
+    if turn is not None:
+        theta = theta_row(L, N)
+        diag = diag + turn * (2.0 * theta + turn * theta[2])
+    if held.shape[0]:
+        diag = diag - (held[:, :N] * held[:, :N]).sum(axis=0)
+    return diag
+
+
 def turn_lower(L: np.ndarray, U: np.ndarray, vt: np.ndarray, N: int, *,
                args: SyrkArgs | None = None) -> None:
     """L ← J L Jᵀ − V Vᵀ (J = I + U eθᵀ, V = vt[:, :N]ᵀ) on the lower triangle, in place,
