@@ -267,6 +267,11 @@ class DenseEkf:
         ids = sorted(self.index, key=self.index.__getitem__)
         return np.array(ids), np.array([self.x[self.index[i]:self.index[i] + 2] for i in ids])
 
+    @property
+    def pose_covariance(self) -> np.ndarray:
+        """P_vv, the robot's 3×3 block."""
+        return self.P[:3, :3]
+
     def covariance(self) -> np.ndarray:
         """P over robot and landmarks (without the extra states), in state order."""
         rows = [0, 1, 2] + [self.index[i] + k for i in self.landmarks()[0] for k in (0, 1)]

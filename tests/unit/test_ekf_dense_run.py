@@ -8,20 +8,18 @@ as they move, the gate, the new landmarks' rows — after every input, to roundi
 
 from __future__ import annotations
 
-import math
 from dataclasses import replace
 from pathlib import Path
 
-import numpy as np
 import pytest
 
 from slamlens.common.config import load_settings
-from slamlens.common.messages import Odometry
 from slamlens.services.harness.dense_ekf import DenseEkf
 from slamlens.services.slam.estimator import Estimator
 from slamlens.services.slam.mrclam import load_mrclam
 from slamlens.services.slam.settings import EstimatorSettings
 from slamlens.services.slam.victoria_park import load_victoria_park
+from tests.unit.dense_runs import run_both
 
 REPO = Path(__file__).resolve().parents[2]
 SMALL = REPO / "tests" / "fixtures" / "mrclam_small"
@@ -59,30 +57,3 @@ def test_the_estimator_is_the_dense_ekf_over_victoria_park(linearisation: str) -
     est, dense = Estimator(settings), DenseEkf(settings)
     updates = run_both(est, dense, run.events())
     assert updates == 3640 - 151 and est.n == 151 and est.gated == dense.gated == 0
-
-
-def run_both(est: Estimator, dense: DenseEkf, events) -> int:
-    """Each message into both filters; their innovations, S, pose and P compared after
-    every one, the maps and whole covariances at the end; the updates compared."""
-    updates = 0
-    for m in events:
-        report = est.apply(m)
-        applied = dense.apply(m)
-        if not isinstance(m, Odometry):
-            assert report is not None and len(report.innovation_ids) == len(applied)
-            for (nu, S), got_nu, got_S in zip(applied, report.innovations,
-                                              report.innovation_covariances, strict=True):
-                np.testing.assert_allclose(got_nu, nu, rtol=1e-6, atol=1e-9)
-                np.testing.assert_allclose(got_S, S, rtol=1e-6, atol=1e-12)
-            updates += len(applied)
-        pose = est.pose
-        assert math.isclose(pose[0], dense.x[0], abs_tol=1e-9)
-        assert math.isclose(pose[1], dense.x[1], abs_tol=1e-9)
-        assert abs(math.remainder(pose[2] - dense.x[2], 2 * math.pi)) < 1e-9
-        np.testing.assert_allclose(est.pose_covariance, dense.P[:3, :3], rtol=1e-6,
-                                   atol=1e-12)
-    ids, landmarks = dense.landmarks()
-    assert est.landmark_ids.tolist() == ids.tolist()
-    np.testing.assert_allclose(est.landmarks, landmarks, atol=1e-9)
-    np.testing.assert_allclose(est.covariance, dense.covariance(), rtol=1e-6, atol=1e-12)
-    return updates

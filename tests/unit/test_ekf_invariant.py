@@ -6,7 +6,6 @@ pass against numpy; a refused step writes nothing; what it cannot do is refused.
 
 from __future__ import annotations
 
-import math
 from dataclasses import replace
 from pathlib import Path
 
@@ -25,39 +24,10 @@ from slamlens.services.slam.mrclam import load_mrclam
 from slamlens.services.slam.settings import EstimatorSettings
 from slamlens.services.slam.sim import Simulator
 from slamlens.services.slam.world import load_world
+from tests.unit.dense_runs import run_both
 
 REPO = Path(__file__).resolve().parents[2]
 SMALL = REPO / "tests" / "fixtures" / "mrclam_small"
-
-
-def run_both(est: Estimator, dense: DenseInvariantEkf, events) -> int:
-    """Each input into both; innovations, S, pose and P_vv after every one, the maps and
-    whole covariances (the dense one's T P Tᵀ) every 50 inputs and at the end."""
-    updates = k = 0
-    for m in events:
-        report = est.apply(m)
-        applied = dense.apply(m)
-        k += 1
-        if isinstance(m, Observations):
-            assert report is not None and len(report.innovation_ids) == len(applied)
-            for (nu, S), got_nu, got_S in zip(applied, report.innovations,
-                                              report.innovation_covariances, strict=True):
-                np.testing.assert_allclose(got_nu, nu, rtol=1e-6, atol=1e-9)
-                np.testing.assert_allclose(got_S, S, rtol=1e-6, atol=1e-12)
-            updates += len(applied)
-        pose = est.pose
-        np.testing.assert_allclose(pose[:2], dense.x[:2], rtol=0, atol=1e-9)
-        assert abs(math.remainder(pose[2] - dense.x[2], 2 * math.pi)) < 1e-9
-        np.testing.assert_allclose(est.pose_covariance, dense.pose_covariance, rtol=1e-6,
-                                   atol=1e-12)
-        if k % 50 == 0:
-            np.testing.assert_allclose(est.covariance, dense.covariance(), rtol=1e-6,
-                                       atol=1e-12)
-    ids, landmarks = dense.landmarks()
-    assert est.landmark_ids.tolist() == ids.tolist()
-    np.testing.assert_allclose(est.landmarks, landmarks, rtol=0, atol=1e-9)
-    np.testing.assert_allclose(est.covariance, dense.covariance(), rtol=1e-6, atol=1e-12)
-    return updates
 
 
 @pytest.mark.parametrize("gate", [None, 1.0])
@@ -70,7 +40,7 @@ def test_the_estimator_is_the_dense_invariant_ekf_over_a_real_run(gate: float | 
     if gate is not None:
         settings = replace(settings, innovation_gate_chi2=gate)
     est, dense = Estimator(settings), DenseInvariantEkf(settings)
-    updates = run_both(est, dense, run.events(truth=False))
+    updates = run_both(est, dense, run.events(truth=False), whole_every=50)
     assert updates > 50 and est.n >= 5
     assert est.gated == dense.gated and (dense.gated > 0) == (gate is not None)
 
@@ -82,7 +52,7 @@ def test_the_estimator_is_the_dense_invariant_ekf_on_the_paper_world(seed: int) 
     events = [e for e in Simulator(world, seed=seed, loops=1).events()
               if not isinstance(e, Truth)]
     est, dense = Estimator(settings), DenseInvariantEkf(settings)
-    assert run_both(est, dense, events) > 100
+    assert run_both(est, dense, events, whole_every=50) > 100
 
 
 def test_the_rank_2k_pass_is_numpys_on_the_lower_triangle() -> None:
