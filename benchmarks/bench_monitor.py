@@ -125,6 +125,18 @@ def pct(values: list[float], q: float) -> float:
     return float(np.percentile(values, q))
 
 
+def alternated(variants: dict[str, tuple[list[SlamState], MonitorSettings]],
+               rounds: int) -> dict[str, float]:
+    """Median µs of ``check`` per state for each variant (its states, the monitor's
+    settings), whole runs alternated ``rounds`` times, in CPU time of the checking thread
+    (so that other work on the machine counts less)."""
+    times: dict[str, list[float]] = {name: [] for name in variants}
+    for _ in range(rounds):
+        for name, (states, settings) in variants.items():
+            times[name] += time_monitor(states, None, settings, clock=time.thread_time_ns)
+    return {name: statistics.median(t) for name, t in times.items()}
+
+
 def unobservable_cost(sizes: tuple[int, ...], rounds: int) -> None:
     """What the unobservable-directions check adds to ``check`` (docs/monitor.md): the
     same FEJ states checked with it off and on (auto: FEJ says so, so it is a theorem),
@@ -135,13 +147,9 @@ def unobservable_cost(sizes: tuple[int, ...], rounds: int) -> None:
         count = 200 if n <= 100 else 12
         states, _ = make_run(n, count, settings=EstimatorSettings(max_batch=0,
                                                                   linearisation="fej"))
-        times: dict[str, list[float]] = {"off": [], "auto": []}
-        for _ in range(rounds):
-            for mode in times:
-                times[mode] += time_monitor(states, None,
-                                            MonitorSettings(check_unobservable=mode),
-                                            clock=time.thread_time_ns)
-        off, on = (statistics.median(times[m]) for m in ("off", "auto"))
+        med = alternated({mode: (states, MonitorSettings(check_unobservable=mode))
+                          for mode in ("off", "auto")}, rounds)
+        off, on = med["off"], med["auto"]
         print(f"  n = {n:>4}: off {off:>10.0f} µs, on {on:>10.0f} µs, added {on - off:>8.0f} µs "
               f"({100 * (on - off) / off:+.1f} %)", flush=True)
 
@@ -155,14 +163,10 @@ def invariant_cost(sizes: tuple[int, ...], rounds: int) -> None:
           "checking thread)")
     for n in sizes:
         count = 200 if n <= 100 else 12
-        runs = {lin: make_run(n, count, settings=EstimatorSettings(max_batch=0,
-                                                                   linearisation=lin))[0]
-                for lin in ("oc", "invariant")}
-        times: dict[str, list[float]] = {lin: [] for lin in runs}
-        for _ in range(rounds):
-            for lin, states in runs.items():
-                times[lin] += time_monitor(states, None, clock=time.thread_time_ns)
-        oc, inv = (statistics.median(times[lin]) for lin in ("oc", "invariant"))
+        med = alternated({lin: (make_run(n, count, settings=EstimatorSettings(
+            max_batch=0, linearisation=lin))[0], MonitorSettings())
+            for lin in ("oc", "invariant")}, rounds)
+        oc, inv = med["oc"], med["invariant"]
         print(f"  n = {n:>4}: oc {oc:>10.0f} µs, invariant {inv:>10.0f} µs "
               f"(ratio {inv / oc:.2f})", flush=True)
 
