@@ -46,6 +46,7 @@ sys.path.insert(0, str(REPO))
 from slamlens.common.config import load_settings  # noqa: E402
 from slamlens.services.harness.mrclam_pipeline import (  # noqa: E402
     DATA,
+    FOLDS,
     PROFILE,
     PipelineResult,
     run_pipeline,
@@ -55,7 +56,6 @@ from slamlens.services.slam.mrclam import load_mrclam  # noqa: E402
 from slamlens.services.slam.settings import EstimatorSettings  # noqa: E402
 
 BEFORE = REPO / "benchmarks" / "profiles" / "mrclam6_before.toml"
-FOLDS = REPO / "benchmarks" / "profiles"
 HEADER = (f"{'robot':>6} {'run':>9} {'NEES':>7} {'windows':>8} {'states':>7} {'lm RMSE':>8} "
           f"{'rigid':>6} {'rot°':>6} {'pose':>6} {'head°':>6} {'DR pose':>8} {'DR head°':>8} "
           f"{'gated':>6} {'wall s':>7}")
