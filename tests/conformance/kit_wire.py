@@ -190,3 +190,31 @@ class StateWatch:
 
     def close(self) -> None:
         self._sub.undeclare()
+
+
+class LockStep:
+    """A third party's states of one robot, in lock step with the monitor: every Health of
+    the robot heard, by seq; :meth:`exchange` puts a state and returns the monitor's Health
+    of it (docs/protocol.md: the monitor answers each state it checks with a Health)."""
+
+    def __init__(self, s: zenoh.Session, robot: str) -> None:
+        self.states = plain(s, key(robot, "state"))
+        self.healths: dict[int, dict[str, Any]] = {}
+        self._heard = threading.Condition()
+        self._sub = s.declare_subscriber(key(robot, "health"), self._on_health)
+
+    def _on_health(self, sample: Any) -> None:
+        health = unpack(sample.payload.to_bytes())
+        with self._heard:
+            self.healths[int(health["seq"])] = health
+            self._heard.notify_all()
+
+    def exchange(self, state: bytes, seq: int) -> dict[str, Any]:
+        """Put ``state`` (of ``seq``) until its Health is heard — again if unheard: a late
+        subscriber, a lost sample — and return that Health."""
+        with self._heard:
+            for _ in range(int(PATIENCE_S / 5)):
+                self.states.put(state)
+                if self._heard.wait_for(lambda: seq in self.healths, 5.0):
+                    return self.healths[seq]
+        raise AssertionError(f"no Health for seq {seq}")

@@ -15,7 +15,6 @@ nothing waits on time.
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Iterator
 from typing import Any
 
@@ -55,16 +54,7 @@ class ThirdParty:
     def __init__(self, port: int, robot: str) -> None:
         self.robot = robot
         self.session = wire.session(port)
-        self.states = wire.plain(self.session, wire.key(robot, "state"))
-        self.healths: dict[int, dict[str, Any]] = {}
-        self.heard = threading.Condition()
-        self.sub = self.session.declare_subscriber(wire.key(robot, "health"), self._on_health)
-
-    def _on_health(self, sample: Any) -> None:
-        health = wire.unpack(sample.payload.to_bytes())
-        with self.heard:
-            self.healths[int(health["seq"])] = health
-            self.heard.notify_all()
+        self.lockstep = wire.LockStep(self.session, robot)
 
     def publish(self, seq: int, step: str, ekf: DenseInvariantEkf, flag: bool
                 ) -> dict[str, Any]:
@@ -77,12 +67,7 @@ class ThirdParty:
             "landmarks": wire.array(ekf.landmarks.reshape(n, 2), "<f8"),
             "covariance": wire.array(ekf.P.reshape(-1), "<f8"),
             "diagnostics": {FLAG: 1.0} if flag else {}})
-        with self.heard:
-            for _ in range(int(wire.PATIENCE_S / 5)):
-                self.states.put(state)  # again if unheard: a late subscriber, a lost sample
-                if self.heard.wait_for(lambda: seq in self.healths, 5.0):
-                    return self.healths[seq]
-        raise AssertionError(f"no Health for seq {seq}")
+        return self.lockstep.exchange(state, seq)
 
     def close(self) -> None:
         self.session.close()

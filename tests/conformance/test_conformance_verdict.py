@@ -15,7 +15,6 @@ or a bound of states.
 
 from __future__ import annotations
 
-import threading
 from collections.abc import Iterator
 from typing import Any
 
@@ -40,18 +39,9 @@ class Conservative:
     def __init__(self, port: int) -> None:
         self.session = wire.session(port)
         self.rng = np.random.default_rng(32)
-        self.states = wire.plain(self.session, wire.key(ROBOT, "state"))
+        self.lockstep = wire.LockStep(self.session, ROBOT)
         self.truths = wire.plain(self.session, wire.key(ROBOT, "truth"))
-        self.healths: dict[int, dict[str, Any]] = {}
-        self.heard = threading.Condition()
-        self.sub = self.session.declare_subscriber(wire.key(ROBOT, "health"), self._on_health)
         self.seq = 0
-
-    def _on_health(self, sample: Any) -> None:
-        health = wire.unpack(sample.payload.to_bytes())
-        with self.heard:
-            self.healths[int(health["seq"])] = health
-            self.heard.notify_all()
 
     def step(self, *, truth: bool, s_over: float | None = 4.0,
              truth_off: float = 0.0) -> dict[str, Any]:
@@ -86,12 +76,7 @@ class Conservative:
             "landmark_ids": wire.array(LANDMARK_IDS, "<i8"),
             "landmarks": wire.array(LANDMARKS + SIGMA_LM, "<f8"),  # feature NEES 2 each
             "covariance": wire.array(cov.reshape(-1), "<f8"), **fields})
-        with self.heard:
-            for _ in range(int(wire.PATIENCE_S / 5)):
-                self.states.put(state)  # again if unheard: a late subscriber, a lost sample
-                if self.heard.wait_for(lambda: self.seq in self.healths, 5.0):
-                    return self.healths[self.seq]
-        raise AssertionError(f"no Health for seq {self.seq}")
+        return self.lockstep.exchange(state, self.seq)
 
     def close(self) -> None:
         self.session.close()
