@@ -12,6 +12,7 @@ monitor service should run) or see the latency of a multi-threaded Cholesky unde
 
     .venv/bin/python benchmarks/bench_monitor.py [--states 200] [--quick] [--unobservable]
     .venv/bin/python benchmarks/bench_monitor.py --invariant   # invariant EKF vs OC states
+    .venv/bin/python benchmarks/bench_monitor.py --nis-band    # measured vs textbook NIS band
 """
 
 from __future__ import annotations
@@ -35,6 +36,7 @@ from slamlens.common.messages import SlamState, Truth  # noqa: E402
 from slamlens.services.monitor import checks  # noqa: E402
 from slamlens.services.monitor.monitor import Monitor  # noqa: E402
 from slamlens.services.monitor.settings import MonitorSettings  # noqa: E402
+from slamlens.services.monitor.stats import WindowTest  # noqa: E402
 from slamlens.services.slam.estimator import Estimator  # noqa: E402
 from slamlens.services.slam.settings import EstimatorSettings  # noqa: E402
 
@@ -171,6 +173,35 @@ def invariant_cost(sizes: tuple[int, ...], rounds: int) -> None:
               f"(ratio {inv / oc:.2f})", flush=True)
 
 
+def nis_band_cost(rounds: int) -> None:
+    """What the NIS band that measures the innovations' dependence costs against the
+    textbook band (docs/monitor.md, "Statistical tests"): the window test alone on 100 000
+    χ²(2) samples, and ``check`` per state on the same run (n = 15) with either band, whole
+    runs alternated; the mean per state too (a window completes every 20th state here, so
+    the median state pays nothing)."""
+    x = np.random.default_rng(1).chisquare(2, size=100_000)
+    per: dict[str, list[float]] = {"white": [], "measured": []}
+    for _ in range(rounds):
+        for band in per:
+            test = WindowTest(dof=2, window=50, alpha=1e-6, band=band, measure_after=200)
+            t0 = time.perf_counter_ns()
+            test.add(x)
+            per[band].append((time.perf_counter_ns() - t0) / 1e3 / (x.size / 50))
+    white, measured = (statistics.median(per[b]) for b in ("white", "measured"))
+    print(f"NIS window test, per window of 50: textbook {white:.0f} µs, measured {measured:.0f} "
+          f"µs (ratio {measured / white:.1f}; {(measured - white) / 50:.2f} µs more per "
+          f"innovation)")
+    states, _ = make_run(15, 400)
+    times: dict[str, list[float]] = {"white": [], "measured": []}
+    for _ in range(rounds):
+        for band in times:
+            times[band] += time_monitor(states, None, MonitorSettings(nis_dependence=band),
+                                        clock=time.thread_time_ns)
+    for band, t in times.items():
+        print(f"  check() at n = 15, {band:>8} band: median {statistics.median(t):.0f} µs, "
+              f"mean {statistics.fmean(t):.0f} µs per state", flush=True)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--states", type=int, default=200, help="states per size")
@@ -181,7 +212,12 @@ def main() -> None:
     parser.add_argument("--invariant", action="store_true",
                         help="only the cost of checking the invariant EKF's states against "
                              "OC's (n = 15, 100, 1000)")
+    parser.add_argument("--nis-band", action="store_true",
+                        help="only the cost of the measured NIS band against the textbook one")
     args = parser.parse_args()
+    if args.nis_band:
+        nis_band_cost(rounds=2 if args.quick else 5)
+        return
     if args.invariant:
         invariant_cost((15, 100) if args.quick else (15, 100, 1000),
                        rounds=2 if args.quick else 5)

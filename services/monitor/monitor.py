@@ -79,7 +79,9 @@ class Monitor:
     def __init__(self, settings: MonitorSettings) -> None:
         self.settings = settings
         s = settings
-        self._nis = WindowTest(dof=2, window=s.nis_window, alpha=s.significance, dependent=False)
+        self._nis = WindowTest(dof=2, window=s.nis_window, alpha=s.significance,
+                               band=s.nis_dependence,
+                               measure_after=s.nis_measure_after * s.nis_window)
         self._nis_passed = False  #: the newest NIS window of the state being checked passed
         self._evidence = Evidence(half_life=s.evidence_half_life,
                                   suspect_score=s.suspect_score, suspect_ratio=s.suspect_ratio)
@@ -290,6 +292,7 @@ class Monitor:
         if self._nis.sliding_mean is not None:
             stats["nis_window_mean"] = self._nis.sliding_mean
             stats["nis_window_lo"], stats["nis_window_hi"] = self._nis.lo, self._nis.hi
+            stats["nis_tau"] = self._nis.tau
         return out + self._truth.check(state, stats, terms)
 
 

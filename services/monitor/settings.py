@@ -69,9 +69,16 @@ class MonitorSettings:
     significance: float = setting(1e-6, doc="two-sided α of each windowed test (one test per "
                                             "completed window, not per state)", min=1e-15,
                                   group=_STATISTICS)
-    nis_window: int = setting(50, doc="innovations per NIS window (innovations of a "
-                                      "consistent EKF are white: the band of the window mean "
-                                      "is χ²(2·N)/N)", min=1, group=_STATISTICS)
+    nis_window: int = setting(50, doc="innovations per NIS window", min=1, group=_STATISTICS)
+    nis_dependence: str = setting(
+        "measured", doc="how the NIS band counts a window's innovations: measured = as "
+                        "N / τ independent ones, τ from the autocorrelation of the run's NIS "
+                        "before the window (white innovations: τ ≈ 1, the textbook band); "
+                        "white = as N independent ones always, χ²(2·N)/N (docs/monitor.md)",
+        choices=("measured", "white"), group=_STATISTICS)
+    nis_measure_after: int = setting(
+        4, doc="NIS windows completed before their dependence is measured (the white band "
+               "until then)", min=1, group=_STATISTICS)
     nees_window: int = setting(50, doc="states per NEES window (NEES along one run is "
                                        "strongly autocorrelated: the band used is the "
                                        "dependence-robust one of a single χ²(dof) sample)",

@@ -7,7 +7,11 @@ run of S samples makes S / window tests and the false-alarm rate per run is ≈ 
 
 Two bands, because the two statistics differ in their dependence along one run:
 
-* NIS: the innovations of a consistent EKF are white, so N·mean ~ χ²(N·dof) exactly.
+* NIS: the innovations of a consistent EKF are white, so N·mean ~ χ²(N·dof) exactly. Real
+  sensors' errors persist from one sighting to the next, and then they are not: the band
+  used (``nis_dependence = "measured"``) counts a window of N as N / τ_N independent
+  samples, τ_N measured on the run's innovations before the window (dependence.py) — on
+  white innovations τ_N ≈ 1 and the band is the textbook one; ``"white"`` keeps that always.
 * NEES: the estimation error along one run is strongly autocorrelated (map errors persist
   for the whole run), so N·mean ~ χ²(N·dof) is false and would alarm on correct runs.
   The band used is the dependence-robust one: the window mean of fully dependent samples
@@ -23,7 +27,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.stats import chi2
 
+from slamlens.common.errors import ConfigError
 from slamlens.common.geometry import wrap_angle
+from slamlens.services.monitor.dependence import LagCovariance
 
 
 def chi2_band(dof: float, alpha: float) -> tuple[float, float]:
@@ -138,6 +144,7 @@ class WindowResult:
     lo: float
     hi: float
     samples: int
+    effective: float = 0.0  #: independent samples the band counted them as (0: not said)
 
     @property
     def failed(self) -> bool:
@@ -169,37 +176,84 @@ NEES_READING = {
 def window_detail(what: str, result: WindowResult, samples: str,
                   readings: dict[str, str]) -> str:
     """A failed window in words: "mean NIS 0.67 over 50 innovations, below [0.907, 3.7]: the
-    innovations are smaller than S predicts (timid: …)"."""
+    innovations are smaller than S predicts (timid: …)"; a band that counted the samples as
+    fewer independent ones (measured dependence) says so after the band: "… [0.21, 6.1]
+    (as 8.3 independent, correlated in time): …"."""
+    counted = ""
+    if 1.0 < result.effective < result.samples:
+        counted = f" (as {result.effective:.3g} independent, correlated in time)"
     return (f"{what} {result.mean:.3g} over {result.samples} {samples}, {result.side} "
-            f"[{result.lo:.3g}, {result.hi:.3g}]: {readings[result.side]}")
+            f"[{result.lo:.3g}, {result.hi:.3g}]{counted}: {readings[result.side]}")
 
 
 class WindowTest:
     """Tumbling-window test of the mean of χ²(dof) samples; also a sliding mean for display.
 
-    ``dependent=False``: samples independent, band of the mean = χ²(N·dof)/N.
-    ``dependent=True``: dependence-robust band of the mean = χ²(dof) (one sample).
+    ``band`` says how the samples of a window depend on each other:
+
+    * ``"white"``: independent, band of the mean = χ²(N·dof)/N;
+    * ``"dependent"``: the dependence-robust band of the mean = χ²(dof) (one sample);
+    * ``"measured"``: the stream's own dependence, measured on the samples before the window
+      (dependence.py): N samples weigh as N_eff = N / τ_N independent ones, and the band is
+      χ²(N_eff·dof)/N_eff (a χ² matched to the mean's mean and variance). White samples give
+      τ_N ≈ 1, the white band; before ``measure_after`` samples, the white band.
     """
 
-    def __init__(self, *, dof: int, window: int, alpha: float, dependent: bool) -> None:
+    BANDS = ("white", "dependent", "measured")
+
+    def __init__(self, *, dof: int, window: int, alpha: float, band: str,
+                 measure_after: int = 0) -> None:
+        if band not in self.BANDS:
+            raise ConfigError(f"band must be one of {self.BANDS}, got {band!r}")
         self.dof = dof
         self.window = window
-        if dependent:
+        self.alpha = alpha
+        self.band = band
+        self.measure_after = measure_after
+        self._lags = LagCovariance(window - 1) if band == "measured" else None
+        self.tau = 1.0  #: τ_N of the band in use (1 unless measured)
+        if band == "dependent":
             self.lo, self.hi = chi2_band(dof, alpha)
         else:
-            lo, hi = chi2_band(dof * window, alpha)
-            self.lo, self.hi = lo / window, hi / window
+            self.lo, self.hi = self._white
         self.sample_lo, self.sample_hi = chi2_band(dof, alpha)
         self._recent: deque[float] = deque(maxlen=window)
         self._sum = 0.0
         self._count = 0
         self._mean: float | None = None  #: sliding_mean, until a sample comes
 
+    @property
+    def effective(self) -> float:
+        """Independent samples the band counts a window as."""
+        return 1.0 if self.band == "dependent" else self.window / self.tau
+
+    @property
+    def _white(self) -> tuple[float, float]:
+        lo, hi = chi2_band(self.dof * self.window, self.alpha)
+        return lo / self.window, hi / self.window
+
+    def _measure(self) -> None:
+        """The band of the next window, from the samples so far (``band="measured"``)."""
+        assert self._lags is not None
+        self._lags.add(np.fromiter(self._recent, dtype=float, count=len(self._recent)))
+        if self._lags.count < self.measure_after:
+            return
+        tau = self._lags.tau(self.window)
+        if tau != self.tau:
+            self.tau = tau
+            effective = self.window / tau
+            lo, hi = chi2_band(self.dof * effective, self.alpha)
+            self.lo, self.hi = lo / effective, hi / effective
+
     def reset(self) -> None:
         self._recent.clear()
         self._sum = 0.0
         self._count = 0
         self._mean = None
+        if self._lags is not None:
+            self._lags.reset()
+            self.tau = 1.0
+            self.lo, self.hi = self._white
 
     def add(self, values: np.ndarray | list[float]) -> list[WindowResult]:
         """Add samples; returns the windows they completed (usually none or one)."""
@@ -221,7 +275,11 @@ class WindowTest:
         if self._count == self.window:
             self._sum, total = 0.0, self._sum
             self._count = 0
-            return WindowResult(total / self.window, self.lo, self.hi, self.window)
+            result = WindowResult(total / self.window, self.lo, self.hi, self.window,
+                                  self.effective)
+            if self._lags is not None:
+                self._measure()
+            return result
         return None
 
     @property
@@ -251,6 +309,6 @@ class FeatureWindows:
             acc[1] += 1
             if acc[1] == self.window:
                 done.append((fid, WindowResult(acc[0] / self.window, self.lo, self.hi,
-                                               self.window)))
+                                               self.window, 1.0)))
                 acc[0], acc[1] = 0.0, 0
         return done

@@ -61,7 +61,7 @@ class TruthTracker:
     def __init__(self, settings: MonitorSettings) -> None:
         self.settings = s = settings
         self._nees_pose = WindowTest(dof=3, window=s.nees_window, alpha=s.significance,
-                                     dependent=True)
+                                     band="dependent")
         self._nees_features = FeatureWindows(window=s.nees_window, alpha=s.significance)
         self._truth_sigma2 = np.square(np.resize(np.asarray(s.truth_pose_sigma, float), 3))
         self._truth_cov = np.diag(self._truth_sigma2)  #: added to Pvv for the pose NEES

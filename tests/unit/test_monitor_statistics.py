@@ -203,9 +203,9 @@ def test_the_truths_word_on_the_pose_stands_until_a_nees_window_fails(correct_ru
 
 
 def test_window_bands_follow_the_documented_distributions() -> None:
-    ind = WindowTest(dof=2, window=50, alpha=1e-3, dependent=False)
+    ind = WindowTest(dof=2, window=50, alpha=1e-3, band="white")
     assert (ind.lo, ind.hi) == pytest.approx(tuple(chi2.ppf([5e-4, 1 - 5e-4], 100) / 50))
-    dep = WindowTest(dof=3, window=50, alpha=1e-3, dependent=True)
+    dep = WindowTest(dof=3, window=50, alpha=1e-3, band="dependent")
     assert (dep.lo, dep.hi) == pytest.approx(tuple(chi2.ppf([5e-4, 1 - 5e-4], 3)))
     results = dep.add(np.full(120, 3.0))
     assert len(results) == 2 and not results[0].failed and dep.sliding_mean == 3.0
