@@ -309,6 +309,12 @@ def _linearisations(s: TuneSettings) -> list[str]:
     return out
 
 
+def _scales(s: TuneSettings) -> list[str]:
+    """What the NEES scale multiplies, as ``slamlens tune`` tries it: the rule named, or
+    both (``--scale choose``)."""
+    return ["motion", "all"] if s.scale == "choose" else [s.scale]
+
+
 def _run_tune(args: argparse.Namespace) -> int:
     from slamlens.services.slam import crossval, scoring, tuning
     from slamlens.services.slam.mrclam import load_mrclam
@@ -331,32 +337,30 @@ def _run_tune(args: argparse.Namespace) -> int:
         step = "scoring the robot left out" if number == 0 else f"pass {number}"
         return bar(f"tune ({what}) {step} (σ × {scale:.3f})", total)
 
-    linearisations = _linearisations(s)
+    candidates = [(lin, scale) for lin in _linearisations(s) for scale in _scales(s)]
     notes: list[str] = []
     cv: crossval.CrossValidation | None = None
     pool = ProcessPoolExecutor(s.jobs) if s.jobs > 1 and len(runs) > 1 else None
     try:
         if s.cross_validate and len(runs) >= 2:
             results = [crossval.cross_validate(
-                runs, crossval.Candidate(lin, s.motion_model, s.update_iterations),
-                gate_chi2=s.gate_chi2,
-                scaled=s.scale, progress=fold_progress, executor=pool)
-                for lin in linearisations]
+                runs, crossval.Candidate(lin, s.motion_model, s.update_iterations, scale),
+                gate_chi2=s.gate_chi2, progress=fold_progress, executor=pool)
+                for lin, scale in candidates]
             cv = crossval.choose(results)
             notes = crossval.report(results, cv)
             for line in notes:
                 print(line, file=sys.stderr, flush=True)
-            linearisations = [cv.candidate.linearisation]
+            candidates = [(cv.candidate.linearisation, cv.candidate.scale)]
 
-        def passes(lin: str) -> Any:
-            return lambda n, c: bar(f"tune ({lin}) pass {n} (σ × {c:.3f})", events)
+        def passes(lin: str, scale: str) -> Any:
+            return lambda n, c: bar(f"tune ({lin}, {scale} σ) pass {n} (σ × {c:.3f})", events)
 
         fits = [tuning.tune(runs, motion_model=s.motion_model, gate_chi2=s.gate_chi2,
                             base=EstimatorSettings(linearisation=lin,
                                                    update_iterations=s.update_iterations),
-                            scaled=s.scale,
-                            progress=passes(lin), executor=pool)
-                for lin in linearisations]
+                            scaled=scale, progress=passes(lin, scale), executor=pool)
+                for lin, scale in candidates]
     finally:
         for old in bars:
             old.close()
@@ -366,9 +370,9 @@ def _run_tune(args: argparse.Namespace) -> int:
     for line in tuning.camera_lines(result.fit.cameras):
         print(line, file=sys.stderr, flush=True)
     if len(fits) > 1:  # no robot left out to judge by: the fit's own figures decide
-        notes = [f"chosen by the fit itself (no robot left out): {r.linearisation} pooled "
-                 f"NEES {r.pooled_nees:.2f}, {'in' if r.passes() else 'NOT in'} its band"
-                 for r in fits]
+        notes = [f"chosen by the fit itself (no robot left out): {r.linearisation}, "
+                 f"{r.scaled} σ scaled, pooled NEES {r.pooled_nees:.2f}, "
+                 f"{'in' if r.passes() else 'NOT in'} its band" for r in fits]
     robots = ",".join(str(k) for k in s.robot_index)
     header = [f"slamlens estimator settings fitted by: slamlens tune {s.path} --robot-index "
               f"{robots} --motion-model {s.motion_model} --gate-chi2 {s.gate_chi2:g} "

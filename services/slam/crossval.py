@@ -4,12 +4,13 @@ A profile fitted on some robots is judged on a robot it was not fitted on: for e
 of the dataset, the whole fit (residuals, then the NEES scale: :func:`tuning.tune`) is made
 on the others and the estimator with that profile is scored on the one left out — pose NEES
 (time average and 100-state windows) and landmark RMSE after a rigid fit
-(:mod:`slamlens.services.slam.scoring`). Each *candidate* (a linearisation and a motion
-model) is cross-validated so; the one chosen is the one whose held-out robots meet the
-targets most often (NEES in [1, 6], landmark RMSE after a rigid fit ≤ 0.10 m), ties broken
-by the mean |ln(NEES / 3)| of the held-out robots. The profile shipped is then fitted on
-all the robots with the chosen candidate; its leave-one-out figures are what a lab can
-expect on a robot it has not fitted (docs/estimator.md, "Tuning").
+(:mod:`slamlens.services.slam.scoring`). Each *candidate* (a linearisation, a motion
+model and what the NEES scale multiplies) is cross-validated so; the one chosen is the one
+whose held-out robots meet the targets most often (NEES in [1, 6], landmark RMSE after a
+rigid fit ≤ 0.10 m), ties broken by the mean |ln(NEES / 3)| of the held-out robots. The
+profile shipped is then fitted on all the robots with the chosen candidate; its
+leave-one-out figures are what a lab can expect on a robot it has not fitted
+(docs/estimator.md, "Tuning").
 
 No I/O besides reading the dataset.
 """
@@ -50,6 +51,7 @@ class Candidate:
     linearisation: str  #: standard or fej (EstimatorSettings.linearisation)
     motion_model: str = "spec"  #: spec or distance (tuning.fit_noise)
     update_iterations: int = 1  #: EstimatorSettings.update_iterations (1 = the EKF)
+    scale: str = "motion"  #: what the NEES scale multiplies: motion or all (tuning.tune)
 
     @property
     def estimator(self) -> str:
@@ -60,7 +62,7 @@ class Candidate:
 
     @property
     def label(self) -> str:
-        return f"{self.estimator}, {self.motion_model} motion model"
+        return f"{self.estimator}, {self.motion_model} motion model, {self.scale} σ scaled"
 
 
 @dataclass
@@ -107,7 +109,7 @@ class CrossValidation:
 
 def cross_validate(runs: Sequence[MrclamRun], candidate: Candidate, *,
                    gate_chi2: float = 13.82, base: EstimatorSettings | None = None,
-                   scaled: str = "motion", progress: FoldProgress | None = None,
+                   progress: FoldProgress | None = None,
                    executor: Executor | None = None) -> CrossValidation:
     """Leave each robot out in turn (module docstring); at least two robots."""
     if len(runs) < 2:
@@ -118,7 +120,7 @@ def cross_validate(runs: Sequence[MrclamRun], candidate: Candidate, *,
     folds = []
     for k, held in enumerate(runs):
         train = [r for j, r in enumerate(runs) if j != k]
-        what = f"{candidate.estimator}, {held.robot} left out"
+        what = f"{candidate.estimator}, {candidate.scale} σ, {held.robot} left out"
         total = sum(events) - events[k]
 
         def tick(number: int, scale: float, what: str = what,
@@ -126,7 +128,8 @@ def cross_validate(runs: Sequence[MrclamRun], candidate: Candidate, *,
             return None if progress is None else progress(what, number, scale, total)
 
         result = tune(train, motion_model=candidate.motion_model, gate_chi2=gate_chi2,
-                      base=settings, scaled=scaled, progress=tick, executor=executor)
+                      base=settings, scaled=candidate.scale, progress=tick,
+                      executor=executor)
         test = evaluate_all([held], settings_with(settings, result.values), executor=executor,
                             progress=None if progress is None else progress(
                                 what, 0, result.scale, events[k]))[0]

@@ -180,8 +180,10 @@ class TuneSettings:
                   "needs two robots or more (docs/estimator.md)", flag="--no-cross-validate")
     scale: str = setting(
         "motion", doc="what the NEES scale multiplies: motion = the odometry σ only (the "
-                      "sensor σ stay as measured against the truth); all = every σ",
-        choices=("motion", "all"))
+                      "sensor σ stay as measured against the truth); all = every σ; choose "
+                      "= fit both and keep the one whose robots left out do better, as for "
+                      "the linearisation (docs/estimator.md)",
+        choices=("motion", "all", "choose"))
     jobs: int = setting(2, doc="processes scoring the robots of a pass at once (1 = this "
                                "process only)", min=1)
     folds: str = setting("", doc="also write each leave-one-robot-out profile here, as "

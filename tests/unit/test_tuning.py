@@ -266,7 +266,8 @@ def test_tune_fits_for_the_iterated_update_when_asked(tmp_path: Path) -> None:
     folder = two_robots(tmp_path)
     runs = [load_mrclam(folder, k) for k in (1, 2)]
     iterated = crossval.cross_validate(runs, crossval.Candidate("oc", update_iterations=10))
-    assert iterated.candidate.label == "oc, iterated (K = 10), spec motion model"
+    assert iterated.candidate.label == ("oc, iterated (K = 10), spec motion model, motion σ "
+                                        "scaled")
     for fold, held in zip(iterated.folds, runs, strict=True):
         assert fold.held_out == held.robot
         # the held-out figures: the fold's profile run by an Estimator with K = 10
@@ -290,3 +291,25 @@ def test_tune_fits_for_the_iterated_update_when_asked(tmp_path: Path) -> None:
 def _write(path: Path, text: str) -> Path:
     path.write_text(text)
     return path
+
+
+def test_scale_choose_cross_validates_both_rules(tmp_path: Path) -> None:
+    """``--scale choose`` makes a candidate of each rule; a candidate's rule reaches every
+    fold's fit: with ``all`` the sensor σ are the fold's measured ones × its scale."""
+    from slamlens.services.slam import crossval
+    from slamlens.services.slam.cli import _scales
+    from slamlens.services.slam.settings import TuneSettings
+
+    assert _scales(TuneSettings(scale="choose")) == ["motion", "all"]
+    assert _scales(TuneSettings(scale="all")) == ["all"]
+    folder = two_robots(tmp_path)
+    runs = [load_mrclam(folder, k) for k in (1, 2)]
+    every = crossval.cross_validate(runs, crossval.Candidate("fej", scale="all"))
+    assert every.candidate.label == "fej, spec motion model, all σ scaled"
+    for fold, held in zip(every.folds, runs, strict=True):
+        train = [r for r in runs if r is not held]
+        measured = tuning.fit_noise(train).values
+        assert fold.result.scaled == "all" and fold.result.scale != 1.0
+        for key in ("sigma_range", "sigma_bearing", "sigma_v", "sigma_w"):
+            assert fold.result.values[key] == pytest.approx(
+                measured[key] * fold.result.scale, rel=1e-12)
