@@ -127,16 +127,23 @@ def pct(values: list[float], q: float) -> float:
     return float(np.percentile(values, q))
 
 
-def alternated(variants: dict[str, tuple[list[SlamState], MonitorSettings]],
-               rounds: int) -> dict[str, float]:
-    """Median µs of ``check`` per state for each variant (its states, the monitor's
-    settings), whole runs alternated ``rounds`` times, in CPU time of the checking thread
-    (so that other work on the machine counts less)."""
+def alternated_times(variants: dict[str, tuple[list[SlamState], MonitorSettings]],
+                     rounds: int) -> dict[str, list[float]]:
+    """µs of ``check`` per state for each variant (its states, the monitor's settings),
+    whole runs alternated ``rounds`` times, in CPU time of the checking thread (so that
+    other work on the machine counts less)."""
     times: dict[str, list[float]] = {name: [] for name in variants}
     for _ in range(rounds):
         for name, (states, settings) in variants.items():
             times[name] += time_monitor(states, None, settings, clock=time.thread_time_ns)
-    return {name: statistics.median(t) for name, t in times.items()}
+    return times
+
+
+def alternated(variants: dict[str, tuple[list[SlamState], MonitorSettings]],
+               rounds: int) -> dict[str, float]:
+    """The median of :func:`alternated_times` for each variant."""
+    return {name: statistics.median(t)
+            for name, t in alternated_times(variants, rounds).items()}
 
 
 def unobservable_cost(sizes: tuple[int, ...], rounds: int) -> None:
@@ -192,11 +199,8 @@ def nis_band_cost(rounds: int) -> None:
           f"µs (ratio {measured / white:.1f}; {(measured - white) / 50:.2f} µs more per "
           f"innovation)")
     states, _ = make_run(15, 400)
-    times: dict[str, list[float]] = {"white": [], "measured": []}
-    for _ in range(rounds):
-        for band in times:
-            times[band] += time_monitor(states, None, MonitorSettings(nis_dependence=band),
-                                        clock=time.thread_time_ns)
+    times = alternated_times({band: (states, MonitorSettings(nis_dependence=band))
+                              for band in ("white", "measured")}, rounds)
     for band, t in times.items():
         print(f"  check() at n = 15, {band:>8} band: median {statistics.median(t):.0f} µs, "
               f"mean {statistics.fmean(t):.0f} µs per state", flush=True)

@@ -144,7 +144,7 @@ class WindowResult:
     lo: float
     hi: float
     samples: int
-    effective: float = 0.0  #: independent samples the band counted them as (0: not said)
+    effective: float  #: independent samples the band counted them as
 
     @property
     def failed(self) -> bool:

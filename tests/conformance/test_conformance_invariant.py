@@ -23,7 +23,7 @@ import numpy as np
 from kit_driver import Driver, estimator, last_state, stop_line
 from kit_ekf import assert_state_equals
 from kit_inekf import DenseInvariantEkf
-from kit_procs import endpoint, launch, wait_ready
+from kit_procs import endpoint, start
 from kit_run import SIGMA, apply, oracle, simulate
 
 FLAG = "linearisation.invariant"
@@ -76,8 +76,8 @@ class ThirdParty:
 def healths(router: int, robot: str, flag: bool) -> Iterator[dict[str, Any]]:
     """A monitor process for ``robot``; the third party's invariant EKF over a simulated
     run, a state after every input; the Health of each."""
-    monitor = launch("monitor", "--robot", robot, "--connect", endpoint(router))
-    wait_ready(monitor, "monitor ready")
+    monitor = start("monitor", "--robot", robot, "--connect", endpoint(router),
+                    ready="monitor ready")
     party = ThirdParty(router, robot)
     try:
         wire.wait_matched(party.session, wire.key(robot, "state"))

@@ -18,7 +18,7 @@ from typing import Any
 import kit_wire as wire
 import numpy as np
 import pytest
-from kit_procs import endpoint, launch, wait_ready
+from kit_procs import endpoint, start
 
 S = np.diag([0.01, 4e-4])  #: the innovation covariance the states declare
 PER_STATE = 5  #: innovations per state: a window of 50 every 10 states
@@ -69,8 +69,8 @@ class Correlated:
 def party(router: int, request: pytest.FixtureRequest) -> Iterator[Correlated]:
     """A monitor process for the robot, and the third party matched to it."""
     robot, scale = request.param
-    monitor = launch("monitor", "--robot", robot, "--connect", endpoint(router))
-    wait_ready(monitor, "monitor ready")
+    monitor = start("monitor", "--robot", robot, "--connect", endpoint(router),
+                    ready="monitor ready")
     third = Correlated(router, robot, scale)
     try:
         wire.wait_matched(third.session, wire.key(robot, "state"))

@@ -21,7 +21,7 @@ from typing import Any
 import kit_wire as wire
 import numpy as np
 import pytest
-from kit_procs import endpoint, launch, wait_ready
+from kit_procs import endpoint, start
 
 ROBOT = "conservative"
 LANDMARK_IDS = [5, 9]
@@ -90,8 +90,8 @@ def timid_nis(health: dict[str, Any]) -> bool:
 @pytest.fixture
 def party(router: int) -> Iterator[Conservative]:
     """A monitor process for the robot, and the third party matched to it."""
-    monitor = launch("monitor", "--robot", ROBOT, "--connect", endpoint(router))
-    wait_ready(monitor, "monitor ready")
+    monitor = start("monitor", "--robot", ROBOT, "--connect", endpoint(router),
+                    ready="monitor ready")
     third = Conservative(router)
     try:
         wire.wait_matched(third.session, wire.key(ROBOT, "state"))

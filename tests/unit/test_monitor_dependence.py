@@ -17,15 +17,22 @@ from slamlens.services.monitor.stats import WindowTest
 from tests.unit.monitor_runs import feed, violations
 
 
-def ar1_nis(rng: np.random.Generator, n: int, phi: float) -> np.ndarray:
-    """NIS |ν|² of 2-d unit innovations that follow ν_t = φ·ν_{t−1} + √(1−φ²)·ε_t: every
-    sample χ²(2) (mean 2, as a consistent filter's), dependent in time for φ ≠ 0."""
+def ar1_innovations(rng: np.random.Generator, n: int, phi: float) -> np.ndarray:
+    """n 2-d unit innovations that follow ν_t = φ·ν_{t−1} + √(1−φ²)·ε_t (unit variance at
+    every step), dependent in time for φ ≠ 0."""
     eps = rng.normal(size=(n, 2))
     nu = np.empty_like(eps)
     nu[0] = eps[0]
     gain = np.sqrt(1.0 - phi * phi)
     for t in range(1, n):
         nu[t] = phi * nu[t - 1] + gain * eps[t]
+    return nu
+
+
+def ar1_nis(rng: np.random.Generator, n: int, phi: float) -> np.ndarray:
+    """NIS |ν|² of :func:`ar1_innovations`: every sample χ²(2) (mean 2, as a consistent
+    filter's), dependent in time for φ ≠ 0."""
+    nu = ar1_innovations(rng, n, phi)
     return (nu * nu).sum(axis=1)
 
 
@@ -112,13 +119,7 @@ def test_the_band_is_white_until_measured_and_the_dependence_is_reported() -> No
 
 def states_with_innovations(nis_scale: float, phi: float, count: int) -> list[SlamState]:
     """Update states with 4 innovations each, S = I, ν AR(1) in time (scaled by √scale)."""
-    rng = np.random.default_rng(11)
-    eps = rng.normal(size=(4 * count, 2))
-    nu = np.empty_like(eps)
-    nu[0] = eps[0]
-    for t in range(1, nu.shape[0]):
-        nu[t] = phi * nu[t - 1] + np.sqrt(1 - phi * phi) * eps[t]
-    nu *= np.sqrt(nis_scale)
+    nu = ar1_innovations(np.random.default_rng(11), 4 * count, phi) * np.sqrt(nis_scale)
     return [SlamState(robot="r", seq=k, stamp=0.1 * k, step="update", pose=np.zeros(3),
                       landmark_ids=np.zeros(0, dtype=np.int64), landmarks=np.zeros((0, 2)),
                       covariance=np.zeros((3, 3)), innovation_ids=np.arange(4),
