@@ -37,7 +37,12 @@ REPO = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(REPO))
 
 from slamlens.services.harness.netns import Hosts, available, make_hosts, own_shm  # noqa: E402
-from slamlens.services.harness.procs import Service, slamlens_cmd, spawn, stop  # noqa: E402
+from slamlens.services.harness.procs import (  # noqa: E402
+    Service,
+    Started,
+    slamlens_cmd,
+    stop,
+)
 
 WAYS = ("direct, recovering", "direct, plain", "robot router, recovering")
 KEY = "bench/slow_link"
@@ -51,39 +56,32 @@ def _in(ns: str, argv: list[str], *, isolated: bool = False) -> Service:
 
 
 def _start(h: Hosts, way: str, args: argparse.Namespace,
-           procs: list[Service]) -> tuple[Service, Service]:
+           started: Started) -> tuple[Service, Service]:
     """The routers, the subscriber and the publisher of one run; returns (publisher,
     subscriber), the publisher matched."""
-    ws_router = _in(h.workstation, slamlens_cmd(
+    started.add(_in(h.workstation, slamlens_cmd(
         "router", "--listen", f"tcp/{h.workstation_ip}:7447", "--listen",
-        "tcp/127.0.0.1:7447"), isolated=True)
-    procs.append(ws_router)
-    ws_router.wait_for_line("router ready")
+        "tcp/127.0.0.1:7447"), isolated=True), ready="router ready")
     publisher_endpoint = f"tcp/{h.workstation_ip}:7447"
     if way.startswith("robot router"):
-        robot_router = spawn("router", "--listen", "tcp/127.0.0.1:7448", "--connect",
-                             f"tcp/{h.workstation_ip}:7447", netns=h.robot)
-        procs.append(robot_router)
-        robot_router.wait_for_line("router ready")
+        started.start("router", "--listen", "tcp/127.0.0.1:7448", "--connect",
+                      f"tcp/{h.workstation_ip}:7447", ready="router ready", netns=h.robot)
         publisher_endpoint = "tcp/127.0.0.1:7448"
-    sub = _in(h.workstation, [*PROBE, "collect", KEY, str(args.n), "--connect",
-                              "tcp/127.0.0.1:7447", *(["--plain"] if "plain" in way else [])],
-              isolated=True)
-    procs.append(sub)
-    sub.wait_for_line("collect ready")
-    pub = _in(h.robot, [*PROBE, "publish", KEY, str(args.n), str(args.size), "--period",
-                        str(args.period), "--connect", publisher_endpoint])
-    procs.append(pub)
-    pub.wait_for_line("publisher matched")
+    sub = started.add(_in(h.workstation, [
+        *PROBE, "collect", KEY, str(args.n), "--connect", "tcp/127.0.0.1:7447",
+        *(["--plain"] if "plain" in way else [])], isolated=True), ready="collect ready")
+    pub = started.add(_in(h.robot, [
+        *PROBE, "publish", KEY, str(args.n), str(args.size), "--period", str(args.period),
+        "--connect", publisher_endpoint]), ready="publisher matched")
     return pub, sub
 
 
 def one_run(way: str, args: argparse.Namespace) -> dict:
     h = make_hosts()
-    procs: list[Service] = []
+    started = Started()
     try:
         h.shape(args.rate, burst="16kb", latency="100ms")
-        pub, sub = _start(h, way, args, procs)
+        pub, sub = _start(h, way, args, started)
         pub.send_signal(signal.SIGUSR1)
         pub.wait_for_line(f"published {args.n}", timeout=args.n * args.period + 600)
         try:
@@ -93,9 +91,7 @@ def one_run(way: str, args: argparse.Namespace) -> dict:
         sub_out, _ = stop(sub)
         pub_out, _ = stop(pub)
     finally:
-        for p in procs:
-            if p.proc.poll() is None:
-                stop(p)
+        started.stop_all()
         h.remove()
     times = [float(line.split()[2]) for line in pub_out.splitlines()
              if line.startswith("put ")]

@@ -194,3 +194,27 @@ def stop(proc: Service, timeout: float = 10.0, *, sig: int = signal.SIGTERM) -> 
 def wait_for_line(proc: Service, text: str, timeout: float = 60.0) -> str:
     """Read a service's stdout until a line contains ``text`` (e.g. "estimator ready")."""
     return proc.wait_for_line(text, timeout)
+
+
+class Started:
+    """The services one test or benchmark starts, each once it printed its ready line;
+    :meth:`stop_all` (in a ``finally``) stops those still running."""
+
+    def __init__(self) -> None:
+        self.procs: list[Service] = []
+
+    def add(self, proc: Service, *, ready: str | None = None) -> Service:
+        """``proc``, kept to be stopped, once it printed ``ready`` (if given)."""
+        self.procs.append(proc)
+        if ready is not None:
+            proc.wait_for_line(ready)
+        return proc
+
+    def start(self, *args: str, ready: str, netns: str | None = None) -> Service:
+        """``slamlens ARGS`` (in network namespace ``netns``), once it printed ``ready``."""
+        return self.add(spawn(*args, netns=netns), ready=ready)
+
+    def stop_all(self) -> None:
+        for proc in self.procs:
+            if proc.poll() is None:
+                stop(proc)

@@ -15,7 +15,7 @@ import subprocess
 import time
 
 from slamlens.services.harness.netns import Hosts, curl_json, own_shm
-from slamlens.services.harness.procs import Service, slamlens_cmd, spawn, stop
+from slamlens.services.harness.procs import Service, Started, slamlens_cmd, spawn, stop
 
 ROBOT = "robot1"
 VIEWER = "http://127.0.0.1:8080"
@@ -29,15 +29,13 @@ def test_a_remote_viewer_draws_the_summary_behind_a_slow_link(two_hosts: Hosts) 
     h = two_hosts
     h.shape("20mbit", burst="32kbit", latency="400ms")
     local = "tcp/127.0.0.1:7447"
-    procs: list[Service] = []
+    started = Started()
 
     def start(ns: str, *args: str, ready: str, isolated: bool = False) -> Service:
-        argv = slamlens_cmd(*args)
-        proc = (Service(["ip", "netns", "exec", ns, *own_shm(argv)]) if isolated
-                else spawn(*args, netns=ns))
-        procs.append(proc)
-        proc.wait_for_line(ready)
-        return proc
+        if not isolated:
+            return started.start(*args, ready=ready, netns=ns)
+        argv = ["ip", "netns", "exec", ns, *own_shm(slamlens_cmd(*args))]
+        return started.add(Service(argv), ready=ready)
 
     try:
         start(h.workstation, "router", "--listen", f"tcp/{h.workstation_ip}:7447",
@@ -48,8 +46,8 @@ def test_a_remote_viewer_draws_the_summary_behind_a_slow_link(two_hosts: Hosts) 
         summary = start(h.robot, "summary", "--robot", ROBOT, ready="summary ready")
         viewer = start(h.workstation, "viewer", "--robot", ROBOT, "--source", "summary",
                        "--http", "127.0.0.1:8080", ready="viewer ready", isolated=True)
-        sim = spawn("sim", "--robot", ROBOT, "--rate", "2", "--seed", "7", netns=h.robot)
-        procs.append(sim)
+        sim = started.add(spawn("sim", "--robot", ROBOT, "--rate", "2", "--seed", "7",
+                                netns=h.robot))
 
         seen: list[int] = []
         deadline = time.monotonic() + 90
@@ -62,7 +60,7 @@ def test_a_remote_viewer_draws_the_summary_behind_a_slow_link(two_hosts: Hosts) 
                 break
             time.sleep(0.2)
         else:
-            logs = "\n".join(f"{p.args[-6:]}: {''.join(p.err[-8:])}" for p in procs)
+            logs = "\n".join(f"{p.args[-6:]}: {''.join(p.err[-8:])}" for p in started.procs)
             raise AssertionError(f"the remote viewer did not follow the robot: {seen}\n{logs}")
         shot = subprocess.run(["ip", "netns", "exec", h.workstation, "curl", "-s", "-D", "-",
                                "-o", "/dev/null", f"{VIEWER}/snapshot.png"],
@@ -73,9 +71,7 @@ def test_a_remote_viewer_draws_the_summary_behind_a_slow_link(two_hosts: Hosts) 
         summary_out, _ = stop(summary)
         stop(est)
     finally:
-        for proc in procs:
-            if proc.poll() is None:
-                stop(proc)
+        started.stop_all()
     assert viewer.returncode == 0 and summary.returncode == 0
     assert "summary stopped:" in summary_out
     answered = int(summary_out.split('"answered": ', 1)[1].split(",")[0])

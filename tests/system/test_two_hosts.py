@@ -17,7 +17,7 @@ import time
 import pytest
 
 from slamlens.services.harness.netns import Hosts, available, curl_json, make_hosts
-from slamlens.services.harness.procs import Service, spawn, stop
+from slamlens.services.harness.procs import Started, spawn, stop
 
 ROBOT = "robot1"
 VIEWER = "http://127.0.0.1:8080"
@@ -36,25 +36,20 @@ def _viewer_state(ns: str) -> dict | None:
 def test_the_robot_keeps_estimating_through_a_link_cut(two_hosts: Hosts) -> None:
     h = two_hosts
     local = "tcp/127.0.0.1:7447"  # each host's own loopback
-    procs: list[Service] = []
-
-    def start(ns: str, *args: str, ready: str) -> Service:
-        proc = spawn(*args, netns=ns)
-        procs.append(proc)
-        proc.wait_for_line(ready)
-        return proc
-
+    started = Started()
     try:
-        start(h.workstation, "router", "--listen", f"tcp/{h.workstation_ip}:7447",
-              "--listen", local, ready="router ready")
-        start(h.robot, "router", "--listen", local, "--connect",
-              f"tcp/{h.workstation_ip}:7447", ready="router ready")
-        est = start(h.robot, "estimator", "--robot", ROBOT, ready="estimator ready")
-        mon = start(h.workstation, "monitor", "--robot", ROBOT, ready="monitor ready")
-        viewer = start(h.workstation, "viewer", "--robot", ROBOT, "--http",
-                       "127.0.0.1:8080", ready="viewer ready")
-        sim = spawn("sim", "--robot", ROBOT, "--rate", "2", "--seed", "7", netns=h.robot)
-        procs.append(sim)
+        started.start("router", "--listen", f"tcp/{h.workstation_ip}:7447", "--listen", local,
+                      ready="router ready", netns=h.workstation)
+        started.start("router", "--listen", local, "--connect", f"tcp/{h.workstation_ip}:7447",
+                      ready="router ready", netns=h.robot)
+        est = started.start("estimator", "--robot", ROBOT, ready="estimator ready",
+                            netns=h.robot)
+        mon = started.start("monitor", "--robot", ROBOT, ready="monitor ready",
+                            netns=h.workstation)
+        viewer = started.start("viewer", "--robot", ROBOT, "--http", "127.0.0.1:8080",
+                               ready="viewer ready", netns=h.workstation)
+        sim = started.add(spawn("sim", "--robot", ROBOT, "--rate", "2", "--seed", "7",
+                                netns=h.robot))
 
         deadline = time.monotonic() + 60
         while time.monotonic() < deadline:
@@ -101,9 +96,7 @@ def test_the_robot_keeps_estimating_through_a_link_cut(two_hosts: Hosts) -> None
         mon_out, _ = stop(mon)
         stop(viewer)
     finally:
-        for proc in procs:
-            if proc.poll() is None:
-                stop(proc)
+        started.stop_all()
     e = _final(est_out, "estimator")
     assert e["odometry"] + e["observation_batches"] == inputs and e["lost"] == 0, e
     m = _final(mon_out, "monitor")
