@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import ipaddress
 import json
+from collections.abc import Iterable
 from typing import Any
 
 from slamlens.common.errors import ConfigError
@@ -23,3 +25,25 @@ def effective_endpoints(conf: Any, section: str, mode: str | None) -> list[str]:
     if isinstance(raw, dict):
         raw = raw.get(mode or "peer", [])
     return [str(e) for e in raw or []]
+
+
+def off_host(endpoints: Iterable[str]) -> list[str]:
+    """The endpoints among ``endpoints`` that lead off this host: neither a loopback
+    address (127.0.0.0/8, ::1, ``localhost``) nor a Unix socket."""
+    out = []
+    for endpoint in endpoints:
+        proto, _, rest = endpoint.partition("/")
+        if proto.startswith("unixsock"):
+            continue
+        address = rest.split("#", 1)[0].split("?", 1)[0]
+        host = address.rsplit(":", 1)[0] if ":" in address else address
+        host = host.strip("[]")
+        if host == "localhost":
+            continue
+        try:
+            if ipaddress.ip_address(host).is_loopback:
+                continue
+        except ValueError:  # a host name other than localhost: it may be anywhere
+            pass
+        out.append(endpoint)
+    return out

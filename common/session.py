@@ -27,7 +27,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from slamlens.common.endpoints import check_endpoint, effective_endpoints
+from slamlens.common.endpoints import check_endpoint, effective_endpoints, off_host
 from slamlens.common.errors import BusError, ConfigError
 from slamlens.common.keys import DEFAULT_PREFIX
 from slamlens.common.zenoh_bus import ZenohBus
@@ -141,10 +141,10 @@ def open_bus(settings: BusSettings) -> ZenohBus:
     import zenoh
 
     conf = build_config(settings)
+    mode = json.loads(conf.get_json("mode")) or "peer"
     try:
         session = zenoh.open(conf)
     except Exception as exc:
-        mode = json.loads(conf.get_json("mode")) or "peer"
         where = ", ".join(effective_endpoints(conf, "connect", mode)
                           or effective_endpoints(conf, "listen", mode)) or "no endpoint"
         reason = zenoh_reason(exc)
@@ -154,7 +154,7 @@ def open_bus(settings: BusSettings) -> ZenohBus:
             raise BusError(f"no Zenoh router answered at {where}: is `slamlens router` "
                            f"running there?{hint}") from None
         raise BusError(f"cannot open a Zenoh session on {where}: {reason}") from None
-    return ZenohBus(session)
+    return ZenohBus(session, off_host=off_host(effective_endpoints(conf, "connect", mode)))
 
 
 def free_tcp_endpoint(host: str = "127.0.0.1") -> str:

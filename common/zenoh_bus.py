@@ -6,7 +6,7 @@ import atexit
 import logging
 import threading
 import weakref
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 from slamlens.common.bus import (
@@ -109,11 +109,13 @@ def _let_go(entity: Any) -> None:
 class ZenohBus:
     """A :class:`Bus` on one Zenoh session; closes everything it declared on ``close``."""
 
-    def __init__(self, session: Any) -> None:
+    def __init__(self, session: Any, *, off_host: Sequence[str] = ()) -> None:
         import zenoh
 
         self._zenoh = zenoh
         self.session = session
+        #: the session's connect endpoints that leave this host (a cache's warning)
+        self._off_host = tuple(off_host)
         self.shm = ShmPool()  #: large payloads through shared memory (same host)
         self._entities: list[Any] = []
         self._lock = threading.Lock()
@@ -147,6 +149,8 @@ class ZenohBus:
         elif cache > 0:
             import zenoh.ext as zext
 
+            self._warn_off_host(key)
+
             def declare(samples: int) -> Any:
                 return zext.declare_advanced_publisher(
                     self.session, key, congestion_control=z.CongestionControl.DROP,
@@ -165,6 +169,16 @@ class ZenohBus:
         self._keep(out)
         return out
 
+    def _warn_off_host(self, key: str) -> None:
+        """One warning, at the first cache, for a session connected straight off this host."""
+        if not self._off_host:
+            return
+        log.warning("%s: this session connects straight to %s, off this host: a publisher "
+                    "with a cache then waits whenever a subscriber recovers across a slow "
+                    "link (zenoh-ext answers under the cache's lock); connect to a router on "
+                    "this host and link that router instead (docs/delivery.md)",
+                    key, ", ".join(self._off_host))
+        self._off_host = ()
     def subscribe(self, key: str, callback: Callback) -> Any:
         """Call ``callback(key, payload)`` on Zenoh's thread for every sample: it must
         return at once (store and wake a worker), never wait."""
