@@ -174,11 +174,12 @@ class ZenohBus:
         if not self._off_host:
             return
         log.warning("%s: this session connects straight to %s, off this host: a publisher "
-                    "with a cache then waits whenever a subscriber recovers across a slow "
-                    "link (zenoh-ext answers under the cache's lock); connect to a router on "
-                    "this host and link that router instead (docs/delivery.md)",
+                    "with a cache then waits while a subscriber recovers across a slow link "
+                    "(zenoh-ext answers under the cache's lock); connect to a router on this "
+                    "host and link that router instead (docs/delivery.md)",
                     key, ", ".join(self._off_host))
         self._off_host = ()
+
     def subscribe(self, key: str, callback: Callback) -> Any:
         """Call ``callback(key, payload)`` on Zenoh's thread for every sample: it must
         return at once (store and wake a worker), never wait."""
