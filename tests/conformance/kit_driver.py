@@ -90,6 +90,20 @@ def check_final(watch: wire.StateWatch, inputs: list[Input],
     return head
 
 
+def check_accounted(watch: wire.StateWatch, inputs: list[Input]) -> dict[str, Any]:
+    """Every input applied or counted (docs/protocol.md, "Unnumbered inputs": one that
+    Zenoh recovered after later ones were applied is counted ``late``; one missed for good
+    ``lost``), nothing duplicated, dropped or refused. Returns the header."""
+    n = len(inputs)
+    head = watch.wait(lambda h: sum(int(h.get(k, 0)) for k in ("seq", "late", "lost")) >= n,
+                      f"all {n} inputs applied or counted")
+    accounted = {k: int(head.get(k, 0)) for k in ("seq", "late", "lost")}
+    assert sum(accounted.values()) == n, f"{accounted} for {n} inputs (header {head})"
+    wrong = {k: head.get(k) for k in ("duplicates", "dropped", "refused") if head.get(k)}
+    assert not wrong, f"counts {wrong}, expected none (header {head})"
+    return head
+
+
 def stop_line(proc: Proc, code: int) -> dict[str, Any]:
     """Of an estimator stopped with SIGTERM: exit status 0 and the stop line ``estimator
     stopped: {JSON}``, which must carry the input counts (docs/protocol.md, "Counts");

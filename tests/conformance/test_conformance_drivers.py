@@ -5,6 +5,13 @@ and without the session's timestamping; a zenoh.ext advanced publisher; numbered
 ``--input-sources 2``. The estimator's final state must be the dense oracle's after every
 input in publication order (docs/estimator.md's models), to 1e-9, and the counts of
 "Counts" must be in ``state?header`` and say nothing went wrong.
+
+The advanced publisher is the exception the contract names: its congestion control is
+Zenoh's default, *drop*, so on a loaded machine Zenoh may drop an input and recover it
+from the cache after later ones of the other key were applied; unnumbered, it is then
+counted ``late`` and not applied ("For exact order across losses, number the inputs").
+There every input must be applied or counted, and the oracle must hold when none was late
+or lost.
 """
 
 from __future__ import annotations
@@ -13,7 +20,7 @@ import threading
 
 import kit_wire as wire
 import pytest
-from kit_driver import Driver, check_final, estimator, stop_line
+from kit_driver import Driver, check_accounted, check_final, estimator, stop_line
 from kit_run import simulate
 
 VARIANTS = {
@@ -35,12 +42,17 @@ def test_one_session_unpaced(router: int, variant: str) -> None:
     watch = wire.StateWatch(driver.session, robot)
     try:
         driver.publish(robot, inputs, numbered_from=1 if numbered else None)
-        check_final(watch, inputs, {"late": 0, "lost": 0, "dropped": 0})
+        if kind != "advanced" or not _late_or_lost(check_accounted(watch, inputs)):
+            check_final(watch, inputs, {"late": 0, "lost": 0, "dropped": 0})
     finally:
         watch.close()
         driver.close()
         code = est.stop()
     stop_line(est, code)
+
+
+def _late_or_lost(head: dict) -> bool:
+    return bool(head.get("late") or head.get("lost"))
 
 
 def test_two_sessions_merged_by_stamp(router: int) -> None:
