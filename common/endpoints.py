@@ -2,12 +2,12 @@
 
 from __future__ import annotations
 
-import ipaddress
 import json
 from collections.abc import Iterable
 from typing import Any
 
 from slamlens.common.errors import ConfigError
+from slamlens.common.hosts import is_loopback, split_host
 
 
 def check_endpoint(endpoint: str) -> str:
@@ -28,22 +28,14 @@ def effective_endpoints(conf: Any, section: str, mode: str | None) -> list[str]:
 
 
 def off_host(endpoints: Iterable[str]) -> list[str]:
-    """The endpoints among ``endpoints`` that lead off this host: neither a loopback
-    address (127.0.0.0/8, ::1, ``localhost``) nor a Unix socket."""
+    """The endpoints among ``endpoints`` that lead off this host: neither a Unix socket nor
+    a host that is this machine only (:func:`slamlens.common.hosts.is_loopback`)."""
     out = []
     for endpoint in endpoints:
         proto, _, rest = endpoint.partition("/")
         if proto.startswith("unixsock"):
             continue
-        address = rest.split("#", 1)[0].split("?", 1)[0]
-        host = address.rsplit(":", 1)[0] if ":" in address else address
-        host = host.strip("[]")
-        if host == "localhost":
-            continue
-        try:
-            if ipaddress.ip_address(host).is_loopback:
-                continue
-        except ValueError:  # a host name other than localhost: it may be anywhere
-            pass
-        out.append(endpoint)
+        parsed = split_host(rest.split("#", 1)[0].split("?", 1)[0])
+        if parsed is None or not is_loopback(parsed[0]):
+            out.append(endpoint)
     return out

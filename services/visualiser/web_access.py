@@ -22,11 +22,9 @@ same goes for requests aiohttp's parser refuses (an oversized request line or he
 from __future__ import annotations
 
 import hmac
-import ipaddress
 import logging
 import os
 import secrets
-import socket
 import ssl
 import stat
 import sys
@@ -40,6 +38,7 @@ from aiohttp.http_exceptions import HttpProcessingError
 
 from slamlens.common.drops import DropCounter
 from slamlens.common.errors import ConfigError
+from slamlens.common.hosts import is_loopback, split_host
 
 log = logging.getLogger("slamlens.viewer.web")
 
@@ -48,39 +47,7 @@ NO_STORE = {"Cache-Control": "no-store"}
 PAGES = ("/", "/ar")  #: opened from a URL with the token: redirected without it
 
 
-# -- addresses ------------------------------------------------------------------------
-def split_host(value: str) -> tuple[str, int | None] | None:
-    """``"Example.COM:8080"`` → ("example.com", 8080); ``"[::1]"`` → ("::1", None);
-    None if it is not HOST[:PORT]."""
-    value = value.strip().lower()
-    if value.startswith("["):
-        host, sep, rest = value[1:].partition("]")
-        if not sep or (rest and not rest.startswith(":")):
-            return None
-        port = rest[1:]
-    else:
-        host, _, port = value.partition(":")
-        if ":" in port:
-            return None
-    if not host or (port and not (port.isdigit() and 0 < int(port) < 65536)):
-        return None
-    return host.rstrip("."), int(port) if port else None
-
-
-def is_loopback(host: str) -> bool:
-    """True when ``host`` (an address or a name) is reachable from this machine only."""
-    if host.lower() == "localhost":
-        return True
-    try:
-        return ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        pass
-    try:
-        infos = socket.getaddrinfo(host, None)
-    except OSError:
-        return False  # unknown: treat as beyond loopback (the safe side)
-    return bool(infos) and all(ipaddress.ip_address(str(i[4][0]).split("%")[0]).is_loopback
-                               for i in infos)
+# -- addresses: split_host and is_loopback are slamlens.common.hosts's -------------
 
 
 # -- the token ------------------------------------------------------------------------
