@@ -198,7 +198,8 @@ def wait_for_line(proc: Service, text: str, timeout: float = 60.0) -> str:
 
 class Started:
     """The services one test or benchmark starts, each once it printed its ready line;
-    :meth:`stop_all` (in a ``finally``) stops those still running."""
+    :meth:`stop_all` (in a ``finally``) stops those still running, the last started first
+    (the router, started first, goes last)."""
 
     def __init__(self) -> None:
         self.procs: list[Service] = []
@@ -215,6 +216,6 @@ class Started:
         return self.add(spawn(*args, netns=netns), ready=ready)
 
     def stop_all(self) -> None:
-        for proc in self.procs:
+        for proc in reversed(self.procs):
             if proc.poll() is None:
                 stop(proc)

@@ -16,7 +16,7 @@ from slamlens.common.geometry import T_from_pose2, rotation_angle_deg
 from slamlens.common.keys import Keys
 from slamlens.common.messages import CameraControl, Registration, Truth, peek_fields
 from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus
-from slamlens.services.harness.procs import Service, spawn, stop
+from slamlens.services.harness.procs import Service, Started, spawn
 
 KEYS = Keys()
 ROBOT, CAMERA = "robot1", "overhead"
@@ -64,14 +64,11 @@ class Watch:
 @pytest.fixture
 def arena():
     ep = free_tcp_endpoint()
-    procs: list[Service] = []
+    started = Started()
 
     def start(*args: str, ready: str | None = None) -> Service:
-        proc = spawn(*args, "--connect", ep) if args[0] != "router" else spawn(*args)
-        procs.append(proc)
-        if ready:
-            proc.wait_for_line(ready)
-        return proc
+        return started.add(spawn(*args, "--connect", ep) if args[0] != "router"
+                           else spawn(*args), ready=ready)
 
     start("router", "--listen", ep, ready="router ready")
     bus = open_bus(BusSettings(connect=(ep,)))
@@ -83,9 +80,7 @@ def arena():
         yield ep, bus, watch, est, start
     finally:
         bus.close()
-        for proc in reversed(procs):
-            if proc.poll() is None:
-                stop(proc)
+        started.stop_all()
 
 
 def _registered_epoch(watch: Watch, epoch: int, reason: str):

@@ -23,7 +23,7 @@ from slamlens.common.keys import Keys
 from slamlens.common.messages import Registration, ServiceStatus, SlamState, peek_fields
 from slamlens.common.session import BusSettings, free_tcp_endpoint, open_bus
 from slamlens.services.harness.collect import StateCollector
-from slamlens.services.harness.procs import Service, spawn, stop
+from slamlens.services.harness.procs import Service, Started, spawn, stop
 from slamlens.services.recorder.foxglove_layout import SHIPPED, layout
 from tests.mcap_check import layout_topics, validate
 from tests.rrd_check import read_rrd, stores
@@ -80,13 +80,11 @@ def exported(tmp_path_factory) -> dict:
     files = {"rrd": d / "run.rrd", "mcap": d / "run.mcap", "layout": d / "robot1.json",
              "proxy_rrd": d / "proxy.rrd"}
     ep = free_tcp_endpoint()
-    procs: list[Service] = []
+    started = Started()
 
     def start(*args: str, ready: str) -> Service:
-        proc = spawn(*args, "--connect", ep) if args[0] != "router" else spawn(*args)
-        procs.append(proc)
-        proc.wait_for_line(ready)
-        return proc
+        return started.add(spawn(*args, "--connect", ep) if args[0] != "router"
+                           else spawn(*args), ready=ready)
 
     port = _free_port()
     proxy = Service([*RERUN_CLI, "--serve-grpc", "--bind", "127.0.0.1", "--port",
@@ -126,9 +124,7 @@ def exported(tmp_path_factory) -> dict:
         live.close()
         outputs = {name: stop(proc)[0] for name, proc in
                    (("rerun", sink), ("streamer", streamer), ("record", rec))}
-        for proc in reversed(procs):
-            if proc.poll() is None:
-                stop(proc)
+        started.stop_all()
         proxy.send_signal(signal.SIGINT)  # Rerun's CLI finishes its file on Ctrl-C
         proxy.wait(60)
     return {**files, "inputs": inputs, "states": dict(live.states),
